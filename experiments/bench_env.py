@@ -1,0 +1,213 @@
+"""Environment throughput: MJX (batched, one jitted scan) against CPU MuJoCo on one thread.
+
+A rollout is ``reset`` of B environments from the paper's distributions (collision-free starts
+redrawn) and ``T`` steps of uniformly random actions in one ``lax.scan``, under brax's
+``AutoResetWrapper(VmapWrapper(env))``; env-steps/s = B * T * rollouts / wall time, compile time
+excluded and printed apart. The CPU row steps the same MDP (:class:`regrasp_mjx.host.HostEnv`, same
+substeps, observation and reward) one problem at a time on one thread, restarting a problem when it
+ends, as the auto-reset does.
+
+    python experiments/bench_env.py --batch-sizes 1024,8192,32768 --out experiments/results
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
+
+from regrasp_mjx.config import EnvConfig
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.host import HostEnv
+from regrasp_mjx.testset import make_testset
+
+
+def make_rollout(env: RegraspEnv, batch: int, steps: int):
+    wrapped = AutoResetWrapper(VmapWrapper(env))
+
+    @jax.jit
+    def rollout(key):
+        k_reset, k_act = jax.random.split(key)
+        state = wrapped.reset(jax.random.split(k_reset, batch))
+
+        def body(state, k):
+            action = jax.random.uniform(k, (batch, env.action_size), minval=-1.0, maxval=1.0)
+            state = wrapped.step(state, action)
+            return state, (jnp.sum(state.reward), jnp.sum(state.done), jnp.sum(state.metrics["success"]))
+
+        _, (reward, done, success) = jax.lax.scan(body, state, jax.random.split(k_act, steps))
+        return jnp.sum(reward), jnp.sum(done), jnp.sum(success)
+
+    return rollout
+
+
+def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: int) -> dict:
+    env = RegraspEnv(config)
+    rollout = make_rollout(env, batch, steps)
+    t0 = time.perf_counter()
+    jax.block_until_ready(rollout(jax.random.PRNGKey(seed)))
+    compile_s = time.perf_counter() - t0
+    keys = jax.random.split(jax.random.PRNGKey(seed + 1), rollouts)
+    t0 = time.perf_counter()
+    for k in keys:
+        out = rollout(k)
+    reward, done, success = jax.block_until_ready(out)
+    wall = time.perf_counter() - t0
+    return {
+        "backend": jax.default_backend(),
+        "batch": batch,
+        "steps": steps,
+        "rollouts": rollouts,
+        "check_actions": config.check_actions,
+        "substeps": env.substeps,
+        "compile_s": round(compile_s, 2),
+        "wall_s": round(wall, 4),
+        "env_steps_per_s": batch * steps * rollouts / wall,
+        "episodes_ended_last_rollout": int(done),
+    }
+
+
+def bench_cpu(config: EnvConfig, total_steps: int, steps: int, seed: int) -> dict:
+    env = HostEnv(config)
+    problems = make_testset(64, seed, config)
+    rng = np.random.default_rng(seed)
+    actions = rng.uniform(-1.0, 1.0, size=(total_steps, 6))
+    t0 = time.perf_counter()
+    n = 0
+    while n < total_steps:
+        problem = problems.row((n // steps) % len(problems))
+        env.reset_from(problem)
+        for _ in range(steps):
+            _, _, done, _ = env.step(actions[n % total_steps])
+            n += 1
+            if done:
+                env.reset_from(problem)
+    wall = time.perf_counter() - t0
+    return {
+        "backend": "cpu-mujoco-1-thread",
+        "steps": n,
+        "wall_s": round(wall, 3),
+        "env_steps_per_s": n / wall,
+        "substeps": env.substeps,
+    }
+
+
+def bench_cpu_raw(config: EnvConfig, total_steps: int, seed: int) -> dict:
+    """The C work of a step alone: ``substeps`` x (mj_kinematics + mj_collision), no Python MDP.
+
+    An upper bound for any one-thread CPU implementation of the same step, so the ratio against it
+    is the conservative one.
+    """
+    import mujoco
+
+    env = HostEnv(config)
+    model, data = env.checker.model, env.checker.data
+    problems = make_testset(64, seed, config)
+    qpos = np.stack(
+        [
+            env.checker.scene.qpos(
+                problems.needle_pos[i], problems.needle_quat[i], problems.start_pos[i], problems.start_quat[i]
+            )
+            for i in range(64)
+        ]
+    )
+    calls = total_steps * env.substeps
+    t0 = time.perf_counter()
+    for i in range(calls):
+        data.qpos[:] = qpos[i % 64]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_collision(model, data)
+    wall = time.perf_counter() - t0
+    return {
+        "backend": "cpu-mujoco-1-thread-raw",
+        "steps": total_steps,
+        "wall_s": round(wall, 3),
+        "env_steps_per_s": total_steps / wall,
+        "substeps": env.substeps,
+    }
+
+
+def machine() -> str:
+    dev = jax.devices()[0]
+    desc = f"{dev.platform}:{getattr(dev, 'device_kind', '')}"
+    try:
+        cpu = subprocess.run(
+            ["sh", "-c", "grep -m1 'model name' /proc/cpuinfo | cut -d: -f2"], capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+    except Exception:
+        cpu = platform.processor()
+    return f"{desc}; CPU {cpu}; {os.cpu_count()} cores; jax {jax.__version__}"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--batch-sizes", default="1024,8192,32768")
+    p.add_argument("--steps", type=int, default=100, help="steps per rollout (the paper's horizon)")
+    p.add_argument("--rollouts", type=int, default=5)
+    p.add_argument("--cpu-steps", type=int, default=20000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--also-checked",
+        action="store_true",
+        help="also time the largest batch with check_actions=True (the NaN check)",
+    )
+    p.add_argument("--out", default=None, help="folder for bench_env.json and bench_env.md")
+    args = p.parse_args()
+
+    config = EnvConfig(check_actions=False)
+    print(f"machine: {machine()}", flush=True)
+    cpu = bench_cpu(config, args.cpu_steps, args.steps, args.seed)
+    print(f"CPU MuJoCo, 1 thread, whole MDP step (HostEnv): {cpu['env_steps_per_s']:,.0f} env-steps/s", flush=True)
+    raw = bench_cpu_raw(config, args.cpu_steps, args.seed)
+    print(f"CPU MuJoCo, 1 thread, kinematics+collision only: {raw['env_steps_per_s']:,.0f} env-steps/s", flush=True)
+    rows = []
+    sizes = [int(b) for b in args.batch_sizes.split(",")]
+    runs = [(b, config) for b in sizes]
+    if args.also_checked:
+        runs.append((sizes[-1], EnvConfig(check_actions=True)))
+    for batch, cfg in runs:
+        r = bench_mjx(cfg, batch, args.steps, args.rollouts, args.seed)
+        r["ratio_vs_cpu"] = r["env_steps_per_s"] / cpu["env_steps_per_s"]
+        r["ratio_vs_cpu_raw"] = r["env_steps_per_s"] / raw["env_steps_per_s"]
+        rows.append(r)
+        print(
+            f"MJX {r['backend']} batch {batch:>6} check_actions={cfg.check_actions!s:5}: "
+            f"{r['env_steps_per_s']:>14,.0f} env-steps/s  x{r['ratio_vs_cpu']:,.0f} vs CPU MDP step, "
+            f"x{r['ratio_vs_cpu_raw']:,.0f} vs CPU C calls only "
+            f"(compile {r['compile_s']} s)",
+            flush=True,
+        )
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "bench_env.json").write_text(
+            json.dumps({"machine": machine(), "cpu": cpu, "cpu_raw": raw, "mjx": rows}, indent=2)
+        )
+        lines = [
+            f"Machine: {machine()}",
+            "",
+            "| backend | batch | NaN check | env-steps/s | x CPU MDP step | x CPU C calls only | compile s |",
+            "| --- | ---: | --- | ---: | ---: | ---: | ---: |",
+            f"| CPU MuJoCo, 1 thread, MDP step (HostEnv) | 1 | no | {cpu['env_steps_per_s']:,.0f} | 1 | - | - |",
+            f"| CPU MuJoCo, 1 thread, kinematics+collision only | 1 | no | {raw['env_steps_per_s']:,.0f} | - | 1 | - |",
+        ]
+        lines += [
+            f"| MJX {r['backend']} | {r['batch']} | {'yes' if r['check_actions'] else 'no'} | "
+            f"{r['env_steps_per_s']:,.0f} | {r['ratio_vs_cpu']:,.0f} | {r['ratio_vs_cpu_raw']:,.0f} | {r['compile_s']} |"
+            for r in rows
+        ]
+        (out / "bench_env.md").write_text("\n".join(lines) + "\n")
+        print(f"wrote {out / 'bench_env.md'}")
+
+
+if __name__ == "__main__":
+    main()
