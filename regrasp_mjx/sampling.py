@@ -170,6 +170,8 @@ def sample_episode(
 class TestsetError(ValueError):
     """A test-set file that is missing, unreadable, or has wrong keys, shapes or values."""
 
+    __test__ = False  # not a pytest class, despite its name
+
 
 def save_testset(path: str | os.PathLike, episodes: Episode, meta: dict[str, Any]) -> Path:
     """Writes ``episodes`` (a batch) and ``meta`` to ``path`` atomically (temp file + rename)."""
