@@ -31,6 +31,19 @@ def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
+def quat_conj(q: np.ndarray) -> np.ndarray:
+    return np.array([q[0], -q[1], -q[2], -q[3]], float)
+
+
+def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
+    """``log`` of a unit quaternion: the shortest rotation vector (angle in [0, pi])."""
+    q = canonical(np.asarray(q, float))
+    norm = float(np.linalg.norm(q[1:]))
+    if norm < 1e-12:
+        return 2.0 * q[1:]
+    return q[1:] / norm * 2.0 * math.atan2(norm, q[0])
+
+
 def canonical(q: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
@@ -46,8 +59,7 @@ def relative(a_pos, a_quat, b_pos, b_quat) -> tuple[np.ndarray, np.ndarray]:
 
 def quat_angle(q1: np.ndarray, q2: np.ndarray) -> float:
     """Angle of ``q1 q2^-1`` in [0, pi]."""
-    conj = np.array([q2[0], -q2[1], -q2[2], -q2[3]])
-    d = quat_mul(q1, conj)
+    d = quat_mul(q1, quat_conj(q2))
     return 2.0 * math.atan2(float(np.linalg.norm(d[1:])), abs(float(d[0])))
 
 

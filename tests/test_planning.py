@@ -1,0 +1,227 @@
+"""OMPL planning on the host, paths to episodes, the planner pool and the demonstration CLI."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
+from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, path_to_actions, replay_paths
+from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
+from regrasp_mjx.planning.pool import PlannerPool
+from tests.pool_faults import faulty_plan
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _problem(episodes, i):
+    return (
+        np.r_[episodes.needle_pos[i], episodes.needle_quat[i]],
+        np.r_[episodes.start_pos[i], episodes.start_quat[i]],
+        np.r_[episodes.goal_pos[i], episodes.goal_quat[i]],
+    )
+
+
+def _dense_free(checker, needle, poses, step=0.05e-3, lever=0.0102):
+    """Re-checks a path every 0.05 mm of tool-point motion (5x finer than the planner's checks)."""
+    for a, b in zip(poses[:-1], poses[1:]):
+        rotvec = quat_to_rotvec(quat_mul(b[3:], quat_conj(a[3:])))
+        n = math.ceil((np.linalg.norm(b[:3] - a[:3]) + lever * np.linalg.norm(rotvec)) / step) + 1
+        for s in np.linspace(0.0, 1.0, n):
+            if checker.collides(
+                needle[:3], needle[3:], a[:3] + s * (b[:3] - a[:3]), quat_mul(quat_from_rotvec(s * rotvec), a[3:])
+            ):
+                return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def bit_reverse_plans(paper_testset):
+    episodes, _ = paper_testset
+    planner = OmplPlanner(PlannerConfig(planner="BITstar", direction="reverse", budget_s=5.0), seed=1)
+    return [(i, planner.plan(*_problem(episodes, i))) for i in range(4)]
+
+
+def test_planned_paths_are_collision_free_when_rechecked_densely(paper_testset, bit_reverse_plans):
+    episodes, _ = paper_testset
+    checker = HostChecker()
+    for i, result in bit_reverse_plans:
+        assert result.solved, result.error
+        needle, start, goal = _problem(episodes, i)
+        np.testing.assert_allclose(result.poses[0], start, atol=1e-9)  # reversed back: start first
+        np.testing.assert_allclose(result.poses[-1], goal, atol=1e-9)
+        assert _dense_free(checker, needle, result.poses)
+
+
+def test_a_demonstration_replays_to_success_with_plus_one_last(env, paper_testset, bit_reverse_plans):
+    episodes, _ = paper_testset
+    rows = [i for i, _ in bit_reverse_plans]
+    eps = jax.tree.map(lambda x: x[np.asarray(rows)], episodes)
+    ok, demos = replay_paths(env, make_replay(env), eps, [r.poses for _, r in bit_reverse_plans], batch=4)
+    assert ok.all()
+    for d in demos:
+        assert d["reward"][-1] == pytest.approx(1.0) and d["done"][-1] == 1.0
+        np.testing.assert_allclose(d["reward"][:-1], -0.02, atol=1e-7)
+        assert np.all(d["done"][:-1] == 0.0) and np.abs(d["action"]).max() <= 1.0
+        np.testing.assert_allclose(d["obs"][1:], d["next_obs"][:-1], atol=1e-7)
+
+
+def test_path_to_actions_by_hand():
+    ident = np.array([1.0, 0, 0, 0])
+    # 1.2 mm along x with 0.5 mm steps: ceil(2.4) = 3 steps of 0.4 mm, action 0.8.
+    poses = np.array([np.r_[0, 0, 0, ident], np.r_[0.0012, 0, 0, ident]])
+    np.testing.assert_allclose(path_to_actions(poses, 0.0005, math.radians(3)), [[0.8, 0, 0, 0, 0, 0]] * 3, atol=1e-6)
+    # 10 deg about z with 3 deg steps: ceil(3.33) = 4 steps of 2.5 deg, action 2.5 / 3.
+    q = quat_from_rotvec(np.array([0, 0, math.radians(10)]))
+    poses = np.array([np.r_[0, 0, 0, ident], np.r_[0, 0, 0, q]])
+    np.testing.assert_allclose(
+        path_to_actions(poses, 0.0005, math.radians(3)), [[0, 0, 0, 0, 0, 2.5 / 3]] * 4, atol=1e-6
+    )
+
+
+def test_straight_line_baseline(paper_testset):
+    episodes, _ = paper_testset
+    checker = HostChecker()
+    needle, _, goal = _problem(episodes, 0)
+    assert straight_line(checker, needle, goal, goal).solved
+    # From the goal pose shifted 3 mm along -y_e (past jaw a) back to the goal: jaw a crosses the wire.
+    rot = np.zeros(9)
+    import mujoco
+
+    mujoco.mju_quat2Mat(rot, goal[3:])
+    shifted = goal.copy()
+    shifted[:3] -= 0.003 * rot.reshape(3, 3)[:, 1]
+    result = straight_line(checker, needle, shifted, goal)
+    assert not result.solved and "collision" in result.error
+
+
+def test_bad_planner_inputs():
+    with pytest.raises(ValueError, match="planner='RRT' is not accepted"):
+        PlannerConfig(planner="RRT")
+    with pytest.raises(ValueError, match="budget_s=0 is not accepted"):
+        PlannerConfig(budget_s=0)
+    planner = OmplPlanner(PlannerConfig(budget_s=0.1))
+    good = np.r_[0, 0, 0, 1.0, 0, 0, 0]
+    with pytest.raises(ValueError, match="start pose must be 7 finite numbers"):
+        planner.plan(good, np.r_[np.nan, 0, 0, 1.0, 0, 0, 0], good)
+    with pytest.raises(ValueError, match="goal quaternion has norm 2"):
+        planner.plan(good, good, np.r_[0, 0, 0, 2.0, 0, 0, 0])
+
+
+# ---- the pool ----------------------------------------------------------------------------------
+def test_pool_survives_a_worker_that_raises_hangs_or_crashes():
+    with PlannerPool(2, plan_fn=faulty_plan, timeout_s=3.0, queue_size=8) as pool:
+        jobs = {
+            pool.submit({"kind": k, "value": v}, payload=k + str(v)): k
+            for k, v in [("ok", 1), ("raise", 0), ("hang", 0), ("crash", 0), ("ok", 2), ("ok", 3)]
+        }
+        t0 = time.monotonic()
+        results = pool.wait(30.0)
+        assert time.monotonic() - t0 < 25.0
+        by_kind = {jobs[r.job_id] + r.payload[-1]: r for r in results}
+        assert len(results) == 6 and pool.in_flight == 0
+        assert by_kind["ok1"].ok and by_kind["ok1"].result["value"] == 2
+        assert by_kind["ok3"].ok and by_kind["ok3"].result["value"] == 6
+        assert not by_kind["raise0"].ok and "planner exploded" in by_kind["raise0"].error
+        assert not by_kind["hang0"].ok and "timed out" in by_kind["hang0"].error
+        assert not by_kind["crash0"].ok and "worker died (exit code 3)" in by_kind["crash0"].error
+        assert pool.replaced == 2
+        # The pool still works after the replacements.
+        pool.submit({"kind": "ok", "value": 5})
+        assert [r.result["value"] for r in pool.wait(30.0)] == [10]
+        pids = [w.process.pid for w in pool._workers]
+    for pid in pids:  # no process outlives the pool
+        assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text().lower()
+
+
+def test_pool_submit_never_blocks_and_refuses_beyond_its_queue():
+    with PlannerPool(1, plan_fn=faulty_plan, timeout_s=60.0, queue_size=2) as pool:
+        t0 = time.monotonic()
+        ids = [pool.submit({"kind": "hang", "value": 0}) for _ in range(6)]
+        assert time.monotonic() - t0 < 1.0
+        # One runs, two wait; the rest are refused.
+        assert ids[:3] == [0, 1, 2] and ids[3:] == [None, None, None]
+        assert pool.collect() == []
+
+
+# ---- the demonstration CLI ----------------------------------------------------------------------
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def test_demos_cli_killed_and_restarted_ends_with_exactly_n_distinct(tmp_path):
+    out = tmp_path / "demos"
+    cmd = [
+        sys.executable,
+        "-m",
+        "regrasp_mjx.demos",
+        "--n",
+        "24",
+        "--workers",
+        "1",
+        "--planner",
+        "PRMstar",
+        "--budget-s",
+        "5",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and len(list((out / "plans").glob("p*.npz"))) < 6:
+        time.sleep(0.2)
+    workers = _children(proc.pid)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    before = {p.name: p.stat().st_mtime_ns for p in (out / "plans").glob("p*.npz")}
+    assert len(before) >= 6 and not (out / "demos.npz").exists()
+    time.sleep(3.0)  # orphaned workers notice their parent is gone and exit
+    assert all(not Path(f"/proc/{w}").exists() for w in workers), "a planner worker outlived its parent"
+
+    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    demos = load_demos(out)
+    assert demos.num_episodes == 24 and len(set(demos.problem_index.tolist())) == 24
+    for name, mtime in before.items():  # finished plans were kept, not recomputed
+        assert (out / "plans" / name).stat().st_mtime_ns == mtime
+    assert demos.obs.shape == (int(demos.length.sum()), 21)
+    ends = np.cumsum(demos.length) - 1
+    np.testing.assert_allclose(demos.reward[ends], 1.0)
+    assert demos.meta["settings"]["planner"]["planner"] == "PRMstar"
+    # The same folder with other settings is refused, not mixed.
+    other = subprocess.run(
+        cmd[:-3] + ["--seed", "9", "--out", str(out), "--quiet"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert other.returncode == 2 and "other settings" in other.stderr
+
+
+def test_load_demos_errors(tmp_path):
+    with pytest.raises(DemosError, match="demonstration set not found"):
+        load_demos(tmp_path)
+    np.savez(tmp_path / "demos.npz", meta=np.array("{}"), obs=np.zeros((2, 21)))
+    with pytest.raises(DemosError, match="lacks"):
+        load_demos(tmp_path)
