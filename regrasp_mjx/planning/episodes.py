@@ -136,7 +136,7 @@ def replay_paths(
         for j, i in enumerate(rows):
             padded[j, : lengths[i]] = actions[i]
         take = np.concatenate([rows, np.full(batch - len(rows), rows[0])])  # pad the batch: one compile
-        eps = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)[take], jnp.float32), episodes)
+        eps = jax.tree.map(lambda x, take=take: jnp.asarray(np.asarray(x)[take], jnp.float32), episodes)
         out = jax.tree.map(np.asarray, replay(eps, jnp.asarray(padded)))
         good, steps = demo_outcome(out, lengths[take])
         for j, i in enumerate(rows):

@@ -52,11 +52,12 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
     """The default plan function: OMPL from ``problem['start']`` to ``problem['goal']``.
 
     ``options``: ``planner`` (a PlannerConfig as a dict), ``scene`` (a SceneConfig as a dict),
-    ``seed``. One planner per worker and options, built on first use.
+    ``seed``, and ``method``: ``"ompl"`` (default) or ``"straight_line"`` (the baseline). One
+    planner per worker and options, built on first use.
     """
     from regrasp_mjx.config import SceneConfig
     from regrasp_mjx.host import HostChecker
-    from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig
+    from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
     from regrasp_mjx.scene import load_scene
 
     key = repr(sorted(options.items()))
@@ -66,7 +67,11 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
         cache[key] = OmplPlanner(
             PlannerConfig(**options.get("planner", {})), HostChecker(scene), options.get("seed", 0)
         )
-    r = cache[key].plan(problem["needle"], problem["start"], problem["goal"])
+    planner = cache[key]
+    if options.get("method", "ompl") == "straight_line":
+        r = straight_line(planner.checker, problem["needle"], problem["start"], problem["goal"], planner.config)
+    else:
+        r = planner.plan(problem["needle"], problem["start"], problem["goal"])
     return {
         "solved": r.solved,
         "plan_time_s": r.plan_time_s,
