@@ -1,0 +1,188 @@
+"""The learner's typed, frozen config, its scale presets and Table I's exploration settings."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from regrasp_mjx.config import ConfigError, EnvConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class Exploration:
+    """Mixed exploration (Algorithm 1). Probabilities change once per iteration (batch of episodes):
+    ``E_R = max(E_R - dE_R, 0)``, ``E_T = min(E_T + dE_T, 1)``."""
+
+    random_eps: float = 0.3  # E_R^0
+    random_eps_decay: float = 6e-4  # dE_R
+    targeted_eps: float = 0.1  # E_T^0
+    targeted_eps_growth: float = 4.5e-3  # dE_T
+
+    def __post_init__(self) -> None:
+        for name in ("random_eps", "targeted_eps"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+                raise ConfigError(f"{name}={v!r} is not accepted: a probability in [0, 1]")
+        for name in ("random_eps_decay", "targeted_eps_growth"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise ConfigError(f"{name}={v!r} is not accepted: a step in [0, 1]")
+
+    def at(self, iteration: int) -> tuple[float, float]:
+        """``(E_R, E_T)`` in force during ``iteration`` (0-based)."""
+        e_r = max(self.random_eps - self.random_eps_decay * iteration, 0.0)
+        e_t = min(self.targeted_eps + self.targeted_eps_growth * iteration, 1.0) if self.targeted_eps > 0 else 0.0
+        return e_r, e_t
+
+
+# Table I of the paper.
+EXPLORATION = {
+    "ddpg_bc": Exploration(0.3, 6e-4, 0.0, 0.0),
+    "targeted": Exploration(0.02, 0.0, 0.5, 0.0),
+    "mixed": Exploration(0.3, 6e-4, 0.1, 4.5e-3),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run depends on. Paper values (SPEC "Learner") unless marked ours.
+
+    Attributes:
+      env: the MDP.
+      exploration: E_R / E_T schedules (Table I).
+      num_envs: environments rolled out in parallel per iteration (paper 5).
+      updates_per_iteration: gradient steps per iteration (paper 200).
+      iterations_per_epoch: iterations between evaluations and checkpoints (paper 10).
+      epochs: paper 500.
+      batch_size: transitions per update, demonstrations included (256).
+      demo_fraction: share of each batch drawn from the demonstrations (ours: 0.25).
+      buffer_size: online replay buffer (1e6).
+      gamma, lr_actor, lr_critic, polyak, target_every, action_l2, prm_coef, bc_coef: as SPEC.
+      hidden: hidden layer sizes of both networks.
+      num_demos: demonstrations for BC (9900); built when the run has none.
+      planner_budget_s, planner_workers, planner_queue: the targeted-exploration planner pool.
+      demo_chunk: planner demonstrations are added to the online buffer this many transitions at a
+        time (one compiled insert).
+      seed: PRNG seed of everything but the planners' own sampling.
+    """
+
+    env: EnvConfig = EnvConfig(check_actions=False)
+    exploration: Exploration = EXPLORATION["mixed"]
+    num_envs: int = 5
+    updates_per_iteration: int = 200
+    iterations_per_epoch: int = 10
+    epochs: int = 500
+    batch_size: int = 256
+    demo_fraction: float = 0.25
+    buffer_size: int = 1_000_000
+    gamma: float = 0.99
+    lr_actor: float = 1e-4
+    lr_critic: float = 1e-4
+    polyak: float = 0.95
+    target_every: int = 40
+    action_l2: float = 1.0
+    prm_coef: float = 1e-3
+    bc_coef: float = 1e-3
+    hidden: tuple[int, ...] = (512, 512, 512)
+    num_demos: int = 9900
+    planner_budget_s: float = 10.0
+    planner_workers: int = 0
+    planner_queue: int = 256
+    demo_chunk: int = 512
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def positive_int(name: str, lo: int = 1) -> None:
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= lo):
+                raise ConfigError(f"{name}={v!r} is not accepted: an integer >= {lo}")
+
+        for name in (
+            "num_envs",
+            "updates_per_iteration",
+            "iterations_per_epoch",
+            "epochs",
+            "batch_size",
+            "buffer_size",
+            "target_every",
+            "num_demos",
+            "planner_queue",
+            "demo_chunk",
+        ):
+            positive_int(name)
+        positive_int("planner_workers", 0)
+        for name, lo, hi in (("gamma", 0.0, 0.9999), ("polyak", 0.0, 1.0), ("demo_fraction", 0.0, 0.99)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and lo <= v <= hi):
+                raise ConfigError(f"{name}={v!r} is not accepted: a number in [{lo}, {hi}]")
+        for name in ("lr_actor", "lr_critic", "planner_budget_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
+        for name in ("action_l2", "prm_coef", "bc_coef"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ConfigError(f"{name}={v!r} is not accepted: a finite number >= 0")
+        if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
+            raise ConfigError(f"hidden={self.hidden!r} is not accepted: a tuple of positive layer sizes")
+        if self.demo_batch < 1 or self.demo_batch >= self.batch_size:
+            raise ConfigError(
+                f"batch_size={self.batch_size} with demo_fraction={self.demo_fraction} leaves no "
+                "room for online or demonstration samples; accepted: 1 <= round(batch * fraction) < batch"
+            )
+        if self.buffer_size < self.online_batch:
+            raise ConfigError(f"buffer_size={self.buffer_size} is not accepted: at least one online batch")
+
+    @property
+    def demo_batch(self) -> int:
+        return int(round(self.batch_size * self.demo_fraction))
+
+    @property
+    def online_batch(self) -> int:
+        return self.batch_size - self.demo_batch
+
+
+PRESETS = {
+    # The paper's schedule: 500 epochs x 10 iterations x (5 episodes, 200 updates).
+    "paper": TrainConfig(),
+    # Massively parallel (ours): many more episodes per iteration, fewer iterations; the schedules
+    # step per iteration, so they are scaled to span the same share of training as the paper's.
+    "fast": TrainConfig(
+        num_envs=512,
+        updates_per_iteration=100,
+        iterations_per_epoch=10,
+        epochs=30,
+        exploration=Exploration(0.3, 0.3 / 150, 0.1, 0.9 / 60),
+    ),
+    # A minute on a CPU: the README's main command and CI.
+    "smoke": TrainConfig(
+        num_envs=16,
+        updates_per_iteration=20,
+        iterations_per_epoch=2,
+        epochs=2,
+        hidden=(64, 64),
+        buffer_size=20_000,
+        num_demos=24,
+        planner_budget_s=2.0,
+        planner_workers=1,
+    ),
+}
+
+
+def make_config(preset: str, exploration: str = "mixed", **overrides) -> TrainConfig:
+    """A preset with Table I's exploration setting and dotted overrides (``env.horizon=50``)."""
+    from regrasp_mjx.config import replace
+
+    if preset not in PRESETS:
+        raise ConfigError(f"preset={preset!r} is not accepted: one of {sorted(PRESETS)}")
+    if exploration not in EXPLORATION:
+        raise ConfigError(f"exploration={exploration!r} is not accepted: one of {sorted(EXPLORATION)}")
+    base = PRESETS[preset]
+    explo = EXPLORATION[exploration]
+    if preset == "fast" and exploration != "targeted":  # keep the scaled schedule's span
+        explo = dataclasses.replace(
+            base.exploration,
+            targeted_eps=explo.targeted_eps,
+            targeted_eps_growth=base.exploration.targeted_eps_growth if explo.targeted_eps else 0.0,
+        )
+    return replace(dataclasses.replace(base, exploration=explo), **overrides)

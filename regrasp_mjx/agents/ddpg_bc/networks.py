@@ -1,0 +1,58 @@
+"""Actor and critic MLPs (paper: 3 hidden layers of 512) and the deterministic policy.
+
+Observations are normalised by brax's running statistics (``brax.training.acme``) and clipped to
++-5 standard deviations (as HER's ``clip_obs``). The actor ends in tanh: actions in [-1, 1].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from brax.training import networks as brax_networks
+from brax.training.acme import running_statistics
+from flax import struct
+
+OBS_CLIP = 5.0
+
+
+@struct.dataclass
+class DDPGNetworks:
+    """Two flax modules; ``apply`` functions take (params, normaliser state, inputs)."""
+
+    actor: nn.Module = struct.field(pytree_node=False)
+    critic: nn.Module = struct.field(pytree_node=False)
+
+    def policy(self, actor_params: Any, normalizer: Any, obs: jax.Array) -> jax.Array:
+        return jnp.tanh(self.actor.apply(actor_params, normalize(obs, normalizer)))
+
+    def q(self, critic_params: Any, normalizer: Any, obs: jax.Array, action: jax.Array) -> jax.Array:
+        x = jnp.concatenate([normalize(obs, normalizer), action], axis=-1)
+        return self.critic.apply(critic_params, x)[..., 0]
+
+
+def normalize(obs: jax.Array, normalizer: Any) -> jax.Array:
+    return running_statistics.normalize(obs, normalizer, max_abs_value=OBS_CLIP)
+
+
+def make_networks(action_size: int, hidden: Sequence[int] = (512, 512, 512)) -> DDPGNetworks:
+    hidden = tuple(int(h) for h in hidden)
+    return DDPGNetworks(
+        actor=brax_networks.MLP(layer_sizes=hidden + (action_size,), activation=nn.relu),
+        critic=brax_networks.MLP(layer_sizes=hidden + (1,), activation=nn.relu),
+    )
+
+
+def init_params(nets: DDPGNetworks, key: jax.Array, obs_size: int, action_size: int) -> tuple[Any, Any]:
+    k_actor, k_critic = jax.random.split(key)
+    actor = nets.actor.init(k_actor, jnp.zeros((1, obs_size)))
+    critic = nets.critic.init(k_critic, jnp.zeros((1, obs_size + action_size)))
+    return actor, critic
+
+
+def make_inference_fn(nets: DDPGNetworks) -> Callable[[Any, Any, jax.Array], jax.Array]:
+    """``policy(actor_params, normalizer, obs) -> action`` (deterministic)."""
+    return nets.policy

@@ -1,0 +1,261 @@
+"""One jitted program per iteration: vmapped rollouts, buffer inserts, the updates in a scan.
+
+An iteration resets ``num_envs`` environments to fresh problems and runs ``horizon`` steps with
+exploration (an action is uniformly random with probability E_R, else the policy's); an
+environment that ends restarts its problem (brax's auto-reset), so every one of the
+``num_envs * horizon`` transitions is valid and goes into the online buffer. Then
+``updates_per_iteration`` DDPG+BC updates, each on ``online_batch`` online and ``demo_batch``
+demonstration samples (flashbax item buffers); the target networks move by polyak averaging every
+``target_every`` updates. The first episode of each environment is the one that counts for
+Algorithm 1: the host sends failed ones to the planner pool with probability E_T.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import flashbax as fbx
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training.acme import running_statistics, specs
+from flax import struct
+
+from regrasp_mjx.agents.ddpg_bc import losses
+from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
+from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.sampling import Episode
+
+TRANSITION = ("obs", "action", "reward", "next_obs", "terminal")
+
+
+@struct.dataclass
+class TrainingState:
+    actor: Any
+    critic: Any
+    target_actor: Any
+    target_critic: Any
+    actor_opt: Any
+    critic_opt: Any
+    normalizer: Any
+    online: Any
+    demos: Any
+    key: jax.Array
+    updates: jax.Array  # gradient steps so far
+    iteration: jax.Array
+
+
+def _transition_spec(obs_size: int, action_size: int) -> dict[str, jax.Array]:
+    return {
+        "obs": jnp.zeros(obs_size),
+        "action": jnp.zeros(action_size),
+        "reward": jnp.zeros(()),
+        "next_obs": jnp.zeros(obs_size),
+        "terminal": jnp.zeros(()),
+    }
+
+
+class Learner:
+    """Builds the networks, buffers and jitted programs for one :class:`TrainConfig`."""
+
+    def __init__(self, config: TrainConfig, env: RegraspEnv | None = None):
+        self.config = config
+        self.env = env if env is not None else RegraspEnv(config.env)
+        self.nets: DDPGNetworks = make_networks(self.env.action_size, config.hidden)
+        self.actor_opt = optax.adam(config.lr_actor)
+        self.critic_opt = optax.adam(config.lr_critic)
+        self.online_buffer = fbx.make_item_buffer(
+            max_length=config.buffer_size,
+            min_length=config.online_batch,
+            sample_batch_size=config.online_batch,
+            add_batches=True,
+        )
+        self.trace_count = 0  # how often the iteration program was traced (tests assert one)
+        self.iteration = jax.jit(self._iteration, donate_argnums=(0,))
+        self.evaluate = jax.jit(self._evaluate)
+        self.add_online = jax.jit(self._add_online, donate_argnums=(0,))
+
+    # ---- state --------------------------------------------------------------------------------
+    def init(self, key: jax.Array, demos: dict[str, jax.Array]) -> TrainingState:
+        """Fresh networks and optimisers, the demonstrations loaded, the normaliser seeded with them."""
+        cfg = self.config
+        obs_size, action_size = self.env.observation_size, self.env.action_size
+        k_init, k_run = jax.random.split(key)
+        actor, critic = init_params(self.nets, k_init, obs_size, action_size)
+        spec = _transition_spec(obs_size, action_size)
+        n_demo = int(demos["obs"].shape[0])
+        demo_buffer = fbx.make_item_buffer(
+            max_length=n_demo, min_length=1, sample_batch_size=cfg.demo_batch, add_batches=True
+        )
+        demo_state = demo_buffer.add(
+            demo_buffer.init(spec), {k: jnp.asarray(demos[k], jnp.float32) for k in TRANSITION}
+        )
+        self.demo_buffer = demo_buffer
+        normalizer = running_statistics.init_state(specs.Array((obs_size,), jnp.float32))
+        normalizer = running_statistics.update(normalizer, jnp.asarray(demos["obs"], jnp.float32))
+        return TrainingState(
+            actor=actor,
+            critic=critic,  # targets start equal, in buffers of their own (donation)
+            target_actor=jax.tree.map(jnp.copy, actor),
+            target_critic=jax.tree.map(jnp.copy, critic),
+            actor_opt=self.actor_opt.init(actor),
+            critic_opt=self.critic_opt.init(critic),
+            normalizer=normalizer,
+            online=self.online_buffer.init(spec),
+            demos=demo_state,
+            key=k_run,
+            updates=jnp.int32(0),
+            iteration=jnp.int32(0),
+        )
+
+    def attach_demo_buffer(self, num_demo_transitions: int) -> None:
+        """Rebuilds the demonstration buffer's functions (for a state loaded from a checkpoint)."""
+        self.demo_buffer = fbx.make_item_buffer(
+            max_length=num_demo_transitions, min_length=1, sample_batch_size=self.config.demo_batch, add_batches=True
+        )
+
+    # ---- the jitted iteration --------------------------------------------------------------------
+    def _policy(self, ts: TrainingState):
+        return functools.partial(self.nets.policy, ts.actor, ts.normalizer)
+
+    def _rollout(self, ts: TrainingState, key: jax.Array, random_eps: jax.Array):
+        env, cfg = self.env, self.config
+        k_reset, k_steps = jax.random.split(key)
+        first = jax.vmap(env.reset)(jax.random.split(k_reset, cfg.num_envs))
+        policy = self._policy(ts)
+
+        def step(carry, k):
+            state, outcome = carry
+            k_coin, k_rand = jax.random.split(k)
+            explore = jax.random.uniform(k_coin, (cfg.num_envs, 1)) < random_eps
+            action = jnp.where(
+                explore,
+                jax.random.uniform(k_rand, (cfg.num_envs, env.action_size), minval=-1.0, maxval=1.0),
+                policy(state.obs),
+            )
+            nxt = jax.vmap(env.step)(state, action)
+            terminal = nxt.done * (1.0 - nxt.info["truncation"])
+            transition = {
+                "obs": state.obs,
+                "action": action,
+                "reward": nxt.reward,
+                "next_obs": nxt.obs,
+                "terminal": terminal,
+            }
+            # The first episode of each environment decides Algorithm 1's "failed episode".
+            ended = (outcome[:, 0] == 0) & (nxt.done > 0)
+            new = jnp.stack(
+                [
+                    jnp.ones_like(nxt.done),
+                    nxt.metrics["success"],
+                    nxt.metrics["collision"],
+                    nxt.metrics["path_length_mm"],
+                    nxt.pipeline_state.t.astype(jnp.float32),
+                ],
+                axis=1,
+            )
+            outcome = jnp.where(ended[:, None], new, outcome)
+            reset = nxt.done > 0
+            state = jax.tree.map(lambda f, x: jnp.where(reset.reshape((-1,) + (1,) * (x.ndim - 1)), f, x), first, nxt)
+            return (state, outcome), (transition, nxt.reward)
+
+        outcome0 = jnp.zeros((cfg.num_envs, 5))
+        (_, outcome), (transitions, rewards) = jax.lax.scan(
+            step, (first, outcome0), jax.random.split(k_steps, cfg.env.horizon)
+        )
+        return first, outcome, transitions, rewards
+
+    def _update(self, ts: TrainingState, key: jax.Array):
+        cfg, nets = self.config, self.nets
+        k_online, k_demo = jax.random.split(key)
+        online = self.online_buffer.sample(ts.online, k_online).experience
+        demo = self.demo_buffer.sample(ts.demos, k_demo).experience
+        batch = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), online, demo)
+        is_demo = jnp.arange(cfg.batch_size) >= cfg.online_batch
+        policy = functools.partial(lambda p, o: nets.policy(p, ts.normalizer, o))
+        q = functools.partial(lambda p, o, a: nets.q(p, ts.normalizer, o, a))
+
+        (_, c_metrics), c_grad = jax.value_and_grad(losses.critic_loss, has_aux=True)(
+            ts.critic, ts.target_actor, ts.target_critic, batch, policy, q, cfg.gamma
+        )
+        c_upd, critic_opt = self.critic_opt.update(c_grad, ts.critic_opt, ts.critic)
+        critic = optax.apply_updates(ts.critic, c_upd)
+        (_, a_metrics), a_grad = jax.value_and_grad(losses.actor_loss, has_aux=True)(
+            ts.actor, critic, batch, is_demo, policy, q, cfg.prm_coef, cfg.bc_coef, cfg.action_l2
+        )
+        a_upd, actor_opt = self.actor_opt.update(a_grad, ts.actor_opt, ts.actor)
+        actor = optax.apply_updates(ts.actor, a_upd)
+
+        updates = ts.updates + 1
+        sync = (updates % cfg.target_every) == 0
+        blend = lambda t, p: jnp.where(sync, cfg.polyak * t + (1.0 - cfg.polyak) * p, t)  # noqa: E731
+        ts = ts.replace(
+            actor=actor,
+            critic=critic,
+            actor_opt=actor_opt,
+            critic_opt=critic_opt,
+            updates=updates,
+            target_actor=jax.tree.map(blend, ts.target_actor, actor),
+            target_critic=jax.tree.map(blend, ts.target_critic, critic),
+        )
+        return ts, {**c_metrics, **a_metrics}
+
+    def _iteration(self, ts: TrainingState, random_eps: jax.Array):
+        self.trace_count += 1
+        key, k_roll, k_upd = jax.random.split(ts.key, 3)
+        first, outcome, transitions, rewards = self._rollout(ts, k_roll, random_eps)
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), transitions)
+        online = self.online_buffer.add(ts.online, flat)
+        normalizer = running_statistics.update(ts.normalizer, flat["obs"])
+        ts = ts.replace(online=online, normalizer=normalizer, key=key)
+        ts, metrics = jax.lax.scan(self._update, ts, jax.random.split(k_upd, self.config.updates_per_iteration))
+        metrics = jax.tree.map(jnp.mean, metrics)
+        metrics["rollout_reward"] = jnp.sum(rewards) / self.config.num_envs
+        ts = ts.replace(iteration=ts.iteration + 1)
+        problems = first.pipeline_state
+        return ts, metrics, outcome, problems
+
+    def _add_online(self, ts: TrainingState, chunk: dict[str, jax.Array]) -> TrainingState:
+        return ts.replace(
+            online=self.online_buffer.add(ts.online, chunk),
+            normalizer=running_statistics.update(ts.normalizer, chunk["obs"]),
+        )
+
+    # ---- evaluation ---------------------------------------------------------------------------
+    def _evaluate(self, actor: Any, normalizer: Any, episodes: Episode) -> dict[str, jax.Array]:
+        """Deterministic policy on given problems, one pass: success, collision, time-out, path."""
+        env = self.env
+        state = jax.vmap(env.reset_from)(episodes)
+        policy = functools.partial(self.nets.policy, actor, normalizer)
+
+        def step(carry, _):
+            state, result = carry
+            nxt = jax.vmap(env.step)(state, policy(state.obs))
+            live = result[:, 0] == 0
+            new = jnp.stack(
+                [
+                    nxt.done,
+                    nxt.metrics["success"],
+                    nxt.metrics["collision"],
+                    nxt.metrics["time_out"],
+                    nxt.metrics["path_length_mm"],
+                    nxt.pipeline_state.t.astype(jnp.float32),
+                ],
+                axis=1,
+            )
+            result = jnp.where((live & (nxt.done > 0))[:, None], new, result)
+            state = jax.tree.map(lambda a, b: jnp.where(live.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), nxt, state)
+            return (state, result), None
+
+        result0 = jnp.zeros((episodes.needle_pos.shape[0], 6))
+        (_, result), _ = jax.lax.scan(step, (state, result0), None, length=env.config.horizon)
+        success = result[:, 1]
+        return {
+            "success": success,
+            "collision": result[:, 2],
+            "time_out": result[:, 3],
+            "path_length_mm": result[:, 4],
+            "steps": result[:, 5],
+        }
