@@ -36,6 +36,7 @@ from regrasp_mjx.planning.episodes import DemosError, _atomic_write, load_demos,
 from regrasp_mjx.policy import save_policy
 from regrasp_mjx.sampling import Episode, TestsetError, load_testset
 
+VALIDATION_SEED = 1_000_003
 DEFAULT_TESTSET = Path(__file__).resolve().parent.parent / "experiments" / "testsets" / "paper300.npz"
 
 
@@ -94,6 +95,10 @@ class Run:
         self.cfg, self.out, self.quiet = cfg, out, quiet
         self.ckpt = out / "checkpoint"
         self.testset, _ = load_testset(testset)
+        # Model selection uses problems of their own (never the test set): 300 from another seed.
+        from regrasp_mjx.testset import make_testset
+
+        self.valset = make_testset(300, VALIDATION_SEED + cfg.seed, cfg.env)
         self.demos = self._demos(demos_dir)
         self.learner = Learner(cfg)
         self.replay = None
@@ -187,13 +192,14 @@ class Run:
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
         test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
+        val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.valset)
         explo = cfg.exploration
         pool = self._pool() if explo.targeted_eps > 0 else None
         pending: dict[str, list[np.ndarray]] = {k: [] for k in TRANSITION}
         log_path = self.out / "log.jsonl"
         writer = self._tensorboard()
         steps_per_iter = cfg.num_envs * cfg.env.horizon
-        t_start, compile_s, last = time.perf_counter(), None, {}
+        t_start, compile_s, last, epochs_run = time.perf_counter(), None, {}, 0
         try:
             for epoch in range(meta["epoch"], cfg.epochs):
                 t_epoch = time.perf_counter()
@@ -222,6 +228,12 @@ class Run:
                         ts = self._receive(pool, ts, pending, meta)
                 eval_s = time.perf_counter()
                 ev = summarize_eval(learner.evaluate(ts.actor, ts.normalizer, test))
+                va = summarize_eval(learner.evaluate(ts.actor, ts.normalizer, val))
+                if va["success_rate"] >= meta.get("best_val", -1.0):  # export the best by validation
+                    meta["best_val"], meta["best_epoch"] = va["success_rate"], epoch + 1
+                    save_policy(self.out / "policy", ts.actor, ts.normalizer, cfg.hidden, cfg.env,
+                                extra={"training": {"config": _config_json(cfg), "epoch": epoch + 1,
+                                                    "validation_success": va["success_rate"]}})
                 eval_s = time.perf_counter() - eval_s
                 epoch_s = time.perf_counter() - t_epoch
                 mean = {k: float(np.mean([m[k] for m in metrics_acc])) for k in metrics_acc[0]}
@@ -264,9 +276,11 @@ class Run:
                         if v is not None and math.isfinite(v):
                             writer.add_scalar(k, v, epoch + 1)
                     writer.flush()
-                eta = epoch_s * (cfg.epochs - epoch - 1)
+                epochs_run += 1
+                per_epoch = (time.perf_counter() - t_start - (compile_s or 0.0)) / epochs_run
+                eta = per_epoch * (cfg.epochs - epoch - 1)
                 self.log(
-                    f"epoch {epoch + 1}/{cfg.epochs}  test success {ev['success_rate']:.3f} "
+                    f"epoch {epoch + 1}/{cfg.epochs}  val success {va['success_rate']:.3f}  test success {ev['success_rate']:.3f} "
                     f"(collision {ev['collision_rate']:.3f}, path {_mm(ev['path_length_mm'])})  "
                     f"return {row['return']:+.3f}  critic {row['critic_loss']:.4f}  actor {row['actor_loss']:+.5f}  "
                     f"Q {row['q']:+.3f}  E_R {e_r:.3f}  E_T {e_t:.3f}  demos+ {meta['demos_received']}  "
@@ -279,29 +293,25 @@ class Run:
                 pool.close()
             if writer is not None:
                 writer.close()
-        return self.finish(ts, last, compile_s)
+        return self.finish(ts, last, compile_s, meta)
 
-    def finish(self, ts: TrainingState, last: dict[str, Any], compile_s: float | None) -> dict[str, Any]:
+    def finish(self, ts: TrainingState, last: dict[str, Any], compile_s: float | None, meta: dict[str, Any]) -> dict[str, Any]:
+        """Exports the last policy beside the best one (by validation) and tests the best."""
         cfg = self.cfg
-        policy_dir = save_policy(
-            self.out / "policy",
-            ts.actor,
-            ts.normalizer,
-            cfg.hidden,
-            cfg.env,
-            extra={"training": {"config": _config_json(cfg), "epochs": cfg.epochs}},
-        )
+        save_policy(self.out / "policy_last", ts.actor, ts.normalizer, cfg.hidden, cfg.env,
+                    extra={"training": {"config": _config_json(cfg), "epoch": cfg.epochs}})
         from regrasp_mjx.policy import load_policy
 
+        policy_dir = self.out / "policy"
         policy = load_policy(policy_dir)
         test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
         ev = summarize_eval(self.learner.evaluate(policy.actor_params, policy.normalizer, test))
-        final = {"policy": str(policy_dir), "test": ev, "compile_s": compile_s, "last_epoch": last}
+        final = {"policy": str(policy_dir), "best_epoch": meta.get("best_epoch"),
+                 "best_validation_success": meta.get("best_val"), "test": ev, "compile_s": compile_s,
+                 "last_epoch": last}
         _atomic_write(self.out / "final_eval.json", lambda f: f.write(json.dumps(final, indent=2).encode()))
-        self.log(
-            f"exported {policy_dir}; exported policy on the test set: success {ev['success_rate']:.3f}, "
-            f"collision {ev['collision_rate']:.3f}, path {_mm(ev['path_length_mm'])}"
-        )
+        self.log(f"exported {policy_dir} (epoch {meta.get('best_epoch')}, best on validation); on the test set: "
+                 f"success {ev['success_rate']:.3f}, collision {ev['collision_rate']:.3f}, path {_mm(ev['path_length_mm'])}")
         return final
 
     # ---- the planner exchange ---------------------------------------------------------------
