@@ -72,6 +72,16 @@ def _to_episode(problems: Any, rows: np.ndarray) -> Episode:
     )
 
 
+def _like(template: Any, saved: np.ndarray) -> Any:
+    """A restored leaf of the template's kind: Python scalars stay Python scalars and weakly typed
+    scalars stay weak, so the resumed state traces exactly like a fresh one (no recompile)."""
+    if not isinstance(template, jax.Array):
+        return type(template)(saved.item()) if np.ndim(saved) == 0 else np.asarray(saved)
+    if template.weak_type:
+        return jnp.asarray(saved.item())
+    return jnp.asarray(saved, dtype=template.dtype)
+
+
 def _mm(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f} mm"
 
@@ -98,7 +108,7 @@ class Run:
         # Model selection uses problems of their own (never the test set): 300 from another seed.
         from regrasp_mjx.testset import make_testset
 
-        self.valset = make_testset(300, VALIDATION_SEED + cfg.seed, cfg.env)
+        self.valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, cfg.env)
         self.demos = self._demos(demos_dir)
         self.learner = Learner(cfg)
         self.replay = None
@@ -165,13 +175,17 @@ class Run:
                 extra = len(f.files) - len(leaves)
         except Exception as err:
             raise ConfigError(f"--resume: {state_path} is corrupt or unreadable: {err}") from err
-        bad = [i for i, (a, b) in enumerate(zip(saved_leaves, leaves)) if a.shape != b.shape or a.dtype != b.dtype]
+        bad = [
+            i
+            for i, (a, b) in enumerate(zip(saved_leaves, leaves))
+            if np.shape(a) != np.shape(b) or (isinstance(b, jax.Array) and a.dtype != b.dtype)
+        ]
         if bad or extra:
             raise ConfigError(
                 f"--resume: {state_path} does not match this run's networks and buffers "
                 f"(array {bad[0] if bad else 'count'} differs)"
             )
-        return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x) for x in saved_leaves]), meta
+        return jax.tree_util.tree_unflatten(treedef, [_like(t, x) for t, x in zip(leaves, saved_leaves)]), meta
 
     # ---- the loop ----------------------------------------------------------------------------
     def train(self, resume: bool = False) -> dict[str, Any]:
@@ -231,9 +245,20 @@ class Run:
                 va = summarize_eval(learner.evaluate(ts.actor, ts.normalizer, val))
                 if va["success_rate"] >= meta.get("best_val", -1.0):  # export the best by validation
                     meta["best_val"], meta["best_epoch"] = va["success_rate"], epoch + 1
-                    save_policy(self.out / "policy", ts.actor, ts.normalizer, cfg.hidden, cfg.env,
-                                extra={"training": {"config": _config_json(cfg), "epoch": epoch + 1,
-                                                    "validation_success": va["success_rate"]}})
+                    save_policy(
+                        self.out / "policy",
+                        ts.actor,
+                        ts.normalizer,
+                        cfg.hidden,
+                        cfg.env,
+                        extra={
+                            "training": {
+                                "config": _config_json(cfg),
+                                "epoch": epoch + 1,
+                                "validation_success": va["success_rate"],
+                            }
+                        },
+                    )
                 eval_s = time.perf_counter() - eval_s
                 epoch_s = time.perf_counter() - t_epoch
                 mean = {k: float(np.mean([m[k] for m in metrics_acc])) for k in metrics_acc[0]}
@@ -295,23 +320,38 @@ class Run:
                 writer.close()
         return self.finish(ts, last, compile_s, meta)
 
-    def finish(self, ts: TrainingState, last: dict[str, Any], compile_s: float | None, meta: dict[str, Any]) -> dict[str, Any]:
+    def finish(
+        self, ts: TrainingState, last: dict[str, Any], compile_s: float | None, meta: dict[str, Any]
+    ) -> dict[str, Any]:
         """Exports the last policy beside the best one (by validation) and tests the best."""
         cfg = self.cfg
-        save_policy(self.out / "policy_last", ts.actor, ts.normalizer, cfg.hidden, cfg.env,
-                    extra={"training": {"config": _config_json(cfg), "epoch": cfg.epochs}})
+        save_policy(
+            self.out / "policy_last",
+            ts.actor,
+            ts.normalizer,
+            cfg.hidden,
+            cfg.env,
+            extra={"training": {"config": _config_json(cfg), "epoch": cfg.epochs}},
+        )
         from regrasp_mjx.policy import load_policy
 
         policy_dir = self.out / "policy"
         policy = load_policy(policy_dir)
         test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
         ev = summarize_eval(self.learner.evaluate(policy.actor_params, policy.normalizer, test))
-        final = {"policy": str(policy_dir), "best_epoch": meta.get("best_epoch"),
-                 "best_validation_success": meta.get("best_val"), "test": ev, "compile_s": compile_s,
-                 "last_epoch": last}
+        final = {
+            "policy": str(policy_dir),
+            "best_epoch": meta.get("best_epoch"),
+            "best_validation_success": meta.get("best_val"),
+            "test": ev,
+            "compile_s": compile_s,
+            "last_epoch": last,
+        }
         _atomic_write(self.out / "final_eval.json", lambda f: f.write(json.dumps(final, indent=2).encode()))
-        self.log(f"exported {policy_dir} (epoch {meta.get('best_epoch')}, best on validation); on the test set: "
-                 f"success {ev['success_rate']:.3f}, collision {ev['collision_rate']:.3f}, path {_mm(ev['path_length_mm'])}")
+        self.log(
+            f"exported {policy_dir} (epoch {meta.get('best_epoch')}, best on validation); on the test set: "
+            f"success {ev['success_rate']:.3f}, collision {ev['collision_rate']:.3f}, path {_mm(ev['path_length_mm'])}"
+        )
         return final
 
     # ---- the planner exchange ---------------------------------------------------------------

@@ -63,6 +63,7 @@ class TrainConfig:
       planner_budget_s, planner_workers, planner_queue: the targeted-exploration planner pool.
       demo_chunk: planner demonstrations are added to the online buffer this many transitions at a
         time (one compiled insert).
+      validation_size: problems (from a seed of their own) that pick the exported epoch (ours).
       seed: PRNG seed of everything but the planners' own sampling.
     """
 
@@ -89,6 +90,7 @@ class TrainConfig:
     planner_workers: int = 0
     planner_queue: int = 256
     demo_chunk: int = 512
+    validation_size: int = 300
     seed: int = 0
 
     def __post_init__(self) -> None:

@@ -86,6 +86,11 @@ class Learner:
         actor, critic = init_params(self.nets, k_init, obs_size, action_size)
         spec = _transition_spec(obs_size, action_size)
         n_demo = int(demos["obs"].shape[0])
+        if n_demo < cfg.demo_batch:
+            raise ValueError(
+                f"{n_demo} demonstration transitions are fewer than one demonstration batch "
+                f"({cfg.demo_batch}); add demonstrations or lower batch_size/demo_fraction"
+            )
         demo_buffer = fbx.make_item_buffer(
             max_length=n_demo, min_length=1, sample_batch_size=cfg.demo_batch, add_batches=True
         )

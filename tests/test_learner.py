@@ -1,0 +1,244 @@
+"""DDPG+BC: losses by hand, the Q-filter, schedules, target cadence, a tiny problem learned,
+exact resume, and exported policies."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from regrasp_mjx.agents.ddpg_bc import losses
+from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, Exploration, TrainConfig, make_config
+from regrasp_mjx.agents.ddpg_bc.train import Learner
+from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.planning.episodes import make_replay, replay_paths, save_demos
+from regrasp_mjx.policy import PolicyError, load_policy, save_policy
+from regrasp_mjx.testset import make_testset
+
+# ---- losses by hand ---------------------------------------------------------------------------
+# Linear stand-ins for the networks: pi(p, o) = p * o[:, :1], Q(p, o, a) = p * (o[:, 0] + a[:, 0]).
+POLICY = lambda p, o: p * o[:, :1]  # noqa: E731
+Q = lambda p, o, a: p * (o[:, 0] + a[:, 0])  # noqa: E731
+BATCH = {
+    "obs": jnp.array([[1.0, 0.0], [2.0, 0.0]]),
+    "action": jnp.array([[0.5], [-1.0]]),
+    "reward": jnp.array([-0.02, 1.0]),
+    "next_obs": jnp.array([[1.0, 0.0], [3.0, 0.0]]),
+    "terminal": jnp.array([0.0, 1.0]),
+}
+
+
+def test_critic_loss_by_hand():
+    # Target actor 0.5: a' = [0.5, 1.5]; target critic 0.2: Q' = [0.2 * 1.5, 0.2 * 4.5] = [0.3, 0.9].
+    # y = [-0.02 + 0.5 * 0.3, 1 + 0] = [0.13, 1.0]; Q(s, a) with critic 1 = [1.5, 1.0].
+    # loss = ((1.5 - 0.13)^2 + 0) / 2 = 0.93845.
+    loss, m = losses.critic_loss(1.0, 0.5, 0.2, BATCH, POLICY, Q, gamma=0.5)
+    assert float(loss) == pytest.approx(0.93845, abs=1e-6)
+    assert float(m["q_target"]) == pytest.approx((0.13 + 1.0) / 2, abs=1e-6)
+    # The target is clipped to [-1/(1-gamma), 1]: reward 1 with a bootstrapped 0.9 gives 1.45 -> 1.
+    clipped = {**BATCH, "reward": jnp.array([1.0, 1.0]), "terminal": jnp.array([0.0, 0.0])}
+    _, m = losses.critic_loss(1.0, 0.5, 0.2, clipped, POLICY, Q, gamma=0.5)
+    assert float(m["q_target"]) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_actor_loss_by_hand():
+    # Actor 1: pi = [1, 2]. Critic -1: Q(s, pi) = [-2, -4]; Q(s, a_demo) = [-1.5, -1.0].
+    # primary = 0.1 * (-mean(-2, -4) + 1 * mean(1, 4)) = 0.1 * (3 + 2.5) = 0.55.
+    # Only sample 2 is a demonstration and -1.0 > -4 keeps it: bc = 0.01 * (2 - (-1))^2 = 0.09.
+    is_demo = jnp.array([False, True])
+    loss, m = losses.actor_loss(1.0, -1.0, BATCH, is_demo, POLICY, Q, prm_coef=0.1, bc_coef=0.01, action_l2=1.0)
+    assert float(m["primary_loss"]) == pytest.approx(0.55, abs=1e-6)
+    assert float(m["bc_loss"]) == pytest.approx(0.09, abs=1e-6)
+    assert float(loss) == pytest.approx(0.64, abs=1e-6)
+
+
+def test_q_filter_keeps_exactly_the_demos_the_critic_prefers():
+    q_demo = jnp.array([1.0, 0.2, 0.5, 0.9, -1.0])
+    q_pi = jnp.array([0.5, 0.3, 0.5, 0.1, -2.0])
+    is_demo = jnp.array([True, True, True, False, True])
+    np.testing.assert_array_equal(np.asarray(losses.q_filter(q_demo, q_pi, is_demo)), [1, 0, 0, 0, 1])
+
+
+# ---- schedules and config ----------------------------------------------------------------------
+def test_exploration_schedules():
+    mixed = EXPLORATION["mixed"]
+    assert mixed.at(0) == pytest.approx((0.3, 0.1))
+    assert mixed.at(100) == pytest.approx((0.3 - 0.06, 0.1 + 0.45))
+    assert mixed.at(200) == pytest.approx((0.18, 1.0))  # E_T caps at 1
+    assert mixed.at(1000) == pytest.approx((0.0, 1.0))  # E_R floors at 0
+    assert EXPLORATION["ddpg_bc"].at(50) == pytest.approx((0.27, 0.0))
+    assert EXPLORATION["targeted"].at(0) == EXPLORATION["targeted"].at(999) == pytest.approx((0.02, 0.5))
+
+
+def test_train_config_errors():
+    with pytest.raises(ConfigError, match="preset='huge' is not accepted"):
+        make_config("huge")
+    with pytest.raises(ConfigError, match="gamma=1.5 is not accepted"):
+        make_config("smoke", gamma=1.5)
+    with pytest.raises(ConfigError, match="TrainConfig has no field 'lr'"):
+        make_config("smoke", lr=1e-3)
+    with pytest.raises(ConfigError, match="random_eps=2 is not accepted"):
+        Exploration(random_eps=2)
+    assert make_config("smoke", **{"env.horizon": 50}).env.horizon == 50
+
+
+# ---- a tiny problem: wide jaws, straight-line demonstrations ---------------------------------------
+EASY = EnvConfig(scene=SceneConfig(jaw_angle_deg=60.0), check_actions=False, horizon=40)
+
+
+@pytest.fixture(scope="module")
+def easy_env():
+    return RegraspEnv(EASY)
+
+
+@pytest.fixture(scope="module")
+def easy_demos(easy_env):
+    problems = make_testset(64, 11, EASY)
+    paths = [
+        np.stack(
+            [np.r_[problems.start_pos[i], problems.start_quat[i]], np.r_[problems.goal_pos[i], problems.goal_quat[i]]]
+        )
+        for i in range(64)
+    ]
+    ok, rows = replay_paths(easy_env, make_replay(easy_env), problems, paths, batch=64)
+    assert ok.sum() >= 48  # the straight line reaches most goals with 60 degree jaws
+    episodes = [{**r, "problem_index": i, "plan_time_s": 0.0} for i, r in enumerate(rows) if ok[i]]
+    demos = {k: np.concatenate([e[k] for e in episodes]) for k in ("obs", "action", "reward", "next_obs", "done")}
+    return episodes, {
+        **{k: jnp.asarray(v) for k, v in demos.items() if k != "done"},
+        "terminal": jnp.asarray(demos["done"]),
+    }
+
+
+def _tiny_config(**kw) -> TrainConfig:
+    base = TrainConfig(
+        env=EASY,
+        exploration=EXPLORATION["ddpg_bc"],
+        num_envs=32,
+        updates_per_iteration=50,
+        iterations_per_epoch=5,
+        epochs=2,
+        batch_size=128,
+        demo_fraction=0.5,
+        buffer_size=50_000,
+        hidden=(64, 64),
+        lr_actor=1e-3,
+        lr_critic=1e-3,
+        bc_coef=1e-2,
+        num_demos=48,
+    )
+    return dataclasses.replace(base, **kw)
+
+
+def test_target_networks_move_every_40_updates_by_polyak(easy_env, easy_demos):
+    learner = Learner(_tiny_config(), easy_env)
+    ts = learner.init(jax.random.PRNGKey(0), easy_demos[1])
+    ts = learner.add_online(ts, {k: v[:512] for k, v in easy_demos[1].items()})
+    update = jax.jit(learner._update)
+    leaf = lambda t: np.asarray(jax.tree_util.tree_leaves(t)[0])  # noqa: E731
+    first_target = leaf(ts.target_actor)
+    for k in range(1, 41):
+        before = leaf(ts.target_actor)
+        ts, _ = update(ts, jax.random.PRNGKey(k))
+        if k < 40:
+            np.testing.assert_array_equal(leaf(ts.target_actor), first_target)
+    np.testing.assert_allclose(leaf(ts.target_actor), 0.95 * before + 0.05 * leaf(ts.actor), atol=1e-6)
+    assert int(ts.updates) == 40
+
+
+def test_a_tiny_problem_is_learned_without_retracing(easy_env, easy_demos):
+    cfg = _tiny_config()
+    learner = Learner(cfg, easy_env)
+    ts = learner.init(jax.random.PRNGKey(0), easy_demos[1])
+    val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), make_testset(48, 99, EASY))
+    before = float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)["success"]))
+    best = 0.0
+    for it in range(40):
+        ts, metrics, _, _ = learner.iteration(ts, jnp.float32(EXPLORATION["ddpg_bc"].at(it)[0]))
+        if it % 10 == 9:
+            best = max(best, float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)["success"])))
+    assert learner.trace_count == 1, "the iteration program was traced more than once"
+    assert before < 0.3 and best >= 0.6, (before, best)  # seen: 0.0 -> 0.73
+    assert np.isfinite(float(metrics["critic_loss"]))
+
+
+# ---- a run killed and resumed is the run uninterrupted -------------------------------------------
+def test_resume_continues_exactly(tmp_path, easy_demos):
+    from regrasp_mjx.train import Run
+
+    save_demos(tmp_path / "demos" / "demos.npz", easy_demos[0], {"settings": {"env": dataclasses.asdict(EASY)}})
+    testset = tmp_path / "test.npz"
+    from regrasp_mjx.sampling import save_testset
+
+    save_testset(testset, make_testset(16, 3, EASY), {"seed": 3})
+    cfg = _tiny_config(iterations_per_epoch=2, updates_per_iteration=10, validation_size=16)
+
+    def run(out, epochs, resume=False):
+        return Run(dataclasses.replace(cfg, epochs=epochs), out, tmp_path / "demos", testset, quiet=True).train(
+            resume=resume
+        )
+
+    run(tmp_path / "straight", 3)
+    run(tmp_path / "split", 1)
+    run(tmp_path / "split", 3, resume=True)
+    a = np.load(tmp_path / "straight" / "checkpoint" / "state.npz")
+    b = np.load(tmp_path / "split" / "checkpoint" / "state.npz")
+    assert a.files == b.files
+    for k in a.files:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    log_a = [json.loads(x) for x in (tmp_path / "straight" / "log.jsonl").read_text().splitlines()]
+    log_b = [json.loads(x) for x in (tmp_path / "split" / "log.jsonl").read_text().splitlines()]
+    assert [r["critic_loss"] for r in log_a] == [r["critic_loss"] for r in log_b]
+    # A checkpoint from other settings is refused.
+    with pytest.raises(ConfigError, match="other settings"):
+        Run(
+            dataclasses.replace(cfg, epochs=3, batch_size=64),
+            tmp_path / "split",
+            tmp_path / "demos",
+            testset,
+            quiet=True,
+        ).load(None)
+
+
+# ---- exported policies ----------------------------------------------------------------------------
+def test_exported_policy_reloads_with_identical_actions(tmp_path, easy_env, easy_demos):
+    learner = Learner(_tiny_config(), easy_env)
+    ts = learner.init(jax.random.PRNGKey(1), easy_demos[1])
+    save_policy(tmp_path, ts.actor, ts.normalizer, (64, 64), EASY)
+    policy = load_policy(tmp_path)
+    obs = np.asarray(jax.random.normal(jax.random.PRNGKey(2), (100, 21)))
+    expected = np.asarray(learner.nets.policy(ts.actor, ts.normalizer, jnp.asarray(obs)))
+    np.testing.assert_array_equal(policy.act(obs), expected)
+    assert policy.contract["action"]["max_dp_mm"] == 0.5
+    with pytest.raises(ValueError, match="observation has NaN"):
+        policy.act(np.full(21, np.nan))
+    with pytest.raises(ValueError, match=r"accepted: \(\.\.\., 21\)"):
+        policy.act(np.zeros(20))
+
+
+def test_bad_policy_files(tmp_path, easy_env, easy_demos):
+    with pytest.raises(PolicyError, match="policy file not found"):
+        load_policy(tmp_path)
+    learner = Learner(_tiny_config(), easy_env)
+    ts = learner.init(jax.random.PRNGKey(1), easy_demos[1])
+    save_policy(tmp_path, ts.actor, ts.normalizer, (64, 64), EASY)
+    contract = json.loads((tmp_path / "policy.json").read_text())
+    (tmp_path / "policy.json").write_text(json.dumps({**contract, "version": 99}))
+    with pytest.raises(PolicyError, match="version 99"):
+        load_policy(tmp_path)
+    (tmp_path / "policy.json").write_text(
+        json.dumps({**contract, "network": {**contract["network"], "hidden": [32, 32]}})
+    )
+    with pytest.raises(PolicyError, match=r"needs \(21, 32\)"):
+        load_policy(tmp_path)
+    (tmp_path / "policy.json").write_text(json.dumps(contract))
+    (tmp_path / "policy.npz").write_bytes(b"garbage")
+    with pytest.raises(PolicyError, match="not a readable"):
+        load_policy(tmp_path)
+    assert math.isfinite(1.0)
