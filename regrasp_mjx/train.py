@@ -4,6 +4,7 @@
     python -m regrasp_mjx.train --preset fast --exploration mixed --out runs/fast --seed 1
     python -m regrasp_mjx.train --preset paper --out runs/paper --set batch_size=512 --set env.horizon=80
     python -m regrasp_mjx.train --preset fast --out runs/fast --resume
+    python -m regrasp_mjx.train --preset fast --exploration targeted --seeds 3 --out runs/targeted
 
 Python runs only between iterations: the planner exchange (failed episodes out with probability
 E_T, demonstrations in when they are ready), and per epoch the test-set evaluation, the log line,
@@ -188,16 +189,28 @@ class Run:
         return jax.tree_util.tree_unflatten(treedef, [_like(t, x) for t, x in zip(leaves, saved_leaves)]), meta
 
     # ---- the loop ----------------------------------------------------------------------------
+    def member_dir(self, m: int) -> Path:
+        """Where seed ``seed + m`` writes its policies: OUT itself for a single seed."""
+        return self.out if self.cfg.num_seeds == 1 else self.out / f"seed{self.cfg.seed + m}"
+
+    def _export(self, folder: Path, ts: TrainingState, m: int, training: dict[str, Any]) -> None:
+        pick = lambda tree: jax.tree.map(lambda x: x[m], tree)  # noqa: E731
+        cfg = self.cfg
+        training = {"config": _config_json(cfg), "seed": cfg.seed + m, **training}
+        save_policy(folder, pick(ts.actor), pick(ts.normalizer), cfg.hidden, cfg.env, extra={"training": training})
+
     def train(self, resume: bool = False) -> dict[str, Any]:
-        cfg, learner = self.cfg, self.learner
+        cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_seeds
         demos = {k: jnp.asarray(getattr(self.demos, k)) for k in ("obs", "action", "reward", "next_obs")}
         demos["terminal"] = jnp.asarray(self.demos.done)
-        ts = learner.init(jax.random.PRNGKey(cfg.seed), demos)
+        ts = learner.init(demos)
         meta: dict[str, Any] = {
             "epoch": 0,
             "iteration": 0,
-            "demos_received": 0,
-            "planned": 0,
+            "demos_received": [0] * seeds,
+            "planned": [0] * seeds,
+            "best_val": [-1.0] * seeds,
+            "best_epoch": [None] * seeds,
             "rng": np.random.default_rng(cfg.seed).bit_generator.state,
         }
         if resume:
@@ -209,22 +222,22 @@ class Run:
         val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.valset)
         explo = cfg.exploration
         pool = self._pool() if explo.targeted_eps > 0 else None
-        pending: dict[str, list[np.ndarray]] = {k: [] for k in TRANSITION}
+        pending = [{k: [] for k in TRANSITION} for _ in range(seeds)]
         log_path = self.out / "log.jsonl"
-        writer = self._tensorboard()
-        steps_per_iter = cfg.num_envs * cfg.env.horizon
-        t_start, compile_s, last, epochs_run = time.perf_counter(), None, {}, 0
+        writers = [self._tensorboard(self.member_dir(m)) for m in range(seeds)]
+        steps_per_iter = seeds * cfg.num_envs * cfg.env.horizon
+        t_start, compile_s, last, epochs_run = time.perf_counter(), None, [], 0
         try:
             for epoch in range(meta["epoch"], cfg.epochs):
                 t_epoch = time.perf_counter()
-                metrics_acc: list[dict[str, float]] = []
+                metrics_acc: list[dict[str, np.ndarray]] = []
                 outcomes = []
                 iter_s, timed = 0.0, 0
                 for _ in range(cfg.iterations_per_epoch):
                     e_r, e_t = explo.at(meta["iteration"])
                     t_it = time.perf_counter()
                     ts, metrics, outcome, problems = learner.iteration(ts, jnp.float32(e_r))
-                    outcome = np.asarray(outcome)  # waits for the device
+                    outcome = np.asarray(outcome)  # [seed, env, 5]; waits for the device
                     if compile_s is None:
                         compile_s = time.perf_counter() - t_it
                         self.log(
@@ -232,126 +245,138 @@ class Run:
                         )
                     else:
                         iter_s, timed = iter_s + time.perf_counter() - t_it, timed + 1
-                    metrics_acc.append({k: float(v) for k, v in metrics.items()})
+                    metrics_acc.append({k: np.asarray(v) for k, v in metrics.items()})
                     outcomes.append(outcome)
                     meta["iteration"] += 1
                     if pool is not None:
-                        failed = np.flatnonzero(outcome[:, 1] == 0)
-                        chosen = failed[rng.random(len(failed)) < e_t]
-                        self._submit(pool, problems, chosen, meta)
+                        for m in range(seeds):
+                            failed = np.flatnonzero(outcome[m, :, 1] == 0)
+                            self._submit(pool, problems, m, failed[rng.random(len(failed)) < e_t], meta)
                         ts = self._receive(pool, ts, pending, meta)
                 eval_s = time.perf_counter()
-                ev = summarize_eval(learner.evaluate(ts.actor, ts.normalizer, test))
-                va = summarize_eval(learner.evaluate(ts.actor, ts.normalizer, val))
-                if va["success_rate"] >= meta.get("best_val", -1.0):  # export the best by validation
-                    meta["best_val"], meta["best_epoch"] = va["success_rate"], epoch + 1
-                    save_policy(
-                        self.out / "policy",
-                        ts.actor,
-                        ts.normalizer,
-                        cfg.hidden,
-                        cfg.env,
-                        extra={
-                            "training": {
-                                "config": _config_json(cfg),
-                                "epoch": epoch + 1,
-                                "validation_success": va["success_rate"],
-                            }
-                        },
-                    )
+                ev_all = jax.device_get(learner.evaluate(ts.actor, ts.normalizer, test))
+                va_all = jax.device_get(learner.evaluate(ts.actor, ts.normalizer, val))
+                evs = [summarize_eval({k: v[m] for k, v in ev_all.items()}) for m in range(seeds)]
+                vas = [summarize_eval({k: v[m] for k, v in va_all.items()}) for m in range(seeds)]
+                for m, va in enumerate(vas):
+                    if va["success_rate"] >= meta["best_val"][m]:  # export the best by validation
+                        meta["best_val"][m], meta["best_epoch"][m] = va["success_rate"], epoch + 1
+                        training = {"epoch": epoch + 1, "validation_success": va["success_rate"]}
+                        self._export(self.member_dir(m) / "policy", ts, m, training)
                 eval_s = time.perf_counter() - eval_s
                 epoch_s = time.perf_counter() - t_epoch
-                mean = {k: float(np.mean([m[k] for m in metrics_acc])) for k in metrics_acc[0]}
-                out = np.concatenate(outcomes)
+                mean = {k: np.mean([x[k] for x in metrics_acc], axis=0) for k in metrics_acc[0]}  # [seed]
+                out = np.concatenate(outcomes, axis=1)
                 e_r, e_t = explo.at(meta["iteration"])
                 iter_s = max(iter_s, 1e-9)
-                row = {
-                    "epoch": epoch + 1,
-                    "iteration": meta["iteration"],
-                    "test": ev,
-                    "train_success": float(out[:, 1].mean()),
-                    "train_collision": float(out[:, 2].mean()),
-                    "return": mean["rollout_reward"],
-                    "critic_loss": mean["critic_loss"],
-                    "actor_loss": mean["actor_loss"],
-                    "bc_loss": mean["bc_loss"],
-                    "q": mean["q"],
-                    "q_filter_kept": mean["q_filter_kept"],
-                    "E_R": e_r,
-                    "E_T": e_t,
-                    "demos_received": meta["demos_received"],
-                    "planned": meta["planned"],
-                    "env_steps_per_s": steps_per_iter * timed / iter_s if timed else float("nan"),
-                    "updates_per_s": cfg.updates_per_iteration * timed / iter_s if timed else float("nan"),
-                    "epoch_s": epoch_s,
-                    "eval_s": eval_s,
-                    "wall_s": time.perf_counter() - t_start,
-                }
+                per_s = timed / iter_s if timed else float("nan")  # iterations per second
+                rows = []
+                for m in range(seeds):
+                    rows.append(
+                        {
+                            "epoch": epoch + 1,
+                            "seed": cfg.seed + m,
+                            "iteration": meta["iteration"],
+                            "test": evs[m],
+                            "validation": vas[m],
+                            "train_success": float(out[m, :, 1].mean()),
+                            "train_collision": float(out[m, :, 2].mean()),
+                            "return": float(mean["rollout_reward"][m]),
+                            "critic_loss": float(mean["critic_loss"][m]),
+                            "actor_loss": float(mean["actor_loss"][m]),
+                            "bc_loss": float(mean["bc_loss"][m]),
+                            "q": float(mean["q"][m]),
+                            "q_filter_kept": float(mean["q_filter_kept"][m]),
+                            "E_R": e_r,
+                            "E_T": e_t,
+                            "demos_received": meta["demos_received"][m],
+                            "planned": meta["planned"][m],
+                            "env_steps_per_s": steps_per_iter * per_s,  # all seeds together
+                            "updates_per_s": seeds * cfg.updates_per_iteration * per_s,
+                            "epoch_s": epoch_s,
+                            "eval_s": eval_s,
+                            "wall_s": time.perf_counter() - t_start,
+                        }
+                    )
                 meta["epoch"] = epoch + 1
                 meta["rng"] = rng.bit_generator.state
                 meta["config"] = _config_json(cfg)
                 self.save(ts, meta)
                 with open(log_path, "a") as f:
-                    f.write(json.dumps(row) + "\n")
-                if writer is not None:
-                    for k, v in {
-                        **{f"test/{k}": v for k, v in ev.items()},
-                        **{k: v for k, v in row.items() if isinstance(v, float)},
-                    }.items():
-                        if v is not None and math.isfinite(v):
+                    f.write("".join(json.dumps(r) + "\n" for r in rows))
+                for writer, row in zip(writers, rows):
+                    if writer is None:
+                        continue
+                    scalars = {**{f"test/{k}": v for k, v in row["test"].items()}, **row}
+                    scalars.update({f"validation/{k}": v for k, v in row["validation"].items()})
+                    for k, v in scalars.items():
+                        if isinstance(v, float) and math.isfinite(v):
                             writer.add_scalar(k, v, epoch + 1)
                     writer.flush()
                 epochs_run += 1
                 per_epoch = (time.perf_counter() - t_start - (compile_s or 0.0)) / epochs_run
                 eta = per_epoch * (cfg.epochs - epoch - 1)
+                each = lambda xs, f="{:.3f}": "/".join(f.format(x) for x in xs)  # noqa: E731
+                r0 = rows[0]
                 self.log(
-                    f"epoch {epoch + 1}/{cfg.epochs}  val success {va['success_rate']:.3f}  test success {ev['success_rate']:.3f} "
-                    f"(collision {ev['collision_rate']:.3f}, path {_mm(ev['path_length_mm'])})  "
-                    f"return {row['return']:+.3f}  critic {row['critic_loss']:.4f}  actor {row['actor_loss']:+.5f}  "
-                    f"Q {row['q']:+.3f}  E_R {e_r:.3f}  E_T {e_t:.3f}  demos+ {meta['demos_received']}  "
-                    f"{row['env_steps_per_s']:,.0f} env-steps/s  {row['updates_per_s']:,.0f} updates/s  "
+                    f"epoch {epoch + 1}/{cfg.epochs}  val success {each(v['success_rate'] for v in vas)}  "
+                    f"test success {each(e['success_rate'] for e in evs)} "
+                    f"(collision {each(e['collision_rate'] for e in evs)}, path {'/'.join(_mm(e['path_length_mm']) for e in evs)})  "
+                    f"return {each((r['return'] for r in rows), '{:+.3f}')}  critic {each((r['critic_loss'] for r in rows), '{:.4f}')}  "
+                    f"actor {each((r['actor_loss'] for r in rows), '{:+.5f}')}  Q {each((r['q'] for r in rows), '{:+.3f}')}  "
+                    f"E_R {e_r:.3f}  E_T {e_t:.3f}  demos+ {each(meta['demos_received'], '{}')}  "
+                    f"{r0['env_steps_per_s']:,.0f} env-steps/s  {r0['updates_per_s']:,.0f} updates/s  "
                     f"ETA {eta / 60:.1f} min"
                 )
-                last = row
+                last = rows
         finally:
             if pool is not None:
                 pool.close()
-            if writer is not None:
-                writer.close()
+            for writer in writers:
+                if writer is not None:
+                    writer.close()
         return self.finish(ts, last, compile_s, meta)
 
     def finish(
-        self, ts: TrainingState, last: dict[str, Any], compile_s: float | None, meta: dict[str, Any]
+        self, ts: TrainingState, last: list[dict[str, Any]], compile_s: float | None, meta: dict[str, Any]
     ) -> dict[str, Any]:
-        """Exports the last policy beside the best one (by validation) and tests the best."""
+        """Exports each seed's last policy beside its best (by validation), tests the best ones, and
+        with several seeds copies the best seed's policy to ``OUT/policy``."""
         cfg = self.cfg
-        save_policy(
-            self.out / "policy_last",
-            ts.actor,
-            ts.normalizer,
-            cfg.hidden,
-            cfg.env,
-            extra={"training": {"config": _config_json(cfg), "epoch": cfg.epochs}},
-        )
         from regrasp_mjx.policy import load_policy
 
-        policy_dir = self.out / "policy"
-        policy = load_policy(policy_dir)
         test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
-        ev = summarize_eval(self.learner.evaluate(policy.actor_params, policy.normalizer, test))
-        final = {
-            "policy": str(policy_dir),
-            "best_epoch": meta.get("best_epoch"),
-            "best_validation_success": meta.get("best_val"),
-            "test": ev,
-            "compile_s": compile_s,
-            "last_epoch": last,
-        }
+        members = []
+        for m in range(cfg.num_seeds):
+            self._export(self.member_dir(m) / "policy_last", ts, m, {"epoch": meta["epoch"]})
+            policy_dir = self.member_dir(m) / "policy"
+            policy = load_policy(policy_dir)
+            params = jax.tree.map(lambda x: jnp.asarray(x)[None], (policy.actor_params, policy.normalizer))
+            ev = summarize_eval({k: v[0] for k, v in jax.device_get(self.learner.evaluate(*params, test)).items()})
+            members.append(
+                {
+                    "seed": cfg.seed + m,
+                    "policy": str(policy_dir),
+                    "best_epoch": meta["best_epoch"][m],
+                    "best_validation_success": meta["best_val"][m],
+                    "test": ev,
+                    "last_epoch": last[m] if last else None,
+                }
+            )
+        best = max(range(cfg.num_seeds), key=lambda m: meta["best_val"][m])
+        if cfg.num_seeds > 1:
+            for name in ("policy.npz", "policy.json"):
+                src = Path(members[best]["policy"]) / name
+                _atomic_write(self.out / "policy" / name, lambda f, src=src: f.write(src.read_bytes()))
+        final = {**members[best], "policy": str(self.out / "policy"), "compile_s": compile_s, "seeds": members}
         _atomic_write(self.out / "final_eval.json", lambda f: f.write(json.dumps(final, indent=2).encode()))
-        self.log(
-            f"exported {policy_dir} (epoch {meta.get('best_epoch')}, best on validation); on the test set: "
-            f"success {ev['success_rate']:.3f}, collision {ev['collision_rate']:.3f}, path {_mm(ev['path_length_mm'])}"
-        )
+        for mem in members:
+            ev = mem["test"]
+            self.log(
+                f"seed {mem['seed']}: exported {mem['policy']} (epoch {mem['best_epoch']}, best on validation); "
+                f"on the test set: success {ev['success_rate']:.3f}, collision {ev['collision_rate']:.3f}, "
+                f"path {_mm(ev['path_length_mm'])}"
+            )
         return final
 
     # ---- the planner exchange ---------------------------------------------------------------
@@ -370,10 +395,10 @@ class Run:
             workers, options=options, queue_size=self.cfg.planner_queue, timeout_s=3 * self.cfg.planner_budget_s + 30
         )
 
-    def _submit(self, pool, problems, rows: np.ndarray, meta: dict[str, Any]) -> None:
+    def _submit(self, pool, problems, member: int, rows: np.ndarray, meta: dict[str, Any]) -> None:
         if len(rows) == 0:
             return
-        ep = _to_episode(problems, rows)
+        ep = _to_episode(jax.tree.map(lambda x: x[member], problems), rows)
         for j in range(len(rows)):
             job = pool.submit(
                 {
@@ -381,39 +406,42 @@ class Run:
                     "start": np.r_[ep.start_pos[j], ep.start_quat[j]],
                     "goal": np.r_[ep.goal_pos[j], ep.goal_quat[j]],
                 },
-                payload=jax.tree.map(lambda x, j=j: x[j], ep),
+                payload=(member, jax.tree.map(lambda x, j=j: x[j], ep)),
             )
             if job is None:  # queue full: the learner never waits
                 break
-            meta["planned"] += 1
+            meta["planned"][member] += 1
 
-    def _receive(self, pool, ts: TrainingState, pending: dict[str, list[np.ndarray]], meta: dict[str, Any]):
+    def _receive(self, pool, ts: TrainingState, pending: list[dict[str, list[np.ndarray]]], meta: dict[str, Any]):
         done = [r for r in pool.collect() if r.ok and r.result["solved"]]
         if done:
             if self.replay is None:
                 self.replay = make_replay(self.learner.env)
-            eps = jax.tree.map(lambda *x: np.stack(x), *[r.payload for r in done])
+            eps = jax.tree.map(lambda *x: np.stack(x), *[r.payload[1] for r in done])
             ok, rows = replay_paths(self.learner.env, self.replay, eps, [r.result["poses"] for r in done], batch=64)
-            for good, row in zip(ok, rows):
+            for r, good, row in zip(done, ok, rows):
                 if good:
-                    meta["demos_received"] += 1
+                    m = r.payload[0]
+                    meta["demos_received"][m] += 1
                     for k in ("obs", "action", "reward", "next_obs"):
-                        pending[k].append(row[k])
-                    pending["terminal"].append(row["done"])
+                        pending[m][k].append(row[k])
+                    pending[m]["terminal"].append(row["done"])
         chunk = self.cfg.demo_chunk
-        while sum(len(x) for x in pending["obs"]) >= chunk:
-            cat = {k: np.concatenate(v) for k, v in pending.items()}
-            ts = self.learner.add_online(ts, {k: jnp.asarray(v[:chunk], jnp.float32) for k, v in cat.items()})
-            for k in pending:
-                pending[k] = [cat[k][chunk:]] if len(cat[k]) > chunk else []
+        for m, waiting in enumerate(pending):
+            while sum(len(x) for x in waiting["obs"]) >= chunk:
+                cat = {k: np.concatenate(v) for k, v in waiting.items()}
+                data = {k: jnp.asarray(v[:chunk], jnp.float32) for k, v in cat.items()}
+                ts = self.learner.add_online(ts, jnp.int32(m), data)
+                for k in waiting:
+                    waiting[k] = [cat[k][chunk:]] if len(cat[k]) > chunk else []
         return ts
 
-    def _tensorboard(self):
+    def _tensorboard(self, folder: Path):
         try:
             from tensorboardX import SummaryWriter
         except ImportError:  # optional: the JSONL log has everything
             return None
-        return SummaryWriter(str(self.out / "tb"))
+        return SummaryWriter(str(folder / "tb"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -424,6 +452,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--out", required=True, help="run folder: logs, checkpoint, demos, exported policy")
     p.add_argument("--seed", type=int, default=None, help="PRNG seed (default: the preset's, 0)")
+    p.add_argument("--seeds", type=int, default=None, help="train seeds SEED..SEED+N-1 together as one vmapped program")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint")
     p.add_argument("--demos", default=None, help="a demonstration folder (default: build OUT/demos)")
     p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="evaluation test set (.npz)")
@@ -440,6 +469,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides = _parse_overrides(args.set)
         if args.seed is not None:
             overrides["seed"] = args.seed
+        if args.seeds is not None:
+            overrides["num_seeds"] = args.seeds
         cfg = make_config(args.preset, args.exploration, **overrides)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 
 import jax
 import jax.numpy as jnp
@@ -138,9 +137,10 @@ def _tiny_config(**kw) -> TrainConfig:
 
 def test_target_networks_move_every_40_updates_by_polyak(easy_env, easy_demos):
     learner = Learner(_tiny_config(), easy_env)
-    ts = learner.init(jax.random.PRNGKey(0), easy_demos[1])
-    ts = learner.add_online(ts, {k: v[:512] for k, v in easy_demos[1].items()})
-    update = jax.jit(learner._update)
+    ts = learner.init(easy_demos[1])
+    ts = learner.add_online(ts, jnp.int32(0), {k: v[:512] for k, v in easy_demos[1].items()})
+    ts = jax.tree.map(lambda x: x[0], ts)  # the one seed
+    update = jax.jit(learner.update)
     leaf = lambda t: np.asarray(jax.tree_util.tree_leaves(t)[0])  # noqa: E731
     first_target = leaf(ts.target_actor)
     for k in range(1, 41):
@@ -155,7 +155,7 @@ def test_target_networks_move_every_40_updates_by_polyak(easy_env, easy_demos):
 def test_a_tiny_problem_is_learned_without_retracing(easy_env, easy_demos):
     cfg = _tiny_config()
     learner = Learner(cfg, easy_env)
-    ts = learner.init(jax.random.PRNGKey(0), easy_demos[1])
+    ts = learner.init(easy_demos[1])
     val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), make_testset(48, 99, EASY))
     before = float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)["success"]))
     best = 0.0
@@ -165,7 +165,22 @@ def test_a_tiny_problem_is_learned_without_retracing(easy_env, easy_demos):
             best = max(best, float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)["success"])))
     assert learner.trace_count == 1, "the iteration program was traced more than once"
     assert before < 0.3 and best >= 0.6, (before, best)  # seen: 0.0 -> 0.73
-    assert np.isfinite(float(metrics["critic_loss"]))
+    assert np.isfinite(float(metrics["critic_loss"][0]))
+
+
+def test_seeds_axis_runs_independent_learners(easy_env, easy_demos):
+    """Seed s + 1 of a two-seed program is the one-seed run with seed s + 1."""
+    cfg = _tiny_config(updates_per_iteration=5)
+    pair = Learner(dataclasses.replace(cfg, seed=3, num_seeds=2), easy_env)
+    alone = Learner(dataclasses.replace(cfg, seed=4), easy_env)
+    ts_pair, ts_alone = pair.init(easy_demos[1]), alone.init(easy_demos[1])
+    for _ in range(2):
+        ts_pair, m_pair, _, _ = pair.iteration(ts_pair, jnp.float32(0.3))
+        ts_alone, m_alone, _, _ = alone.iteration(ts_alone, jnp.float32(0.3))
+    assert not np.allclose(m_pair["critic_loss"][0], m_pair["critic_loss"][1])  # the seeds differ
+    np.testing.assert_allclose(m_pair["critic_loss"][1], m_alone["critic_loss"][0], rtol=1e-4)
+    for a, b in zip(jax.tree_util.tree_leaves(ts_pair.actor), jax.tree_util.tree_leaves(ts_alone.actor)):
+        np.testing.assert_allclose(np.asarray(a[1]), np.asarray(b[0]), rtol=1e-4, atol=1e-6)
 
 
 # ---- a run killed and resumed is the run uninterrupted -------------------------------------------
@@ -177,7 +192,7 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
     from regrasp_mjx.sampling import save_testset
 
     save_testset(testset, make_testset(16, 3, EASY), {"seed": 3})
-    cfg = _tiny_config(iterations_per_epoch=2, updates_per_iteration=10, validation_size=16)
+    cfg = _tiny_config(iterations_per_epoch=2, updates_per_iteration=10, validation_size=16, num_seeds=2)
 
     def run(out, epochs, resume=False):
         return Run(dataclasses.replace(cfg, epochs=epochs), out, tmp_path / "demos", testset, quiet=True).train(
@@ -195,6 +210,16 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
     log_a = [json.loads(x) for x in (tmp_path / "straight" / "log.jsonl").read_text().splitlines()]
     log_b = [json.loads(x) for x in (tmp_path / "split" / "log.jsonl").read_text().splitlines()]
     assert [r["critic_loss"] for r in log_a] == [r["critic_loss"] for r in log_b]
+    assert [r["seed"] for r in log_a] == [0, 1] * 3
+    final = json.loads((tmp_path / "split" / "final_eval.json").read_text())
+    assert [m["seed"] for m in final["seeds"]] == [0, 1]
+    for seed in (0, 1):
+        for name in ("policy", "policy_last"):
+            assert load_policy(tmp_path / "split" / f"seed{seed}" / name).contract["training"]["seed"] == seed
+    best = max(final["seeds"], key=lambda m: m["best_validation_success"])
+    assert (tmp_path / "split" / "policy" / "policy.npz").read_bytes() == (
+        tmp_path / "split" / f"seed{best['seed']}" / "policy" / "policy.npz"
+    ).read_bytes()
     # A checkpoint from other settings is refused.
     with pytest.raises(ConfigError, match="other settings"):
         Run(
@@ -208,8 +233,8 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
 
 # ---- exported policies ----------------------------------------------------------------------------
 def test_exported_policy_reloads_with_identical_actions(tmp_path, easy_env, easy_demos):
-    learner = Learner(_tiny_config(), easy_env)
-    ts = learner.init(jax.random.PRNGKey(1), easy_demos[1])
+    learner = Learner(_tiny_config(seed=1), easy_env)
+    ts = jax.tree.map(lambda x: x[0], learner.init(easy_demos[1]))
     save_policy(tmp_path, ts.actor, ts.normalizer, (64, 64), EASY)
     policy = load_policy(tmp_path)
     obs = np.asarray(jax.random.normal(jax.random.PRNGKey(2), (100, 21)))
@@ -225,8 +250,8 @@ def test_exported_policy_reloads_with_identical_actions(tmp_path, easy_env, easy
 def test_bad_policy_files(tmp_path, easy_env, easy_demos):
     with pytest.raises(PolicyError, match="policy file not found"):
         load_policy(tmp_path)
-    learner = Learner(_tiny_config(), easy_env)
-    ts = learner.init(jax.random.PRNGKey(1), easy_demos[1])
+    learner = Learner(_tiny_config(seed=1), easy_env)
+    ts = jax.tree.map(lambda x: x[0], learner.init(easy_demos[1]))
     save_policy(tmp_path, ts.actor, ts.normalizer, (64, 64), EASY)
     contract = json.loads((tmp_path / "policy.json").read_text())
     (tmp_path / "policy.json").write_text(json.dumps({**contract, "version": 99}))
@@ -241,4 +266,3 @@ def test_bad_policy_files(tmp_path, easy_env, easy_demos):
     (tmp_path / "policy.npz").write_bytes(b"garbage")
     with pytest.raises(PolicyError, match="not a readable"):
         load_policy(tmp_path)
-    assert math.isfinite(1.0)

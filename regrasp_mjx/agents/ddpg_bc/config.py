@@ -63,8 +63,12 @@ class TrainConfig:
       planner_budget_s, planner_workers, planner_queue: the targeted-exploration planner pool.
       demo_chunk: planner demonstrations are added to the online buffer this many transitions at a
         time (one compiled insert).
+      action_noise: std of Gaussian noise added to the policy's (non-random) actions in training
+        rollouts, clipped to [-1, 1] (HER's ``noise_eps``; ours, 0 = the paper's uniform-only E_R).
       validation_size: problems (from a seed of their own) that pick the exported epoch (ours).
       seed: PRNG seed of everything but the planners' own sampling.
+      num_seeds: independent learners with seeds ``seed .. seed + num_seeds - 1`` trained as one
+        vmapped program (ours; Table I's three seeds in one run).
     """
 
     env: EnvConfig = EnvConfig(check_actions=False)
@@ -90,8 +94,10 @@ class TrainConfig:
     planner_workers: int = 0
     planner_queue: int = 256
     demo_chunk: int = 512
-    validation_size: int = 300
+    action_noise: float = 0.0
+    validation_size: int = 1000
     seed: int = 0
+    num_seeds: int = 1
 
     def __post_init__(self) -> None:
         def positive_int(name: str, lo: int = 1) -> None:
@@ -110,9 +116,11 @@ class TrainConfig:
             "num_demos",
             "planner_queue",
             "demo_chunk",
+            "num_seeds",
         ):
             positive_int(name)
         positive_int("planner_workers", 0)
+        positive_int("seed", 0)
         for name, lo, hi in (("gamma", 0.0, 0.9999), ("polyak", 0.0, 1.0), ("demo_fraction", 0.0, 0.99)):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and lo <= v <= hi):
@@ -121,7 +129,7 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
-        for name in ("action_l2", "prm_coef", "bc_coef"):
+        for name in ("action_l2", "prm_coef", "bc_coef", "action_noise"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number >= 0")
@@ -151,9 +159,9 @@ PRESETS = {
     # step per iteration, so they are scaled to span the same share of training as the paper's.
     "fast": TrainConfig(
         num_envs=512,
-        updates_per_iteration=100,
+        updates_per_iteration=200,
         iterations_per_epoch=10,
-        epochs=30,
+        epochs=90,
         exploration=Exploration(0.3, 0.3 / 150, 0.1, 0.9 / 60),
     ),
     # A minute on a CPU: the README's main command and CI.
@@ -167,6 +175,7 @@ PRESETS = {
         num_demos=24,
         planner_budget_s=2.0,
         planner_workers=1,
+        validation_size=100,
     ),
 }
 

@@ -8,6 +8,12 @@ environment that ends restarts its problem (brax's auto-reset), so every one of 
 demonstration samples (flashbax item buffers); the target networks move by polyak averaging every
 ``target_every`` updates. The first episode of each environment is the one that counts for
 Algorithm 1: the host sends failed ones to the planner pool with probability E_T.
+
+Seeds are a batch axis: ``num_seeds`` independent learners (seeds ``seed, seed + 1, ...``), each with
+its own networks, optimisers, normaliser, buffers and key, run as one vmapped program, so several
+seeds of Table I cost about what one costs on a GPU. Every state leaf has that leading axis (1 for
+a single seed); the single-learner functions (``init_one``, ``update``, ``iteration_one``,
+``evaluate_one``) are the ones vmapped.
 """
 
 from __future__ import annotations
@@ -74,12 +80,23 @@ class Learner:
         )
         self.trace_count = 0  # how often the iteration program was traced (tests assert one)
         self.iteration = jax.jit(self._iteration, donate_argnums=(0,))
-        self.evaluate = jax.jit(self._evaluate)
+        # actor and normaliser carry the seed axis; the problems are shared
+        self.evaluate = jax.jit(jax.vmap(self.evaluate_one, in_axes=(0, 0, None)))
         self.add_online = jax.jit(self._add_online, donate_argnums=(0,))
+        self.demo_buffer = None
 
     # ---- state --------------------------------------------------------------------------------
-    def init(self, key: jax.Array, demos: dict[str, jax.Array]) -> TrainingState:
-        """Fresh networks and optimisers, the demonstrations loaded, the normaliser seeded with them."""
+    def init(self, demos: dict[str, jax.Array]) -> TrainingState:
+        """Fresh learners for seeds ``seed .. seed + num_seeds - 1``, stacked on a leading axis."""
+        cfg = self.config
+        keys = jnp.stack([jax.random.PRNGKey(cfg.seed + m) for m in range(cfg.num_seeds)])
+        ts = jax.jit(jax.vmap(self.init_one, in_axes=(0, None)))(keys, demos)
+        # No weakly typed leaves: a state restored from a checkpoint then traces like a fresh one.
+        return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), ts)
+
+    def init_one(self, key: jax.Array, demos: dict[str, jax.Array]) -> TrainingState:
+        """One learner: fresh networks and optimisers, the demonstrations loaded, the normaliser
+        seeded with them."""
         cfg = self.config
         obs_size, action_size = self.env.observation_size, self.env.action_size
         k_init, k_run = jax.random.split(key)
@@ -91,13 +108,10 @@ class Learner:
                 f"{n_demo} demonstration transitions are fewer than one demonstration batch "
                 f"({cfg.demo_batch}); add demonstrations or lower batch_size/demo_fraction"
             )
-        demo_buffer = fbx.make_item_buffer(
-            max_length=n_demo, min_length=1, sample_batch_size=cfg.demo_batch, add_batches=True
+        self.attach_demo_buffer(n_demo)
+        demo_state = self.demo_buffer.add(
+            self.demo_buffer.init(spec), {k: jnp.asarray(demos[k], jnp.float32) for k in TRANSITION}
         )
-        demo_state = demo_buffer.add(
-            demo_buffer.init(spec), {k: jnp.asarray(demos[k], jnp.float32) for k in TRANSITION}
-        )
-        self.demo_buffer = demo_buffer
         normalizer = running_statistics.init_state(specs.Array((obs_size,), jnp.float32))
         normalizer = running_statistics.update(normalizer, jnp.asarray(demos["obs"], jnp.float32))
         return TrainingState(
@@ -133,12 +147,16 @@ class Learner:
 
         def step(carry, k):
             state, outcome = carry
-            k_coin, k_rand = jax.random.split(k)
+            k_coin, k_rand, k_noise = jax.random.split(k, 3)
             explore = jax.random.uniform(k_coin, (cfg.num_envs, 1)) < random_eps
+            greedy = policy(state.obs)
+            if cfg.action_noise > 0:
+                noise = cfg.action_noise * jax.random.normal(k_noise, greedy.shape)
+                greedy = jnp.clip(greedy + noise, -1.0, 1.0)
             action = jnp.where(
                 explore,
                 jax.random.uniform(k_rand, (cfg.num_envs, env.action_size), minval=-1.0, maxval=1.0),
-                policy(state.obs),
+                greedy,
             )
             nxt = jax.vmap(env.step)(state, action)
             terminal = nxt.done * (1.0 - nxt.info["truncation"])
@@ -172,7 +190,8 @@ class Learner:
         )
         return first, outcome, transitions, rewards
 
-    def _update(self, ts: TrainingState, key: jax.Array):
+    def update(self, ts: TrainingState, key: jax.Array):
+        """One DDPG+BC gradient step of one learner."""
         cfg, nets = self.config, self.nets
         k_online, k_demo = jax.random.split(key)
         online = self.online_buffer.sample(ts.online, k_online).experience
@@ -207,29 +226,35 @@ class Learner:
         )
         return ts, {**c_metrics, **a_metrics}
 
-    def _iteration(self, ts: TrainingState, random_eps: jax.Array):
-        self.trace_count += 1
+    def iteration_one(self, ts: TrainingState, random_eps: jax.Array):
+        """One learner's iteration: rollouts, inserts, ``updates_per_iteration`` updates."""
         key, k_roll, k_upd = jax.random.split(ts.key, 3)
         first, outcome, transitions, rewards = self._rollout(ts, k_roll, random_eps)
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), transitions)
         online = self.online_buffer.add(ts.online, flat)
         normalizer = running_statistics.update(ts.normalizer, flat["obs"])
         ts = ts.replace(online=online, normalizer=normalizer, key=key)
-        ts, metrics = jax.lax.scan(self._update, ts, jax.random.split(k_upd, self.config.updates_per_iteration))
+        ts, metrics = jax.lax.scan(self.update, ts, jax.random.split(k_upd, self.config.updates_per_iteration))
         metrics = jax.tree.map(jnp.mean, metrics)
         metrics["rollout_reward"] = jnp.sum(rewards) / self.config.num_envs
         ts = ts.replace(iteration=ts.iteration + 1)
-        problems = first.pipeline_state
-        return ts, metrics, outcome, problems
+        return ts, metrics, outcome, first.pipeline_state
 
-    def _add_online(self, ts: TrainingState, chunk: dict[str, jax.Array]) -> TrainingState:
-        return ts.replace(
-            online=self.online_buffer.add(ts.online, chunk),
-            normalizer=running_statistics.update(ts.normalizer, chunk["obs"]),
-        )
+    def _iteration(self, ts: TrainingState, random_eps: jax.Array):
+        """All seeds' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``."""
+        self.trace_count += 1
+        return jax.vmap(self.iteration_one, in_axes=(0, None))(ts, random_eps)
+
+    def _add_online(self, ts: TrainingState, member: jax.Array, chunk: dict[str, jax.Array]) -> TrainingState:
+        """Adds a chunk of planner demonstrations to one seed's online buffer (and normaliser)."""
+        pick = lambda tree: jax.tree.map(lambda x: x[member], tree)  # noqa: E731
+        put = lambda tree, one: jax.tree.map(lambda x, y: x.at[member].set(y), tree, one)  # noqa: E731
+        online = self.online_buffer.add(pick(ts.online), chunk)
+        normalizer = running_statistics.update(pick(ts.normalizer), chunk["obs"])
+        return ts.replace(online=put(ts.online, online), normalizer=put(ts.normalizer, normalizer))
 
     # ---- evaluation ---------------------------------------------------------------------------
-    def _evaluate(self, actor: Any, normalizer: Any, episodes: Episode) -> dict[str, jax.Array]:
+    def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode) -> dict[str, jax.Array]:
         """Deterministic policy on given problems, one pass: success, collision, time-out, path."""
         env = self.env
         state = jax.vmap(env.reset_from)(episodes)
