@@ -103,9 +103,7 @@ def report(args: argparse.Namespace) -> None:
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
-        plan = (
-            f"{r['plan_ms_mean']:.2f} / {r['plan_ms_median']:.2f}" if r["plan_ms_median"] is not None else "-"
-        )
+        plan = f"{r['plan_ms_mean']:.2f} / {r['plan_ms_median']:.2f}" if r["plan_ms_median"] is not None else "-"
         paper = PAPER[r["setting"]]
         lines.append(
             f"| {LABEL[r['setting']]} | {len(r['seeds'])} | {_mean_std(r['success'])} | {_mean_std(r['collision'])} "

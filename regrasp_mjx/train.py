@@ -249,9 +249,11 @@ class Run:
                     outcomes.append(outcome)
                     meta["iteration"] += 1
                     if pool is not None:
+                        chosen = []
                         for m in range(seeds):
                             failed = np.flatnonzero(outcome[m, :, 1] == 0)
-                            self._submit(pool, problems, m, failed[rng.random(len(failed)) < e_t], meta)
+                            chosen.append(failed[rng.random(len(failed)) < e_t])
+                        self._submit(pool, problems, chosen, meta)
                         ts = self._receive(pool, ts, pending, meta)
                 eval_s = time.perf_counter()
                 ev_all = jax.device_get(learner.evaluate(ts.actor, ts.normalizer, test))
@@ -395,22 +397,28 @@ class Run:
             workers, options=options, queue_size=self.cfg.planner_queue, timeout_s=3 * self.cfg.planner_budget_s + 30
         )
 
-    def _submit(self, pool, problems, member: int, rows: np.ndarray, meta: dict[str, Any]) -> None:
-        if len(rows) == 0:
+    def _submit(self, pool, problems, chosen: list[np.ndarray], meta: dict[str, Any]) -> None:
+        """Sends the chosen failed episodes of every seed to the pool, taking the seeds in turn so
+        that a full queue is shared fairly; stops at a full queue (the learner never waits)."""
+        if not any(len(rows) for rows in chosen):
             return
-        ep = _to_episode(jax.tree.map(lambda x: x[member], problems), rows)
-        for j in range(len(rows)):
-            job = pool.submit(
-                {
-                    "needle": np.r_[ep.needle_pos[j], ep.needle_quat[j]],
-                    "start": np.r_[ep.start_pos[j], ep.start_quat[j]],
-                    "goal": np.r_[ep.goal_pos[j], ep.goal_quat[j]],
-                },
-                payload=(member, jax.tree.map(lambda x, j=j: x[j], ep)),
-            )
-            if job is None:  # queue full: the learner never waits
-                break
-            meta["planned"][member] += 1
+        problems = jax.device_get(problems)
+        episodes = [_to_episode(jax.tree.map(lambda x, m=m: x[m], problems), rows) for m, rows in enumerate(chosen)]
+        for j in range(max(len(rows) for rows in chosen)):
+            for m, ep in enumerate(episodes):
+                if j >= len(chosen[m]):
+                    continue
+                job = pool.submit(
+                    {
+                        "needle": np.r_[ep.needle_pos[j], ep.needle_quat[j]],
+                        "start": np.r_[ep.start_pos[j], ep.start_quat[j]],
+                        "goal": np.r_[ep.goal_pos[j], ep.goal_quat[j]],
+                    },
+                    payload=(m, jax.tree.map(lambda x, j=j: x[j], ep)),
+                )
+                if job is None:
+                    return
+                meta["planned"][m] += 1
 
     def _receive(self, pool, ts: TrainingState, pending: list[dict[str, list[np.ndarray]]], meta: dict[str, Any]):
         done = [r for r in pool.collect() if r.ok and r.result["solved"]]
