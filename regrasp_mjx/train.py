@@ -199,6 +199,13 @@ class Run:
         training = {"config": _config_json(cfg), "seed": cfg.seed + m, **training}
         save_policy(folder, pick(ts.actor), pick(ts.normalizer), cfg.hidden, cfg.env, extra={"training": training})
 
+    def _truncate_log(self, epoch: int) -> None:
+        """Drops log rows of epochs after the checkpoint (they will be run again)."""
+        path = self.out / "log.jsonl"
+        if path.exists():
+            keep = [x for x in path.read_text().splitlines() if x.strip() and json.loads(x)["epoch"] <= epoch]
+            _atomic_write(path, lambda f: f.write("".join(x + "\n" for x in keep).encode()))
+
     def train(self, resume: bool = False) -> dict[str, Any]:
         cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_seeds
         demos = {k: jnp.asarray(getattr(self.demos, k)) for k in ("obs", "action", "reward", "next_obs")}
@@ -216,6 +223,7 @@ class Run:
         if resume:
             ts, meta = self.load(ts)
             self.log(f"resumed from {self.ckpt} at epoch {meta['epoch']}")
+            self._truncate_log(meta["epoch"])
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
         test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
@@ -303,7 +311,8 @@ class Run:
                 meta["epoch"] = epoch + 1
                 meta["rng"] = rng.bit_generator.state
                 meta["config"] = _config_json(cfg)
-                self.save(ts, meta)
+                if (epoch + 1) % cfg.checkpoint_every == 0 or epoch + 1 == cfg.epochs:
+                    self.save(ts, meta)
                 with open(log_path, "a") as f:
                     f.write("".join(json.dumps(r) + "\n" for r in rows))
                 for writer, row in zip(writers, rows):

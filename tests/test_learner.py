@@ -201,6 +201,8 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
 
     run(tmp_path / "straight", 3)
     run(tmp_path / "split", 1)
+    with open(tmp_path / "split" / "log.jsonl", "a") as f:  # a row written after the checkpoint
+        f.write(json.dumps({"epoch": 2, "seed": 0, "critic_loss": -1.0}) + "\n")
     run(tmp_path / "split", 3, resume=True)
     a = np.load(tmp_path / "straight" / "checkpoint" / "state.npz")
     b = np.load(tmp_path / "split" / "checkpoint" / "state.npz")

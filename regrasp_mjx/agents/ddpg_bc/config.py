@@ -65,6 +65,9 @@ class TrainConfig:
         time (one compiled insert).
       action_noise: std of Gaussian noise added to the policy's (non-random) actions in training
         rollouts, clipped to [-1, 1] (HER's ``noise_eps``; ours, 0 = the paper's uniform-only E_R).
+      checkpoint_every: epochs between checkpoints (the last epoch always writes one); a checkpoint
+        holds the full replay buffers (200 MB per seed once full), so writing it every epoch can cost
+        more than the epoch.
       validation_size: problems (from a seed of their own) that pick the exported epoch (ours).
       seed: PRNG seed of everything but the planners' own sampling.
       num_seeds: independent learners with seeds ``seed .. seed + num_seeds - 1`` trained as one
@@ -95,6 +98,7 @@ class TrainConfig:
     planner_queue: int = 256
     demo_chunk: int = 512
     action_noise: float = 0.0
+    checkpoint_every: int = 1
     validation_size: int = 1000
     seed: int = 0
     num_seeds: int = 1
@@ -117,6 +121,7 @@ class TrainConfig:
             "planner_queue",
             "demo_chunk",
             "num_seeds",
+            "checkpoint_every",
         ):
             positive_int(name)
         positive_int("planner_workers", 0)
@@ -163,6 +168,7 @@ PRESETS = {
         iterations_per_epoch=10,
         epochs=90,
         exploration=Exploration(0.3, 0.3 / 150, 0.1, 0.9 / 60),
+        checkpoint_every=10,
     ),
     # A minute on a CPU: the README's main command and CI.
     "smoke": TrainConfig(
