@@ -227,3 +227,13 @@ def replace(config: Any, **changes: Any) -> Any:
     for head, sub in nested.items():
         flat[head] = replace(getattr(config, head), **sub)
     return dataclasses.replace(config, **flat)
+
+
+def env_config_from_dict(d: dict[str, Any]) -> EnvConfig:
+    """The inverse of ``dataclasses.asdict(EnvConfig)`` (JSON lists back to tuples)."""
+    try:
+        task = {k: tuple(v) if isinstance(v, list) else v for k, v in d["task"].items()}
+        rest = {k: v for k, v in d.items() if k not in ("scene", "task")}
+        return EnvConfig(scene=SceneConfig(**d["scene"]), task=TaskConfig(**task), **rest)
+    except (KeyError, TypeError) as err:
+        raise ConfigError(f"not an EnvConfig description: {err}") from err

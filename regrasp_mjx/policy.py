@@ -1,10 +1,16 @@
 """Exported policies: plain arrays (``policy.npz``) plus a JSON contract (``policy.json``).
 
 The npz holds the actor's parameters under their flax paths (``actor/params/hidden_0/kernel``) and
-the observation normaliser (``normalizer/mean``, ``normalizer/std``); the JSON holds what a robot
-integrator needs: the network (hidden sizes, activation, tanh output), the observation and action
-layouts with units and frames, the action scales, the versions. No pickle anywhere: a policy file
-is loaded with ``allow_pickle=False`` and checked against its contract.
+the observation normaliser (``normalizer/mean``, ``normalizer/std``), each with a leading member
+axis of size ``network.ensemble`` (1 for one network; K for the mean-action ensemble of K
+independently trained actors, ours). The JSON holds what a robot integrator needs: the network
+(hidden sizes, activation, tanh output, ensemble size), the observation and action layouts with
+units and frames, the action scales, the environment, the versions. No pickle anywhere: a policy
+file is loaded with ``allow_pickle=False`` and checked against its contract.
+
+Planning (``Policy.plan``, ``Policy.plan_from_camera``) rolls the deterministic policy out in the
+same environment it was trained in (kinematics and exact collision checks, on whatever device JAX
+uses) until success, collision or the horizon, and returns the trajectory.
 """
 
 from __future__ import annotations
@@ -12,6 +18,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import types
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +30,12 @@ from brax.training.acme import running_statistics
 from flax import traverse_util
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
+from regrasp_mjx.config import env_config_from_dict
 from regrasp_mjx.planning.episodes import _atomic_write
 
 POLICY_FORMAT = "regrasp_mjx.policy"
-POLICY_VERSION = 1
+POLICY_VERSION = 2
+DEFAULT_POLICY = Path(__file__).resolve().parent / "policies" / "default"
 OBS_LAYOUT = [
     "p_eg_n (3, m)",
     "q_eg_n (4, wxyz, w>=0)",
@@ -44,6 +54,31 @@ class PolicyError(ValueError):
     """A policy file that is missing, corrupt, or from an incompatible version."""
 
 
+class PoseError(ValueError):
+    """A pose that is not a finite 7-vector ``[x, y, z, qw, qx, qy, qz]`` with a unit quaternion."""
+
+
+QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the pose is refused
+OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
+
+
+def check_poses(name: str, poses: Any) -> np.ndarray:
+    """``poses[..., 7]`` as float64 with unit quaternions, or a :class:`PoseError` saying why not."""
+    arr = np.asarray(poses, np.float64)
+    if arr.ndim == 0 or arr.shape[-1] != 7:
+        raise PoseError(f"{name} has shape {arr.shape}; accepted: (..., 7) = [x, y, z, qw, qx, qy, qz] in metres")
+    if not np.all(np.isfinite(arr)):
+        raise PoseError(f"{name} has NaN or inf; accepted: finite values")
+    norm = np.linalg.norm(arr[..., 3:], axis=-1, keepdims=True)
+    bad = np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE
+    if np.any(bad):
+        raise PoseError(
+            f"{name} has a quaternion of norm {float(norm[bad][0]):.4g}; accepted: |norm - 1| <= "
+            f"{QUAT_NORM_TOLERANCE:g} (normalised), wxyz order"
+        )
+    return np.concatenate([arr[..., :3], arr[..., 3:] / norm], axis=-1)
+
+
 def save_policy(
     out_dir: str | os.PathLike,
     actor_params: Any,
@@ -51,21 +86,32 @@ def save_policy(
     hidden: tuple[int, ...],
     env_config: Any,
     extra: dict[str, Any] | None = None,
+    ensemble: int | None = None,
 ) -> Path:
-    """Writes ``policy.npz`` and ``policy.json`` into ``out_dir`` atomically."""
+    """Writes ``policy.npz`` and ``policy.json`` into ``out_dir`` atomically.
+
+    ``actor_params`` and ``normalizer`` are one learner's, or, with ``ensemble=K``, K learners'
+    stacked on a leading axis."""
     out = Path(out_dir)
+    lead = (lambda x: np.asarray(x, np.float32)) if ensemble else (lambda x: np.asarray(x, np.float32)[None])
     flat = {
-        "actor/" + "/".join(k): np.asarray(v, np.float32)
-        for k, v in traverse_util.flatten_dict(jax.device_get(actor_params)).items()
+        "actor/" + "/".join(k): lead(v) for k, v in traverse_util.flatten_dict(jax.device_get(actor_params)).items()
     }
-    flat["normalizer/mean"] = np.asarray(normalizer.mean, np.float32)
-    flat["normalizer/std"] = np.asarray(normalizer.std, np.float32)
+    flat["normalizer/mean"] = lead(normalizer.mean)
+    flat["normalizer/std"] = lead(normalizer.std)
     from regrasp_mjx.testset import versions
 
     contract = {
         "format": POLICY_FORMAT,
         "version": POLICY_VERSION,
-        "network": {"hidden": list(hidden), "activation": "relu", "output": "tanh", "obs_clip_std": 5.0},
+        "network": {
+            "hidden": list(hidden),
+            "activation": "relu",
+            "output": "tanh",
+            "obs_clip_std": 5.0,
+            "ensemble": int(ensemble or 1),
+            "combine": "mean of the members' actions",
+        },
         "observation": {
             "size": 21,
             "layout": OBS_LAYOUT,
@@ -88,17 +134,103 @@ def save_policy(
     return out
 
 
+def ensemble_policies(paths: list[str | os.PathLike], out_dir: str | os.PathLike, extra: dict | None = None) -> Path:
+    """Stacks single policies of one network and environment into one mean-action ensemble."""
+    policies = [load_policy(p) for p in paths]
+    first = policies[0].contract
+    for p, pol in zip(paths, policies):
+        if pol.contract["network"]["hidden"] != first["network"]["hidden"] or pol.contract["env"] != first["env"]:
+            raise PolicyError(f"{p}: another network or environment than {paths[0]}; an ensemble needs one")
+    stack = lambda *xs: jnp.concatenate(xs)  # noqa: E731  (each member already has its axis)
+    actor = jax.tree.map(stack, *[p.actor_params for p in policies])
+    norm = types.SimpleNamespace(
+        mean=stack(*[p.normalizer.mean for p in policies]), std=stack(*[p.normalizer.std for p in policies])
+    )
+    members = sum(p.members for p in policies)
+    return save_policy(
+        out_dir,
+        actor,
+        norm,
+        tuple(first["network"]["hidden"]),
+        env_config_from_dict(first["env"]),
+        extra={"ensemble_of": {"members": [str(p) for p in paths], **(extra or {})}},
+        ensemble=members,
+    )
+
+
+def _first(x):
+    return None if x is None else x[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """A planned regrasp, numpy. Batched plans have a leading query axis on every field.
+
+    Attributes:
+      success, collision, time_out: how the rollout ended (one is true; ``start_valid`` false means
+        the start pose already collides and nothing was planned).
+      steps: actions taken (the trajectory's valid length is ``steps + 1`` poses).
+      path_length_mm: sum of the translation steps.
+      poses: regrasping end-effector poses ``[x, y, z, qw, qx, qy, qz]`` in the grasping
+        end-effector frame e_g, the start first; ``horizon + 1`` rows, rows after ``steps`` repeat
+        the last pose.
+      actions: ``horizon`` rows in [-1, 1]; rows from ``steps`` on are zero.
+      poses_camera: the same poses in the camera frame (only from :meth:`Policy.plan_from_camera`).
+      nearest_grasp_distance: distance of the needle pose to the nearest of the valid-grasp library
+        (``regrasp_mjx.grasps``; mm + deg / 5), when checked.
+    """
+
+    success: np.ndarray
+    collision: np.ndarray
+    time_out: np.ndarray
+    start_valid: np.ndarray
+    steps: np.ndarray
+    path_length_mm: np.ndarray
+    poses: np.ndarray
+    actions: np.ndarray
+    poses_camera: np.ndarray | None = None
+    nearest_grasp_distance: np.ndarray | None = None
+
+    def trajectory(self, frame: str = "eg") -> np.ndarray:
+        """The valid poses of a single plan (``steps + 1`` rows), in ``eg`` or ``camera`` frame."""
+        poses = self.poses if frame == "eg" else self.poses_camera
+        if poses is None or poses.ndim != 2:
+            raise ValueError(f"trajectory() takes one plan with {frame} poses; index a batch first")
+        return poses[: int(self.steps) + 1]
+
+
 @dataclasses.dataclass(frozen=True)
 class Policy:
-    """A loaded policy: ``act(obs[..., 21]) -> action[..., 6]`` (jitted, deterministic)."""
+    """A loaded policy: ``act(obs[..., 21]) -> action[..., 6]`` and ``plan`` (jitted, deterministic)."""
 
     contract: dict[str, Any]
-    actor_params: Any
+    actor_params: Any  # leaves with a leading member axis
     normalizer: Any
 
     def __post_init__(self) -> None:
         nets = make_networks(6, tuple(self.contract["network"]["hidden"]))
-        object.__setattr__(self, "_act", jax.jit(lambda obs: nets.policy(self.actor_params, self.normalizer, obs)))
+        params, norm = self.actor_params, self.normalizer
+
+        def one(p, mean, std, obs):
+            return nets.policy(p, types.SimpleNamespace(mean=mean, std=std), obs)
+
+        def act(obs):
+            # Members unrolled (not vmapped): K is small, and exporters (jax2onnx) see plain dense layers.
+            k = int(norm.mean.shape[0])
+            pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
+            return sum(one(pick(params, i), norm.mean[i], norm.std[i], obs) for i in range(k)) / k
+
+        object.__setattr__(self, "_actor", act)
+        object.__setattr__(self, "_act", jax.jit(act))
+        object.__setattr__(self, "_planners", {})
+
+    @property
+    def members(self) -> int:
+        return int(self.contract["network"].get("ensemble", 1))
+
+    @property
+    def env_config(self):
+        return dataclasses.replace(env_config_from_dict(self.contract["env"]), check_actions=False)
 
     def act(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
@@ -108,10 +240,209 @@ class Policy:
             raise ValueError("observation has NaN or inf; accepted: finite values")
         return np.asarray(self._act(jnp.asarray(obs)))
 
+    def actor_fn(self):
+        """The pure function ``obs[..., 21] -> action[..., 6]`` with the parameters closed over (for
+        jitting into other programs or exporting)."""
+        return self._actor
 
-def load_policy(path: str | os.PathLike) -> Policy:
-    """Reads a policy folder (or its ``policy.json``/``policy.npz``) and checks it against its contract."""
-    path = Path(path)
+    # ---- planning ---------------------------------------------------------------------------
+    def _planner(self, camera: bool):
+        """One jitted program: poses in, rollout until every query ended, trajectory out."""
+        if camera in self._planners:
+            return self._planners[camera]
+        from regrasp_mjx import geometry
+        from regrasp_mjx.env import RegraspEnv
+        from regrasp_mjx.sampling import Episode
+
+        env = RegraspEnv(self.env_config)
+        horizon, act = env.config.horizon, self._actor
+
+        def rollout(needle, start, goal):
+            b = needle.shape[0]
+            zeros = jnp.zeros((b, 4))
+            episodes = Episode(
+                needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0]
+            )
+            state = jax.vmap(env.reset_from)(episodes)
+            valid = state.metrics["reset_valid"] > 0
+            pose0 = jnp.concatenate([start[:, :3], start[:, 3:]], axis=1)
+            poses = jnp.repeat(pose0[:, None], horizon + 1, axis=1)
+            actions = jnp.zeros((b, horizon, 6))
+            # [ended, success, collision, time_out, steps, path_mm]
+            result = jnp.zeros((b, 6)).at[:, 0].set(~valid).at[:, 2].set(~valid)
+
+            def cond(c):
+                t, _, result, _, _ = c
+                return (t < horizon) & jnp.any(result[:, 0] == 0)
+
+            def body(c):
+                t, state, result, poses, actions = c
+                a = act(state.obs)
+                nxt = jax.vmap(env.step)(state, a)
+                live = result[:, 0] == 0
+                es = nxt.pipeline_state
+                pose = jnp.concatenate([es.ee_pos, es.ee_quat], axis=1)
+                # rows after the end repeat the last pose
+                poses = jnp.where(
+                    live[:, None, None] & (jnp.arange(horizon + 1) > t)[None, :, None], pose[:, None], poses
+                )
+                actions = actions.at[:, t].set(jnp.where(live[:, None], jnp.clip(a, -1, 1), 0.0))
+                new = jnp.stack(
+                    [
+                        nxt.done,
+                        nxt.metrics["success"],
+                        nxt.metrics["collision"],
+                        nxt.metrics["time_out"],
+                        es.t.astype(jnp.float32),
+                        nxt.metrics["path_length_mm"],
+                    ],
+                    axis=1,
+                )
+                result = jnp.where((live & (nxt.done > 0))[:, None], new, result)
+                state = jax.tree.map(
+                    lambda x, y: jnp.where(live.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), nxt, state
+                )
+                return t + 1, state, result, poses, actions
+
+            _, _, result, poses, actions = jax.lax.while_loop(cond, body, (jnp.int32(0), state, result, poses, actions))
+            return valid, result, poses, actions
+
+        task = env.config.task
+        radius = env.needle_radius
+
+        def from_eg(needle, start, goal):
+            return rollout(needle, start, goal)
+
+        def from_camera(c_eg, c_er, c_n, goal_depth):
+            pose = lambda x: (x[:, :3], x[:, 3:])  # noqa: E731
+            join = lambda p: jnp.concatenate([p[0], p[1]], axis=-1)  # noqa: E731
+            eg_inv = geometry.inverse(pose(c_eg))
+            needle = geometry.compose(eg_inv, pose(c_n))
+            start = geometry.compose(eg_inv, pose(c_er))
+            from regrasp_mjx.sampling import goal_in_needle
+
+            goal = jax.vmap(lambda n_p, n_q, d: join(geometry.compose((n_p, n_q), goal_in_needle(task, d, radius))))(
+                needle[0], needle[1], goal_depth
+            )
+            needle, start = join(needle), join(start)
+            start = start.at[:, 3:].set(geometry.canonical_quat(start[:, 3:]))
+            needle = needle.at[:, 3:].set(geometry.canonical_quat(needle[:, 3:]))
+            valid, result, poses, actions = rollout(needle, start, goal)
+            cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
+            return valid, result, poses, actions, cam
+
+        fn = jax.jit(from_camera if camera else from_eg)
+        self._planners[camera] = fn
+        return fn
+
+    def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
+        out = jax.device_get(out)
+        valid, result, poses, actions = out[:4]
+        plan = Plan(
+            success=result[:, 1] > 0,
+            collision=result[:, 2] > 0,
+            time_out=result[:, 3] > 0,
+            start_valid=np.asarray(valid),
+            steps=result[:, 4].astype(np.int64),
+            path_length_mm=result[:, 5],
+            poses=np.asarray(poses, np.float64),
+            actions=np.asarray(actions, np.float64),
+            poses_camera=np.asarray(out[4], np.float64) if camera else None,
+            nearest_grasp_distance=nearest,
+        )
+        if single:
+            plan = Plan(**{f.name: _first(getattr(plan, f.name)) for f in dataclasses.fields(Plan)})
+        return plan
+
+    def _goal_depth(self, goal_depth_mm, n):
+        task = self.env_config.task
+        lo, hi = task.goal_depth_mm
+        d = np.broadcast_to(np.asarray((lo + hi) / 2 if goal_depth_mm is None else goal_depth_mm, np.float64), (n,))
+        if not np.all(np.isfinite(d)) or np.any((d < lo - 1e-9) | (d > hi + 1e-9)):
+            raise PoseError(
+                f"goal_depth_mm={goal_depth_mm!r} is not accepted: within the trained range [{lo}, {hi}] mm"
+            )
+        return d * 1e-3
+
+    def plan(
+        self, needle: Any, start: Any, goal: Any = None, goal_depth_mm: Any = None, check_grasp: bool = True
+    ) -> Plan:
+        """Plans from poses in the grasping end-effector frame e_g (7-vectors, or batches ``[B, 7]``).
+
+        ``goal`` defaults to the task's goal grasp on this needle (depth ``goal_depth_mm``, default
+        the middle of the trained range). Raises :class:`PoseError` on bad input; warns when the
+        needle pose is far from every valid grasp of the library.
+        """
+        needle = check_poses("needle", needle)
+        start = check_poses("start", start)
+        single = needle.ndim == 1
+        needle, start = np.atleast_2d(needle), np.atleast_2d(start)
+        if needle.shape != start.shape:
+            raise PoseError(f"needle {needle.shape} and start {start.shape} poses differ in batch size")
+        if goal is None:
+            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+        goal = np.atleast_2d(check_poses("goal", goal))
+        if goal.shape != needle.shape:
+            raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
+        nearest = self._check_grasp(needle) if check_grasp else None
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        out = self._planner(False)(f32(needle), f32(start), f32(goal))
+        return self._finish(out, single, False, nearest)
+
+    def plan_from_camera(
+        self, grasping_ee: Any, regrasping_ee: Any, needle: Any, goal_depth_mm: Any = None, check_grasp: bool = True
+    ) -> Plan:
+        """Plans from three camera-frame poses (7-vectors or ``[B, 7]``), as on a real dVRK
+        (SPEC "Deployment"); the plan's poses come in the e_g frame and the camera frame."""
+        c_eg = check_poses("grasping_ee", grasping_ee)
+        c_er = check_poses("regrasping_ee", regrasping_ee)
+        c_n = check_poses("needle", needle)
+        single = c_eg.ndim == 1
+        c_eg, c_er, c_n = (np.atleast_2d(x) for x in (c_eg, c_er, c_n))
+        if not (c_eg.shape == c_er.shape == c_n.shape):
+            raise PoseError(f"camera poses differ in batch size: {c_eg.shape}, {c_er.shape}, {c_n.shape}")
+        depth = self._goal_depth(goal_depth_mm, len(c_eg))
+        nearest = None
+        if check_grasp:
+            from regrasp_mjx import host
+
+            rel = [host.relative(e[:3], e[3:], n[:3], n[3:]) for e, n in zip(c_eg, c_n)]
+            rel_p, rel_q = np.stack([r[0] for r in rel]), np.stack([r[1] for r in rel])
+            nearest = self._check_grasp(np.concatenate([rel_p, rel_q], axis=1))
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        out = self._planner(True)(f32(c_eg), f32(c_er), f32(c_n), f32(depth))
+        return self._finish(out, single, True, nearest)
+
+    def _default_goal(self, needle: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        from regrasp_mjx import geometry
+        from regrasp_mjx.sampling import goal_in_needle
+
+        env = self.env_config
+        radius = env.scene.needle_radius_mm * 1e-3
+        goal = jax.vmap(lambda p, q, d: geometry.compose((p, q), goal_in_needle(env.task, d, radius)))(
+            jnp.asarray(needle[:, :3]), jnp.asarray(needle[:, 3:]), jnp.asarray(depth)
+        )
+        return np.concatenate([np.asarray(goal[0]), np.asarray(goal[1])], axis=1)
+
+    def _check_grasp(self, needle: np.ndarray) -> np.ndarray:
+        from regrasp_mjx.grasps import GraspLibrary
+
+        dist = GraspLibrary.default().nearest(needle)[1]
+        far = dist > OOD_WARN_DISTANCE
+        if np.any(far):
+            warnings.warn(
+                f"needle pose {int(np.argmax(far))} is {float(dist[far][0]):.2f} (mm + deg/5) from the nearest "
+                f"valid grasp of the library (beyond {OOD_WARN_DISTANCE}): far from anything trained on; "
+                "project it with regrasp_mjx.grasps.GraspLibrary.project or check the pose estimate",
+                stacklevel=3,
+            )
+        return dist
+
+
+def load_policy(path: str | os.PathLike | None = None) -> Policy:
+    """Reads a policy folder (or its ``policy.json``/``policy.npz``) and checks it against its
+    contract; with no path, the policy shipped in the package."""
+    path = Path(path) if path is not None else DEFAULT_POLICY
     folder = path if path.is_dir() else path.parent
     js, npz = folder / "policy.json", folder / "policy.npz"
     for f in (js, npz):
@@ -131,24 +462,35 @@ def load_policy(path: str | os.PathLike) -> Policy:
             arrays = {k: f[k] for k in f.files}
     except Exception as err:
         raise PolicyError(f"{npz} is not a readable policy array file: {err}") from err
-    missing = sorted(set(contract.get("arrays", [])) - set(arrays))
-    if missing or "normalizer/mean" not in arrays:
-        raise PolicyError(f"{npz} lacks arrays {missing or ['normalizer/mean']}")
-    hidden = contract["network"]["hidden"]
-    expected = make_networks(6, tuple(hidden)).actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 21)))
+    try:
+        hidden = tuple(int(h) for h in contract["network"]["hidden"])
+        members = int(contract["network"].get("ensemble", 1))
+        env_config_from_dict(contract["env"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise PolicyError(f"{js}: incomplete contract ({err})") from err
+    missing = sorted((set(contract.get("arrays", [])) | {"normalizer/mean", "normalizer/std"}) - set(arrays))
+    if missing:
+        raise PolicyError(f"{npz} lacks arrays {missing}")
+    expected = make_networks(6, hidden).actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 21)))
     params = {}
     for k, v in traverse_util.flatten_dict(expected).items():
         name = "actor/" + "/".join(k)
-        if name not in arrays or arrays[name].shape != v.shape:
+        want = (members, *v.shape)
+        if name not in arrays or arrays[name].shape != want:
             raise PolicyError(
                 f"{npz}: {name} has shape {arrays.get(name, np.zeros(0)).shape}, the contract's "
-                f"network (hidden {hidden}) needs {v.shape}"
+                f"network (hidden {list(hidden)}, ensemble {members}) needs {want}"
             )
         params[k] = jnp.asarray(arrays[name])
+    for name in ("normalizer/mean", "normalizer/std"):
+        if arrays[name].shape != (members, 21):
+            raise PolicyError(f"{npz}: {name} has shape {arrays[name].shape}, needs {(members, 21)}")
+        if not np.all(np.isfinite(arrays[name])) or (name.endswith("std") and np.any(arrays[name] <= 0)):
+            raise PolicyError(f"{npz}: {name} has non-finite or non-positive values")
     norm = running_statistics.RunningStatisticsState(
-        count=jnp.ones(()),
+        count=jnp.ones((members,)),
         mean=jnp.asarray(arrays["normalizer/mean"]),
-        summed_variance=jnp.zeros(21),
+        summed_variance=jnp.zeros((members, 21)),
         std=jnp.asarray(arrays["normalizer/std"]),
     )
     return Policy(contract, traverse_util.unflatten_dict(params), norm)

@@ -87,6 +87,26 @@ def _mm(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f} mm"
 
 
+def evaluate_policy(policy, episodes: Episode) -> dict[str, float]:
+    """Success, collision, time-out and path length of a loaded policy's plans for the problems."""
+    cat = lambda p, q: np.concatenate([np.asarray(p), np.asarray(q)], axis=1)  # noqa: E731
+    plan = policy.plan(
+        cat(episodes.needle_pos, episodes.needle_quat),
+        cat(episodes.start_pos, episodes.start_quat),
+        cat(episodes.goal_pos, episodes.goal_quat),
+        check_grasp=False,
+    )
+    return summarize_eval(
+        {
+            "success": plan.success,
+            "collision": plan.collision | ~plan.start_valid,
+            "time_out": plan.time_out,
+            "path_length_mm": plan.path_length_mm,
+            "steps": plan.steps,
+        }
+    )
+
+
 def summarize_eval(result: dict[str, Any]) -> dict[str, float]:
     r = {k: np.asarray(v) for k, v in result.items()}
     ok = r["success"] > 0
@@ -356,14 +376,11 @@ class Run:
         cfg = self.cfg
         from regrasp_mjx.policy import load_policy
 
-        test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
         members = []
         for m in range(cfg.num_seeds):
             self._export(self.member_dir(m) / "policy_last", ts, m, {"epoch": meta["epoch"]})
             policy_dir = self.member_dir(m) / "policy"
-            policy = load_policy(policy_dir)
-            params = jax.tree.map(lambda x: jnp.asarray(x)[None], (policy.actor_params, policy.normalizer))
-            ev = summarize_eval({k: v[0] for k, v in jax.device_get(self.learner.evaluate(*params, test)).items()})
+            ev = evaluate_policy(load_policy(policy_dir), self.testset)  # the exported file, as deployed
             members.append(
                 {
                     "seed": cfg.seed + m,

@@ -262,7 +262,7 @@ def test_bad_policy_files(tmp_path, easy_env, easy_demos):
     (tmp_path / "policy.json").write_text(
         json.dumps({**contract, "network": {**contract["network"], "hidden": [32, 32]}})
     )
-    with pytest.raises(PolicyError, match=r"needs \(21, 32\)"):
+    with pytest.raises(PolicyError, match=r"needs \(1, 21, 32\)"):
         load_policy(tmp_path)
     (tmp_path / "policy.json").write_text(json.dumps(contract))
     (tmp_path / "policy.npz").write_bytes(b"garbage")
