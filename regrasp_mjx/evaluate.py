@@ -27,7 +27,8 @@ from regrasp_mjx.sampling import TestsetError, load_testset
 DEFAULT_TESTSET = Path(__file__).resolve().parent.parent / "experiments" / "testsets" / "paper300.npz"
 
 
-def _poses(ep):
+def episode_poses(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Needle, start and goal poses ``[N, 7]`` of test-set rows (the inputs of ``Policy.plan``)."""
     cat = lambda p, q: np.concatenate([p, q], axis=1)  # noqa: E731
     return (
         cat(ep.needle_pos, ep.needle_quat),
@@ -41,7 +42,7 @@ def evaluate(
 ) -> dict:
     """The numbers of one policy on one test set (see the module docstring). The throughput batch
     repeats the test set's queries up to ``batch_size``."""
-    needle, start, goal = _poses(episodes)
+    needle, start, goal = episode_poses(episodes)
     n = len(needle)
     plan = policy.plan(needle, start, goal, check_grasp=False)
     rows = np.arange(batch_size or n) % n

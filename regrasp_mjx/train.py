@@ -89,13 +89,9 @@ def _mm(v: float | None) -> str:
 
 def evaluate_policy(policy, episodes: Episode) -> dict[str, float]:
     """Success, collision, time-out and path length of a loaded policy's plans for the problems."""
-    cat = lambda p, q: np.concatenate([np.asarray(p), np.asarray(q)], axis=1)  # noqa: E731
-    plan = policy.plan(
-        cat(episodes.needle_pos, episodes.needle_quat),
-        cat(episodes.start_pos, episodes.start_quat),
-        cat(episodes.goal_pos, episodes.goal_quat),
-        check_grasp=False,
-    )
+    from regrasp_mjx.evaluate import episode_poses
+
+    plan = policy.plan(*episode_poses(episodes), check_grasp=False)
     return summarize_eval(
         {
             "success": plan.success,
