@@ -58,6 +58,7 @@ class PoseError(ValueError):
     """A pose that is not a finite 7-vector ``[x, y, z, qw, qx, qy, qz]`` with a unit quaternion."""
 
 
+WEIGHT_DTYPES = ("float32", "float16")
 QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the pose is refused
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
 
@@ -87,15 +88,20 @@ def save_policy(
     env_config: Any,
     extra: dict[str, Any] | None = None,
     ensemble: int | None = None,
+    weights_dtype: str = "float32",
 ) -> Path:
     """Writes ``policy.npz`` and ``policy.json`` into ``out_dir`` atomically.
 
     ``actor_params`` and ``normalizer`` are one learner's, or, with ``ensemble=K``, K learners'
-    stacked on a leading axis."""
+    stacked on a leading axis. ``weights_dtype="float16"`` stores the actor's weights at half the
+    size (they are computed in float32 after loading); the normaliser stays float32."""
+    if weights_dtype not in WEIGHT_DTYPES:
+        raise PolicyError(f"weights_dtype={weights_dtype!r} is not accepted: one of {WEIGHT_DTYPES}")
     out = Path(out_dir)
     lead = (lambda x: np.asarray(x, np.float32)) if ensemble else (lambda x: np.asarray(x, np.float32)[None])
     flat = {
-        "actor/" + "/".join(k): lead(v) for k, v in traverse_util.flatten_dict(jax.device_get(actor_params)).items()
+        "actor/" + "/".join(k): lead(v).astype(weights_dtype)
+        for k, v in traverse_util.flatten_dict(jax.device_get(actor_params)).items()
     }
     flat["normalizer/mean"] = lead(normalizer.mean)
     flat["normalizer/std"] = lead(normalizer.std)
@@ -110,6 +116,7 @@ def save_policy(
             "output": "tanh",
             "obs_clip_std": 5.0,
             "ensemble": int(ensemble or 1),
+            "weights_dtype": weights_dtype,
             "combine": "mean of the members' actions",
         },
         "observation": {
@@ -134,7 +141,12 @@ def save_policy(
     return out
 
 
-def ensemble_policies(paths: list[str | os.PathLike], out_dir: str | os.PathLike, extra: dict | None = None) -> Path:
+def ensemble_policies(
+    paths: list[str | os.PathLike],
+    out_dir: str | os.PathLike,
+    extra: dict | None = None,
+    weights_dtype: str = "float32",
+) -> Path:
     """Stacks single policies of one network and environment into one mean-action ensemble."""
     policies = [load_policy(p) for p in paths]
     first = policies[0].contract
@@ -155,6 +167,7 @@ def ensemble_policies(paths: list[str | os.PathLike], out_dir: str | os.PathLike
         env_config_from_dict(first["env"]),
         extra={"ensemble_of": {"members": [str(p) for p in paths], **(extra or {})}},
         ensemble=members,
+        weights_dtype=weights_dtype,
     )
 
 
@@ -481,7 +494,7 @@ def load_policy(path: str | os.PathLike | None = None) -> Policy:
                 f"{npz}: {name} has shape {arrays.get(name, np.zeros(0)).shape}, the contract's "
                 f"network (hidden {list(hidden)}, ensemble {members}) needs {want}"
             )
-        params[k] = jnp.asarray(arrays[name])
+        params[k] = jnp.asarray(arrays[name], jnp.float32)  # stored float32 or float16
     for name in ("normalizer/mean", "normalizer/std"):
         if arrays[name].shape != (members, 21):
             raise PolicyError(f"{npz}: {name} has shape {arrays[name].shape}, needs {(members, 21)}")
