@@ -1,12 +1,17 @@
 """Throughput of the training program: env-steps/s and updates/s of one jitted iteration at several
-env counts and seed counts, with peak device memory.
+env counts, seed counts and device counts, with peak device memory; and the wall-clock time the
+Table I runs took to reach given test-set success rates (read from their logs).
 
 An iteration is what ``python -m regrasp_mjx.train`` runs between host steps: ``num_envs`` x 100
 exploration steps per seed, the buffer inserts, ``updates_per_iteration`` DDPG+BC updates per seed.
+With ``--devices 1,2`` every setting is also run data parallel over 2 GPUs (``num_envs`` in total,
+split; gradients averaged every update), and the 2-to-1 ratio is printed for each.
 Demonstrations are stand-ins (random transitions; throughput does not depend on their values).
 Compile time excluded; ``--iterations`` timed after one warm-up.
 
     python experiments/bench_train.py --envs 128,512,2048,8192 --seeds 1,3,8 --out experiments/results
+    python experiments/bench_train.py --envs 512,8192,32768 --seeds 1 --devices 1,2 --out results/x2
+    python experiments/bench_train.py --time-to-success experiments/results/table1
 """
 
 from __future__ import annotations
@@ -24,8 +29,8 @@ from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.agents.ddpg_bc.train import Learner
 
 
-def bench(num_envs: int, seeds: int, updates: int, iterations: int) -> dict:
-    cfg = make_config("fast", num_envs=num_envs, num_seeds=seeds, updates_per_iteration=updates)
+def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int = 1) -> dict:
+    cfg = make_config("fast", num_envs=num_envs, num_seeds=seeds, updates_per_iteration=updates, devices=devices)
     learner = Learner(cfg)
     rng = np.random.default_rng(0)
     n = 20_000
@@ -46,47 +51,97 @@ def bench(num_envs: int, seeds: int, updates: int, iterations: int) -> dict:
         ts, m, out, _ = learner.iteration(ts, jnp.float32(0.3))
     jax.block_until_ready(out)
     dt = (time.perf_counter() - t0) / iterations
-    stats = jax.devices()[0].memory_stats() or {}
+    peak = max((d.memory_stats() or {}).get("peak_bytes_in_use", float("nan")) for d in jax.devices()[:devices])
     return {
+        "devices": devices,
         "num_envs": num_envs,
         "seeds": seeds,
         "updates_per_iteration": updates,
         "iteration_ms": 1e3 * dt,
         "env_steps_per_s": seeds * num_envs * cfg.env.horizon / dt,
         "updates_per_s": seeds * updates / dt,
-        "peak_memory_gb": stats.get("peak_bytes_in_use", float("nan")) / 1e9,
+        "peak_memory_gb": peak / 1e9,  # the most on one device
         "compile_s": compile_s,
     }
 
 
+def time_to_success(folder: Path, thresholds: tuple[float, ...]) -> list[dict]:
+    """For each run log under ``folder`` (``*/log.jsonl``) and each seed: the training wall-clock
+    (compile included, evaluation included) at the first epoch whose test success reaches each
+    threshold, or None when it never does."""
+    rows = []
+    for log in sorted(folder.glob("*/log.jsonl")):
+        entries = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
+        for seed in sorted({e["seed"] for e in entries}):
+            mine = [e for e in entries if e["seed"] == seed]
+            row = {"run": log.parent.name, "seed": seed, "best": max(e["test"]["success_rate"] for e in mine)}
+            for t in thresholds:
+                hit = next((e for e in mine if e["test"]["success_rate"] >= t), None)
+                row[f"{t:.2f}"] = None if hit is None else {"wall_s": hit["wall_s"], "epoch": hit["epoch"]}
+            rows.append(row)
+    return rows
+
+
+def _time_table(rows: list[dict], thresholds: tuple[float, ...]) -> list[str]:
+    cell = lambda v: "never" if v is None else f"{v['wall_s']:.0f} s (epoch {v['epoch']})"  # noqa: E731
+    lines = [
+        "| run | seed | " + " | ".join(f"time to {t:.2f}" for t in thresholds) + " | best test success |",
+        "| --- | ---: | " + " | ".join("---:" for _ in thresholds) + " | ---: |",
+    ]
+    for r in rows:
+        cells = " | ".join(cell(r[f"{t:.2f}"]) for t in thresholds)
+        lines.append(f"| {r['run']} | {r['seed']} | {cells} | {r['best']:.3f} |")
+    return lines
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--envs", default="128,512,2048,8192")
-    p.add_argument("--seeds", default="1,3,8")
+    p.add_argument("--envs", default="128,512,2048,8192", help="environments per seed (all devices together)")
+    p.add_argument("--seeds", default="1,3,8", help="seed counts (more than one: at 512 envs only)")
+    p.add_argument("--devices", default="1", help="device counts, e.g. 1,2 (data parallel)")
     p.add_argument("--updates", type=int, default=200)
     p.add_argument("--iterations", type=int, default=10)
+    p.add_argument("--time-to-success", default=None, metavar="FOLDER", help="only read run logs under FOLDER")
+    p.add_argument("--thresholds", default="0.90,0.95,0.97")
     p.add_argument("--out", default=None)
     args = p.parse_args()
+    if args.time_to_success:
+        thresholds = tuple(float(t) for t in args.thresholds.split(","))
+        rows = time_to_success(Path(args.time_to_success), thresholds)
+        lines = _time_table(rows, thresholds)
+        print("\n".join(lines))
+        if args.out:
+            out = Path(args.out)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "time_to_success.md").write_text("\n".join(lines) + "\n")
+            (out / "time_to_success.json").write_text(json.dumps(rows, indent=2))
+        return
     rows = []
     for seeds in (int(s) for s in args.seeds.split(",")):
         for envs in (int(e) for e in args.envs.split(",")):
             if seeds > 1 and envs != 512:
                 continue  # seeds are compared at the fast preset's 512 envs
-            r = bench(envs, seeds, args.updates, args.iterations)
-            rows.append(r)
-            print(json.dumps(r), flush=True)
+            for devices in (int(d) for d in args.devices.split(",")):
+                r = bench(envs, seeds, args.updates, args.iterations, devices)
+                rows.append(r)
+                print(json.dumps(r), flush=True)
     device = jax.devices()[0].device_kind
     lines = [
         f"Device: {device} ({jax.device_count()} visible), jax {jax.__version__}; updates per iteration "
         f"{args.updates}, batch 256, horizon 100.",
         "",
-        "| seeds | envs per seed | iteration (ms) | env-steps/s | updates/s | peak memory (GB) | compile (s) |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| devices | seeds | envs per seed | iteration (ms) | env-steps/s | updates/s | peak memory per device (GB) "
+        "| compile (s) | vs 1 device |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
+        base = next(
+            (b for b in rows if b["devices"] == 1 and (b["seeds"], b["num_envs"]) == (r["seeds"], r["num_envs"])), None
+        )
+        ratio = f"{base['iteration_ms'] / r['iteration_ms']:.2f}x" if base and r["devices"] > 1 else "-"
         lines.append(
-            f"| {r['seeds']} | {r['num_envs']} | {r['iteration_ms']:.1f} | {r['env_steps_per_s']:,.0f} | "
-            f"{r['updates_per_s']:,.0f} | {r['peak_memory_gb']:.2f} | {r['compile_s']:.1f} |"
+            f"| {r['devices']} | {r['seeds']} | {r['num_envs']} | {r['iteration_ms']:.1f} | {r['env_steps_per_s']:,.0f} | "
+            f"{r['updates_per_s']:,.0f} | {r['peak_memory_gb']:.2f} | {r['compile_s']:.1f} | {ratio} |"
         )
     print("\n".join(lines))
     if args.out:

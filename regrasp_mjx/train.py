@@ -238,6 +238,7 @@ class Run:
         }
         if resume:
             ts, meta = self.load(ts)
+            ts = learner.place(ts)
             self.log(f"resumed from {self.ckpt} at epoch {meta['epoch']}")
             self._truncate_log(meta["epoch"])
         rng = np.random.default_rng()
@@ -483,6 +484,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="run folder: logs, checkpoint, demos, exported policy")
     p.add_argument("--seed", type=int, default=None, help="PRNG seed (default: the preset's, 0)")
     p.add_argument("--seeds", type=int, default=None, help="train seeds SEED..SEED+N-1 together as one vmapped program")
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="split the environments over this many local GPUs, data parallel (0 = all; default 1)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint")
     p.add_argument("--demos", default=None, help="a demonstration folder (default: build OUT/demos)")
     p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="evaluation test set (.npz)")
@@ -501,6 +508,8 @@ def main(argv: list[str] | None = None) -> int:
             overrides["seed"] = args.seed
         if args.seeds is not None:
             overrides["num_seeds"] = args.seeds
+        if args.devices is not None:
+            overrides["devices"] = args.devices
         cfg = make_config(args.preset, args.exploration, **overrides)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)

@@ -72,6 +72,9 @@ class TrainConfig:
       seed: PRNG seed of everything but the planners' own sampling.
       num_seeds: independent learners with seeds ``seed .. seed + num_seeds - 1`` trained as one
         vmapped program (ours; Table I's three seeds in one run).
+      devices: local devices the environments, buffer and batches are split over, data parallel with
+        replicated networks and averaged gradients (ours; 0 = all that JAX sees). ``num_envs``,
+        ``buffer_size``, ``demo_chunk`` and both parts of the batch must divide by it.
     """
 
     env: EnvConfig = EnvConfig(check_actions=False)
@@ -102,6 +105,7 @@ class TrainConfig:
     validation_size: int = 1000
     seed: int = 0
     num_seeds: int = 1
+    devices: int = 1
 
     def __post_init__(self) -> None:
         def positive_int(name: str, lo: int = 1) -> None:
@@ -126,6 +130,7 @@ class TrainConfig:
             positive_int(name)
         positive_int("planner_workers", 0)
         positive_int("seed", 0)
+        positive_int("devices", 0)
         for name, lo, hi in (("gamma", 0.0, 0.9999), ("polyak", 0.0, 1.0), ("demo_fraction", 0.0, 0.99)):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and lo <= v <= hi):

@@ -14,6 +14,15 @@ its own networks, optimisers, normaliser, buffers and key, run as one vmapped pr
 seeds of Table I cost about what one costs on a GPU. Every state leaf has that leading axis (1 for
 a single seed); the single-learner functions (``init_one``, ``update``, ``iteration_one``,
 ``evaluate_one``) are the ones vmapped.
+
+Devices are data parallel (``devices`` in the config): the iteration runs under ``shard_map`` on a
+one-axis mesh ``"data"``. Each device rolls out ``num_envs / devices`` environments into its own
+slice of the online buffer and samples ``1 / devices`` of every batch from it (and from its copy of
+the demonstrations); networks, optimisers and the normaliser are replicated, gradients are averaged
+(``pmean``) and normaliser statistics summed (``psum``) across devices, so every replica takes the
+same step: the gradient of the whole batch. The buffer's slices are one array sharded along its
+length (each device's insert index is the same, as every device adds as many transitions), so a
+state's shapes do not depend on the device count. With one device the program has no collectives.
 """
 
 from __future__ import annotations
@@ -24,17 +33,22 @@ from typing import Any
 import flashbax as fbx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from brax.training.acme import running_statistics, specs
 from flax import struct
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from regrasp_mjx.agents.ddpg_bc import losses
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
+from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.sampling import Episode
 
 TRANSITION = ("obs", "action", "reward", "next_obs", "terminal")
+AXIS = "data"  # the mesh axis the environments and batches are split over
 
 
 @struct.dataclass
@@ -72,10 +86,14 @@ class Learner:
         self.nets: DDPGNetworks = make_networks(self.env.action_size, config.hidden)
         self.actor_opt = optax.adam(config.lr_actor)
         self.critic_opt = optax.adam(config.lr_critic)
+        self.devices = self._check_devices(config)
+        self.mesh = Mesh(np.array(jax.devices()[: self.devices]), (AXIS,))
+        self.local_envs = config.num_envs // self.devices
+        # Each device's slice of the online buffer, and its share of every batch.
         self.online_buffer = fbx.make_item_buffer(
-            max_length=config.buffer_size,
-            min_length=config.online_batch,
-            sample_batch_size=config.online_batch,
+            max_length=config.buffer_size // self.devices,
+            min_length=config.online_batch // self.devices,
+            sample_batch_size=config.online_batch // self.devices,
             add_batches=True,
         )
         self.trace_count = 0  # how often the iteration program was traced (tests assert one)
@@ -85,14 +103,74 @@ class Learner:
         self.add_online = jax.jit(self._add_online, donate_argnums=(0,))
         self.demo_buffer = None
 
+    @staticmethod
+    def _check_devices(cfg: TrainConfig) -> int:
+        available = jax.devices()
+        n = cfg.devices or len(available)
+        if n > len(available):
+            raise ConfigError(
+                f"devices={cfg.devices} is not accepted: JAX sees {len(available)} "
+                f"{jax.default_backend()} device(s); accepted: 0 (all) or 1..{len(available)}"
+            )
+        for name, value in (
+            ("num_envs", cfg.num_envs),
+            ("buffer_size", cfg.buffer_size),
+            ("demo_chunk", cfg.demo_chunk),
+            ("the online part of batch_size", cfg.online_batch),
+            ("the demonstration part of batch_size", cfg.demo_batch),
+        ):
+            if value % n:
+                raise ConfigError(
+                    f"devices={n} does not divide {name} ({value}); accepted: sizes that split evenly over the devices"
+                )
+        return n
+
+    # ---- placement ----------------------------------------------------------------------------
+    def state_specs(self, ts: TrainingState) -> TrainingState:
+        """Partition specs of a state: the online buffer's transitions split along the buffer's
+        length (``[seed, 1, length, ...]``), everything else replicated."""
+        specs = jax.tree.map(lambda _: P(), ts)
+        experience = jax.tree.map(lambda _: P(None, None, AXIS), ts.online.experience)
+        return specs.replace(online=specs.online.replace(experience=experience))
+
+    def place(self, ts: TrainingState) -> TrainingState:
+        """Puts a state (fresh or restored from a checkpoint) on the mesh."""
+        shardings = jax.tree.map(lambda spec: NamedSharding(self.mesh, spec), self.state_specs(ts))
+        return jax.device_put(ts, shardings)
+
+    def _shard_map(self, fn, in_specs, out_specs):
+        # Replication of the outputs given P() is by construction (averaged gradients, summed
+        # statistics, keys split before any device index is folded in) and tested, not type-checked.
+        return jax.shard_map(fn, mesh=self.mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)
+
+    def _pmean(self, tree):
+        return jax.lax.pmean(tree, AXIS) if self.devices > 1 else tree
+
+    def _device_key(self, key: jax.Array) -> jax.Array:
+        """A key of this device's own (unchanged with one device, so runs reproduce across versions)."""
+        return jax.random.fold_in(key, jax.lax.axis_index(AXIS)) if self.devices > 1 else key
+
+    @property
+    def _axis_name(self) -> str | None:
+        return AXIS if self.devices > 1 else None
+
     # ---- state --------------------------------------------------------------------------------
     def init(self, demos: dict[str, jax.Array]) -> TrainingState:
         """Fresh learners for seeds ``seed .. seed + num_seeds - 1``, stacked on a leading axis."""
         cfg = self.config
         keys = jnp.stack([jax.random.PRNGKey(cfg.seed + m) for m in range(cfg.num_seeds)])
-        ts = jax.jit(jax.vmap(self.init_one, in_axes=(0, None)))(keys, demos)
-        # No weakly typed leaves: a state restored from a checkpoint then traces like a fresh one.
-        return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), ts)
+
+        def make(keys, demos):
+            ts = jax.vmap(self.init_one, in_axes=(0, None))(keys, demos)
+            # The online buffer spans all devices' slices: [seed, 1, buffer_size, ...].
+            full = lambda x: jnp.zeros(x.shape[:2] + (cfg.buffer_size,) + x.shape[3:], x.dtype)  # noqa: E731
+            ts = ts.replace(online=ts.online.replace(experience=jax.tree.map(full, ts.online.experience)))
+            # No weakly typed leaves: a state restored from a checkpoint then traces like a fresh one.
+            return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), ts)
+
+        shapes = jax.eval_shape(make, keys, demos)
+        shardings = jax.tree.map(lambda spec: NamedSharding(self.mesh, spec), self.state_specs(shapes))
+        return jax.jit(make, out_shardings=shardings)(keys, demos)
 
     def init_one(self, key: jax.Array, demos: dict[str, jax.Array]) -> TrainingState:
         """One learner: fresh networks and optimisers, the demonstrations loaded, the normaliser
@@ -132,7 +210,10 @@ class Learner:
     def attach_demo_buffer(self, num_demo_transitions: int) -> None:
         """Rebuilds the demonstration buffer's functions (for a state loaded from a checkpoint)."""
         self.demo_buffer = fbx.make_item_buffer(
-            max_length=num_demo_transitions, min_length=1, sample_batch_size=self.config.demo_batch, add_batches=True
+            max_length=num_demo_transitions,
+            min_length=1,
+            sample_batch_size=self.config.demo_batch // self.devices,
+            add_batches=True,
         )
 
     # ---- the jitted iteration --------------------------------------------------------------------
@@ -140,22 +221,22 @@ class Learner:
         return functools.partial(self.nets.policy, ts.actor, ts.normalizer)
 
     def _rollout(self, ts: TrainingState, key: jax.Array, random_eps: jax.Array):
-        env, cfg = self.env, self.config
-        k_reset, k_steps = jax.random.split(key)
-        first = jax.vmap(env.reset)(jax.random.split(k_reset, cfg.num_envs))
+        env, cfg, n = self.env, self.config, self.local_envs
+        k_reset, k_steps = jax.random.split(self._device_key(key))
+        first = jax.vmap(env.reset)(jax.random.split(k_reset, n))
         policy = self._policy(ts)
 
         def step(carry, k):
             state, outcome = carry
             k_coin, k_rand, k_noise = jax.random.split(k, 3)
-            explore = jax.random.uniform(k_coin, (cfg.num_envs, 1)) < random_eps
+            explore = jax.random.uniform(k_coin, (n, 1)) < random_eps
             greedy = policy(state.obs)
             if cfg.action_noise > 0:
                 noise = cfg.action_noise * jax.random.normal(k_noise, greedy.shape)
                 greedy = jnp.clip(greedy + noise, -1.0, 1.0)
             action = jnp.where(
                 explore,
-                jax.random.uniform(k_rand, (cfg.num_envs, env.action_size), minval=-1.0, maxval=1.0),
+                jax.random.uniform(k_rand, (n, env.action_size), minval=-1.0, maxval=1.0),
                 greedy,
             )
             nxt = jax.vmap(env.step)(state, action)
@@ -184,32 +265,39 @@ class Learner:
             state = jax.tree.map(lambda f, x: jnp.where(reset.reshape((-1,) + (1,) * (x.ndim - 1)), f, x), first, nxt)
             return (state, outcome), (transition, nxt.reward)
 
-        outcome0 = jnp.zeros((cfg.num_envs, 5))
+        outcome0 = jnp.zeros((n, 5))
         (_, outcome), (transitions, rewards) = jax.lax.scan(
             step, (first, outcome0), jax.random.split(k_steps, cfg.env.horizon)
         )
         return first, outcome, transitions, rewards
 
     def update(self, ts: TrainingState, key: jax.Array):
-        """One DDPG+BC gradient step of one learner."""
-        cfg, nets = self.config, self.nets
-        k_online, k_demo = jax.random.split(key)
+        """One DDPG+BC gradient step of one learner: this device's share of a batch, then :meth:`learn`."""
+        k_online, k_demo = jax.random.split(self._device_key(key))
         online = self.online_buffer.sample(ts.online, k_online).experience
         demo = self.demo_buffer.sample(ts.demos, k_demo).experience
-        batch = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), online, demo)
-        is_demo = jnp.arange(cfg.batch_size) >= cfg.online_batch
+        return self.learn(ts, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), online, demo))
+
+    def learn(self, ts: TrainingState, batch: dict[str, jax.Array]):
+        """The gradient step on a batch (online samples first, then demonstrations); under several
+        devices ``batch`` is this device's share and the gradients are averaged across devices."""
+        cfg, nets = self.config, self.nets
+        n_online = cfg.online_batch // self.devices
+        is_demo = jnp.arange(batch["reward"].shape[0]) >= n_online
         policy = functools.partial(lambda p, o: nets.policy(p, ts.normalizer, o))
         q = functools.partial(lambda p, o, a: nets.q(p, ts.normalizer, o, a))
 
         (_, c_metrics), c_grad = jax.value_and_grad(losses.critic_loss, has_aux=True)(
             ts.critic, ts.target_actor, ts.target_critic, batch, policy, q, cfg.gamma
         )
-        c_upd, critic_opt = self.critic_opt.update(c_grad, ts.critic_opt, ts.critic)
+        c_upd, critic_opt = self.critic_opt.update(self._pmean(c_grad), ts.critic_opt, ts.critic)
         critic = optax.apply_updates(ts.critic, c_upd)
+        # The BC term is a sum over the batch's demonstrations (the means are means): scaled by the
+        # device count, its averaged gradient is the whole batch's sum.
         (_, a_metrics), a_grad = jax.value_and_grad(losses.actor_loss, has_aux=True)(
-            ts.actor, critic, batch, is_demo, policy, q, cfg.prm_coef, cfg.bc_coef, cfg.action_l2
+            ts.actor, critic, batch, is_demo, policy, q, cfg.prm_coef, cfg.bc_coef * self.devices, cfg.action_l2
         )
-        a_upd, actor_opt = self.actor_opt.update(a_grad, ts.actor_opt, ts.actor)
+        a_upd, actor_opt = self.actor_opt.update(self._pmean(a_grad), ts.actor_opt, ts.actor)
         actor = optax.apply_updates(ts.actor, a_upd)
 
         updates = ts.updates + 1
@@ -232,26 +320,35 @@ class Learner:
         first, outcome, transitions, rewards = self._rollout(ts, k_roll, random_eps)
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), transitions)
         online = self.online_buffer.add(ts.online, flat)
-        normalizer = running_statistics.update(ts.normalizer, flat["obs"])
+        normalizer = running_statistics.update(ts.normalizer, flat["obs"], pmap_axis_name=self._axis_name)
         ts = ts.replace(online=online, normalizer=normalizer, key=key)
         ts, metrics = jax.lax.scan(self.update, ts, jax.random.split(k_upd, self.config.updates_per_iteration))
         metrics = jax.tree.map(jnp.mean, metrics)
-        metrics["rollout_reward"] = jnp.sum(rewards) / self.config.num_envs
+        metrics["rollout_reward"] = jnp.sum(rewards) / self.local_envs
         ts = ts.replace(iteration=ts.iteration + 1)
-        return ts, metrics, outcome, first.pipeline_state
+        return ts, self._pmean(metrics), outcome, first.pipeline_state
 
     def _iteration(self, ts: TrainingState, random_eps: jax.Array):
-        """All seeds' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``."""
+        """All seeds' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``,
+        environments (outcomes and problems: axis 1) split over the devices."""
         self.trace_count += 1
-        return jax.vmap(self.iteration_one, in_axes=(0, None))(ts, random_eps)
+        specs = self.state_specs(ts)
+        body = jax.vmap(self.iteration_one, in_axes=(0, None))
+        return self._shard_map(body, (specs, P()), (specs, P(), P(None, AXIS), P(None, AXIS)))(ts, random_eps)
 
     def _add_online(self, ts: TrainingState, member: jax.Array, chunk: dict[str, jax.Array]) -> TrainingState:
-        """Adds a chunk of planner demonstrations to one seed's online buffer (and normaliser)."""
-        pick = lambda tree: jax.tree.map(lambda x: x[member], tree)  # noqa: E731
-        put = lambda tree, one: jax.tree.map(lambda x, y: x.at[member].set(y), tree, one)  # noqa: E731
-        online = self.online_buffer.add(pick(ts.online), chunk)
-        normalizer = running_statistics.update(pick(ts.normalizer), chunk["obs"])
-        return ts.replace(online=put(ts.online, online), normalizer=put(ts.normalizer, normalizer))
+        """Adds a chunk of planner demonstrations to one seed's online buffer (and normaliser); with
+        several devices each adds its share of the chunk to its slice."""
+
+        def body(ts, member, chunk):
+            pick = lambda tree: jax.tree.map(lambda x: x[member], tree)  # noqa: E731
+            put = lambda tree, one: jax.tree.map(lambda x, y: x.at[member].set(y), tree, one)  # noqa: E731
+            online = self.online_buffer.add(pick(ts.online), chunk)
+            normalizer = running_statistics.update(pick(ts.normalizer), chunk["obs"], pmap_axis_name=self._axis_name)
+            return ts.replace(online=put(ts.online, online), normalizer=put(ts.normalizer, normalizer))
+
+        specs = self.state_specs(ts)
+        return self._shard_map(body, (specs, P(), P(AXIS)), specs)(ts, member, chunk)
 
     # ---- evaluation ---------------------------------------------------------------------------
     def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode) -> dict[str, jax.Array]:
