@@ -30,7 +30,11 @@ from regrasp_mjx.agents.ddpg_bc.train import Learner
 
 
 def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int = 1) -> dict:
-    cfg = make_config("fast", num_envs=num_envs, num_seeds=seeds, updates_per_iteration=updates, devices=devices)
+    # The buffer holds at least two iterations of transitions (flashbax refuses a bigger insert).
+    buffer = max(1_000_000, 2 * num_envs * 100)
+    cfg = make_config(
+        "fast", num_envs=num_envs, num_seeds=seeds, updates_per_iteration=updates, devices=devices, buffer_size=buffer
+    )
     learner = Learner(cfg)
     rng = np.random.default_rng(0)
     n = 20_000

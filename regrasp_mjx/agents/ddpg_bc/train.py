@@ -220,10 +220,15 @@ class Learner:
     def _policy(self, ts: TrainingState):
         return functools.partial(self.nets.policy, ts.actor, ts.normalizer)
 
-    def _rollout(self, ts: TrainingState, key: jax.Array, random_eps: jax.Array):
+    def _reset_keys(self, key: jax.Array) -> jax.Array:
+        """One learner's reset keys for the iteration, all devices' in device order: ``[num_envs, 2]``."""
+        k_roll = jax.random.split(key, 3)[1]  # as iteration_one splits the learner's key
+        per_device = [jax.random.fold_in(k_roll, d) if self.devices > 1 else k_roll for d in range(self.devices)]
+        return jnp.concatenate([jax.random.split(jax.random.split(k)[0], self.local_envs) for k in per_device])
+
+    def _rollout(self, ts: TrainingState, first, key: jax.Array, random_eps: jax.Array):
         env, cfg, n = self.env, self.config, self.local_envs
-        k_reset, k_steps = jax.random.split(self._device_key(key))
-        first = jax.vmap(env.reset)(jax.random.split(k_reset, n))
+        k_steps = jax.random.split(self._device_key(key))[1]
         policy = self._policy(ts)
 
         def step(carry, k):
@@ -269,7 +274,7 @@ class Learner:
         (_, outcome), (transitions, rewards) = jax.lax.scan(
             step, (first, outcome0), jax.random.split(k_steps, cfg.env.horizon)
         )
-        return first, outcome, transitions, rewards
+        return outcome, transitions, rewards
 
     def update(self, ts: TrainingState, key: jax.Array):
         """One DDPG+BC gradient step of one learner: this device's share of a batch, then :meth:`learn`."""
@@ -314,10 +319,11 @@ class Learner:
         )
         return ts, {**c_metrics, **a_metrics}
 
-    def iteration_one(self, ts: TrainingState, random_eps: jax.Array):
-        """One learner's iteration: rollouts, inserts, ``updates_per_iteration`` updates."""
+    def iteration_one(self, ts: TrainingState, first, random_eps: jax.Array):
+        """One learner's iteration from its environments' first states: rollouts, inserts,
+        ``updates_per_iteration`` updates."""
         key, k_roll, k_upd = jax.random.split(ts.key, 3)
-        first, outcome, transitions, rewards = self._rollout(ts, k_roll, random_eps)
+        outcome, transitions, rewards = self._rollout(ts, first, k_roll, random_eps)
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), transitions)
         online = self.online_buffer.add(ts.online, flat)
         normalizer = running_statistics.update(ts.normalizer, flat["obs"], pmap_axis_name=self._axis_name)
@@ -326,15 +332,26 @@ class Learner:
         metrics = jax.tree.map(jnp.mean, metrics)
         metrics["rollout_reward"] = jnp.sum(rewards) / self.local_envs
         ts = ts.replace(iteration=ts.iteration + 1)
-        return ts, self._pmean(metrics), outcome, first.pipeline_state
+        return ts, self._pmean(metrics), outcome
 
     def _iteration(self, ts: TrainingState, random_eps: jax.Array):
         """All seeds' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``,
-        environments (outcomes and problems: axis 1) split over the devices."""
+        environments (outcomes and problems: axis 1) split over the devices.
+
+        The resets are drawn outside the ``shard_map``, partitioned by XLA from a sharding
+        constraint: on two H200s (jax 0.11.2) XLA's GPU compiler crashes (segfault) on the reset's
+        rejection-sampling while loop (collision distances in its body) inside a manually sharded
+        program, and compiles the same loop auto-partitioned."""
         self.trace_count += 1
+        split_envs = NamedSharding(self.mesh, P(None, AXIS))
+        keys = jax.lax.with_sharding_constraint(jax.vmap(self._reset_keys)(ts.key), split_envs)
+        first = jax.lax.with_sharding_constraint(jax.vmap(jax.vmap(self.env.reset))(keys), split_envs)
         specs = self.state_specs(ts)
-        body = jax.vmap(self.iteration_one, in_axes=(0, None))
-        return self._shard_map(body, (specs, P()), (specs, P(), P(None, AXIS), P(None, AXIS)))(ts, random_eps)
+        body = jax.vmap(self.iteration_one, in_axes=(0, 0, None))
+        ts, metrics, outcome = self._shard_map(body, (specs, P(None, AXIS), P()), (specs, P(), P(None, AXIS)))(
+            ts, first, random_eps
+        )
+        return ts, metrics, outcome, first.pipeline_state
 
     def _add_online(self, ts: TrainingState, member: jax.Array, chunk: dict[str, jax.Array]) -> TrainingState:
         """Adds a chunk of planner demonstrations to one seed's online buffer (and normaliser); with
