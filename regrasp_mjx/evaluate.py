@@ -3,7 +3,9 @@
     python -m regrasp_mjx.evaluate                                  # the shipped policy, paper300
     python -m regrasp_mjx.evaluate --policy runs/fast/policy --testset my.npz --json
 
-Success, collision and time-out rates of one pass over the test set (no retries); planning time of
+Plans go through the collision shield (``Policy.plan``'s default; ``--no-shield`` rolls the bare
+policy out, as training evaluates it). Success, collision and time-out rates of one pass over the
+test set (no retries); planning time of
 one query at a time (compiled and warmed up first; the wall time from the poses to the whole
 trajectory, numpy in and out), mean and median; batched throughput (all queries in one call,
 repeated, plans/s); path length in mm over the successes. Planning runs on JAX's default device:
@@ -38,26 +40,36 @@ def episode_poses(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def evaluate(
-    policy, episodes, timed_queries: int | None = None, batch_repeats: int = 5, batch_size: int | None = None
+    policy,
+    episodes,
+    timed_queries: int | None = None,
+    batch_repeats: int = 5,
+    batch_size: int | None = None,
+    shield: bool = True,
 ) -> dict:
     """The numbers of one policy on one test set (see the module docstring). The throughput batch
-    repeats the test set's queries up to ``batch_size``."""
+    repeats the test set's queries up to ``batch_size``; ``timed_queries=0`` and
+    ``batch_repeats=0`` skip the timings."""
     needle, start, goal = episode_poses(episodes)
     n = len(needle)
-    plan = policy.plan(needle, start, goal, check_grasp=False)
+    run = lambda *poses: policy.plan(*poses, check_grasp=False, shield=shield)  # noqa: E731
+    plan = run(needle, start, goal)
     rows = np.arange(batch_size or n) % n
     big = (needle[rows], start[rows], goal[rows])
-    policy.plan(*big, check_grasp=False)  # compiles the batched program
-    t0 = time.perf_counter()
-    for _ in range(batch_repeats):
-        policy.plan(*big, check_grasp=False)
-    batch_s = (time.perf_counter() - t0) / batch_repeats
-    policy.plan(needle[0], start[0], goal[0], check_grasp=False)  # compiles the one-query program
-    times = []
-    for i in range(min(n, timed_queries or n)):
+    batch_s = float("nan")
+    if batch_repeats:
+        run(*big)  # compiles the batched program
         t0 = time.perf_counter()
-        policy.plan(needle[i], start[i], goal[i], check_grasp=False)
-        times.append(time.perf_counter() - t0)
+        for _ in range(batch_repeats):
+            run(*big)
+        batch_s = (time.perf_counter() - t0) / batch_repeats
+    times = []
+    if timed_queries != 0:
+        run(needle[0], start[0], goal[0])  # compiles the one-query program
+        for i in range(min(n, timed_queries or n)):
+            t0 = time.perf_counter()
+            run(needle[i], start[i], goal[i])
+            times.append(time.perf_counter() - t0)
     ok = plan.success
     return {
         "problems": n,
@@ -67,12 +79,13 @@ def evaluate(
         "invalid_starts": int((~plan.start_valid).sum()),
         "path_length_mm": float(plan.path_length_mm[ok].mean()) if ok.any() else None,
         "steps_mean": float(plan.steps[ok].mean()) if ok.any() else None,
-        "planning_time_ms_mean": 1e3 * float(np.mean(times)),
-        "planning_time_ms_median": 1e3 * float(np.median(times)),
+        "planning_time_ms_mean": 1e3 * float(np.mean(times)) if times else None,
+        "planning_time_ms_median": 1e3 * float(np.median(times)) if times else None,
         "timed_queries": len(times),
         "batch_plans_per_s": len(rows) / batch_s,
         "batch_size": len(rows),
         "ensemble": policy.members,
+        "shield": shield,
         "device": str(jax.devices()[0].device_kind),
         "backend": jax.default_backend(),
     }
@@ -87,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--batch-size", type=int, default=None, help="queries per batched call (test set repeated; default its size)"
     )
+    p.add_argument("--no-shield", action="store_true", help="roll the bare policy out (no collision shield)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
     try:
@@ -95,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     except (PolicyError, TestsetError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    r = evaluate(policy, episodes, args.queries, args.repeats, args.batch_size)
+    r = evaluate(policy, episodes, args.queries, args.repeats, args.batch_size, shield=not args.no_shield)
     r["policy"] = str(args.policy or DEFAULT_POLICY)
     r["testset"] = args.testset
     if args.json:
@@ -103,12 +117,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     path = "-" if r["path_length_mm"] is None else f"{r['path_length_mm']:.2f} mm"
     print(
-        f"{r['policy']} on {r['testset']} ({r['problems']} problems, {r['backend']}: {r['device']})\n"
+        f"{r['policy']} on {r['testset']} ({r['problems']} problems, {r['backend']}: {r['device']}; "
+        f"shield {'on' if r['shield'] else 'off'})\n"
         f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}\n"
-        f"  planning time per query: mean {r['planning_time_ms_mean']:.2f} ms, median "
-        f"{r['planning_time_ms_median']:.2f} ms ({r['timed_queries']} queries, one at a time)\n"
-        f"  batched: {r['batch_plans_per_s']:,.0f} plans/s (batch {r['batch_size']})\n"
-        f"  path length {path}"
+        + (
+            f"  planning time per query: mean {r['planning_time_ms_mean']:.2f} ms, median "
+            f"{r['planning_time_ms_median']:.2f} ms ({r['timed_queries']} queries, one at a time)\n"
+            if r["timed_queries"]
+            else ""
+        )
+        + (f"  batched: {r['batch_plans_per_s']:,.0f} plans/s (batch {r['batch_size']})\n" if args.repeats else "")
+        + f"  path length {path}"
     )
     return 0
 

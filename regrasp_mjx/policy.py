@@ -63,6 +63,24 @@ QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
 
 
+# The planner's collision shield (ours): alternatives to a colliding policy action, in the order tried.
+SHIELD_SEED = 20211
+SHIELD_NOISE = (0.25, 0.5, 1.0)  # std of the Gaussian perturbations of the policy action ...
+SHIELD_PER_NOISE = 8  # ... this many of each
+SHIELD_CHUNK = 64  # colliding rows of a batch shielded together
+
+
+def shield_candidates(members: list[jax.Array], action: jax.Array, key: jax.Array) -> jax.Array:
+    """``[K, b, 6]`` alternatives to the policy's (mean) action ``[b, 6]``: each ensemble member's own
+    action (when there are several), half the action, then the action plus Gaussian noise of std
+    0.25, 0.5 and 1.0 (8 draws each, from ``key``, the same for every row), clipped to [-1, 1].
+    Closest to the policy first."""
+    own = list(members) if len(members) > 1 else []
+    noise = jax.random.normal(key, (len(SHIELD_NOISE) * SHIELD_PER_NOISE, 1, action.shape[-1]))
+    std = jnp.repeat(jnp.asarray(SHIELD_NOISE), SHIELD_PER_NOISE)[:, None, None]
+    return jnp.concatenate([jnp.stack(own + [0.5 * action]), jnp.clip(action[None] + std * noise, -1.0, 1.0)])
+
+
 def check_poses(name: str, poses: Any) -> np.ndarray:
     """``poses[..., 7]`` as float64 with unit quaternions, or a :class:`PoseError` saying why not."""
     arr = np.asarray(poses, np.float64)
@@ -227,12 +245,16 @@ class Policy:
         def one(p, mean, std, obs):
             return nets.policy(p, types.SimpleNamespace(mean=mean, std=std), obs)
 
-        def act(obs):
+        def member_actions(obs):
             # Members unrolled (not vmapped): K is small, and exporters (jax2onnx) see plain dense layers.
-            k = int(norm.mean.shape[0])
             pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
-            return sum(one(pick(params, i), norm.mean[i], norm.std[i], obs) for i in range(k)) / k
+            return [one(pick(params, i), norm.mean[i], norm.std[i], obs) for i in range(int(norm.mean.shape[0]))]
 
+        def act(obs):
+            actions = member_actions(obs)
+            return sum(actions) / len(actions)
+
+        object.__setattr__(self, "_member_actions", member_actions)
         object.__setattr__(self, "_actor", act)
         object.__setattr__(self, "_act", jax.jit(act))
         object.__setattr__(self, "_planners", {})
@@ -259,10 +281,16 @@ class Policy:
         return self._actor
 
     # ---- planning ---------------------------------------------------------------------------
-    def _planner(self, camera: bool):
-        """One jitted program: poses in, rollout until every query ended, trajectory out."""
-        if camera in self._planners:
-            return self._planners[camera]
+    def _planner(self, camera: bool, shield: bool = True):
+        """One jitted program: poses in, rollout until every query ended, trajectory out.
+
+        With ``shield`` a step whose policy action would collide takes instead the first
+        collision-free one of a fixed list of alternatives (see :func:`shield_candidates`),
+        checked with the same collision model the plan is judged by; a plan then only collides
+        when none of them is free. The alternatives are only computed at steps where some query's
+        policy action collides."""
+        if (camera, shield) in self._planners:
+            return self._planners[(camera, shield)]
         from regrasp_mjx import geometry
         from regrasp_mjx.env import RegraspEnv
         from regrasp_mjx.sampling import Episode
@@ -288,10 +316,38 @@ class Policy:
                 t, _, result, _, _ = c
                 return (t < horizon) & jnp.any(result[:, 0] == 0)
 
+            step = jax.vmap(env.step)
+
+            def safer(state, t, a, nxt, need):
+                """Replaces the actions of the rows in ``need`` (their policy action collides), a
+                chunk of at most SHIELD_CHUNK rows at a time, so the work follows the colliding
+                rows, not the batch; each row's alternatives depend only on its own state and t."""
+                b = a.shape[0]
+                size = min(b, SHIELD_CHUNK)
+                key = jax.random.fold_in(jax.random.PRNGKey(SHIELD_SEED), t)
+
+                def chunk(c):
+                    a, nxt, need = c
+                    rows = jnp.nonzero(need, size=size, fill_value=b)[0]  # b: no row (dropped below)
+                    sub = jax.tree.map(lambda x: x[jnp.minimum(rows, b - 1)], state)
+                    cands = shield_candidates(self._member_actions(sub.obs), a[jnp.minimum(rows, b - 1)], key)
+                    tried = jax.vmap(step, in_axes=(None, 0))(sub, cands)  # [K, size, ...]
+                    free = tried.metrics["collision"] == 0
+                    first, cols = jnp.argmax(free, axis=0), jnp.arange(size)  # the first free candidate
+                    found = jnp.any(free, axis=0)
+                    put = lambda x, y: x.at[jnp.where(found, rows, b)].set(y[first, cols], mode="drop")  # noqa: E731
+                    return put(a, cands), jax.tree.map(put, nxt, tried), need.at[rows].set(False, mode="drop")
+
+                a, nxt, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), chunk, (a, nxt, need))
+                return a, nxt
+
             def body(c):
                 t, state, result, poses, actions = c
                 a = act(state.obs)
-                nxt = jax.vmap(env.step)(state, a)
+                nxt = step(state, a)
+                if shield:
+                    live_collides = (nxt.metrics["collision"] > 0) & (result[:, 0] == 0)
+                    a, nxt = safer(state, t, a, nxt, live_collides)  # a no-op when none collides
                 live = result[:, 0] == 0
                 es = nxt.pipeline_state
                 pose = jnp.concatenate([es.ee_pos, es.ee_quat], axis=1)
@@ -345,7 +401,7 @@ class Policy:
             return valid, result, poses, actions, cam
 
         fn = jax.jit(from_camera if camera else from_eg)
-        self._planners[camera] = fn
+        self._planners[(camera, shield)] = fn
         return fn
 
     def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
@@ -378,13 +434,21 @@ class Policy:
         return d * 1e-3
 
     def plan(
-        self, needle: Any, start: Any, goal: Any = None, goal_depth_mm: Any = None, check_grasp: bool = True
+        self,
+        needle: Any,
+        start: Any,
+        goal: Any = None,
+        goal_depth_mm: Any = None,
+        check_grasp: bool = True,
+        shield: bool = True,
     ) -> Plan:
         """Plans from poses in the grasping end-effector frame e_g (7-vectors, or batches ``[B, 7]``).
 
         ``goal`` defaults to the task's goal grasp on this needle (depth ``goal_depth_mm``, default
-        the middle of the trained range). Raises :class:`PoseError` on bad input; warns when the
-        needle pose is far from every valid grasp of the library.
+        the middle of the trained range). ``shield`` replaces a policy action that would collide by
+        the first collision-free alternative (:func:`shield_candidates`); ``shield=False`` rolls the
+        policy out as trained. Raises :class:`PoseError` on bad input; warns when the needle pose is
+        far from every valid grasp of the library.
         """
         needle = check_poses("needle", needle)
         start = check_poses("start", start)
@@ -399,14 +463,21 @@ class Policy:
             raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
         nearest = self._check_grasp(needle) if check_grasp else None
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        out = self._planner(False)(f32(needle), f32(start), f32(goal))
+        out = self._planner(False, shield)(f32(needle), f32(start), f32(goal))
         return self._finish(out, single, False, nearest)
 
     def plan_from_camera(
-        self, grasping_ee: Any, regrasping_ee: Any, needle: Any, goal_depth_mm: Any = None, check_grasp: bool = True
+        self,
+        grasping_ee: Any,
+        regrasping_ee: Any,
+        needle: Any,
+        goal_depth_mm: Any = None,
+        check_grasp: bool = True,
+        shield: bool = True,
     ) -> Plan:
         """Plans from three camera-frame poses (7-vectors or ``[B, 7]``), as on a real dVRK
-        (SPEC "Deployment"); the plan's poses come in the e_g frame and the camera frame."""
+        (SPEC "Deployment"); the plan's poses come in the e_g frame and the camera frame.
+        ``shield`` as in :meth:`plan`."""
         c_eg = check_poses("grasping_ee", grasping_ee)
         c_er = check_poses("regrasping_ee", regrasping_ee)
         c_n = check_poses("needle", needle)
@@ -423,7 +494,7 @@ class Policy:
             rel_p, rel_q = np.stack([r[0] for r in rel]), np.stack([r[1] for r in rel])
             nearest = self._check_grasp(np.concatenate([rel_p, rel_q], axis=1))
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        out = self._planner(True)(f32(c_eg), f32(c_er), f32(c_n), f32(depth))
+        out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(depth))
         return self._finish(out, single, True, nearest)
 
     def _default_goal(self, needle: np.ndarray, depth: np.ndarray) -> np.ndarray:

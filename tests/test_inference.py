@@ -66,6 +66,47 @@ def test_shipped_policy_plans_the_test_problems(policy, problems):
     np.testing.assert_allclose(one.trajectory(), traj, atol=1e-6)
 
 
+# Rows of paper300 where the shipped ensemble's bare rollout collides (of 7; RESULTS "Collision shield").
+COLLIDING_ROWS = [63, 97, 120]
+
+
+def test_shield_turns_the_colliding_test_problems_into_collision_free_plans(policy):
+    ep, _ = load_testset(DEFAULT_TESTSET)
+    from regrasp_mjx.evaluate import episode_poses
+
+    needle, start, goal = (x[COLLIDING_ROWS] for x in episode_poses(ep))
+    bare = policy.plan(needle, start, goal, check_grasp=False, shield=False)
+    assert bare.collision.all()  # the network alone hits the needle or the other tool
+    shielded = policy.plan(needle, start, goal, check_grasp=False)
+    assert shielded.success.all() and not shielded.collision.any()
+    assert (shielded.steps > bare.steps).all()  # the detours take longer than the crash
+    # A plan does not depend on the other queries of its batch.
+    one = policy.plan(needle[1], start[1], goal[1], check_grasp=False)
+    assert one.steps == shielded.steps[1]
+    np.testing.assert_allclose(one.poses, shielded.poses[1], atol=1e-5)
+
+
+def test_shield_candidates_order_and_range():
+    import jax
+    import jax.numpy as jnp
+
+    from regrasp_mjx.policy import SHIELD_NOISE, SHIELD_PER_NOISE, shield_candidates
+
+    a = jnp.array([[0.9, -0.9, 0.0, 0.5, 0.0, -0.2], [0.0] * 6])
+    members = [a + 0.1, a - 0.1, a]
+    c = shield_candidates(members, a, jax.random.PRNGKey(0))
+    assert c.shape == (3 + 1 + len(SHIELD_NOISE) * SHIELD_PER_NOISE, 2, 6)
+    np.testing.assert_array_equal(c[:3], jnp.stack(members))  # the members' own actions first
+    np.testing.assert_array_equal(c[3], 0.5 * a)  # then half the action
+    assert float(jnp.abs(c).max()) <= 1.0
+    noise = c[4:] - a[None]
+    inner = jnp.abs(a[None]) < 0.2  # unclipped entries: the same noise for every row
+    np.testing.assert_allclose(noise[:, 0, 2], noise[:, 1, 2], atol=1e-6)
+    assert bool(inner.any())
+    # a single network has no member alternatives
+    assert shield_candidates([a], a, jax.random.PRNGKey(0)).shape[0] == 1 + len(SHIELD_NOISE) * SHIELD_PER_NOISE
+
+
 def test_camera_frame_plans_equal_ego_plans(policy, problems):
     """Any camera placement gives the e_g plan, and camera poses = T_c_eg applied to it."""
     rng = np.random.default_rng(0)
