@@ -24,6 +24,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from results_io import write_results
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.agents.ddpg_bc.train import Learner
@@ -114,11 +115,7 @@ def main() -> None:
         rows = time_to_success(Path(args.time_to_success), thresholds)
         lines = _time_table(rows, thresholds)
         print("\n".join(lines))
-        if args.out:
-            out = Path(args.out)
-            out.mkdir(parents=True, exist_ok=True)
-            (out / "time_to_success.md").write_text("\n".join(lines) + "\n")
-            (out / "time_to_success.json").write_text(json.dumps(rows, indent=2))
+        write_results(args.out, "time_to_success", lines, rows)
         return
     rows = []
     for seeds in (int(s) for s in args.seeds.split(",")):
@@ -148,11 +145,7 @@ def main() -> None:
             f"{r['updates_per_s']:,.0f} | {r['peak_memory_gb']:.2f} | {r['compile_s']:.1f} | {ratio} |"
         )
     print("\n".join(lines))
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "bench_train.md").write_text("\n".join(lines) + "\n")
-        (out / "bench_train.json").write_text(json.dumps({"device": device, "rows": rows}, indent=2))
+    write_results(args.out, "bench_train", lines, {"device": device, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from results_io import write_results
 
 from regrasp_mjx import host
 from regrasp_mjx.env import RegraspEnv
@@ -91,10 +91,7 @@ def main() -> None:
             f"{r['success_true']:.3f} | {r['success_planned']:.3f} |"
         )
     print("\n".join(lines))
-    if args.out:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "needle_noise.md").write_text("\n".join(lines) + "\n")
-        (Path(args.out) / "needle_noise.json").write_text(json.dumps(rows, indent=2))
+    write_results(args.out, "needle_noise", lines, rows)
 
 
 def _compose(a: np.ndarray, b: tuple[np.ndarray, np.ndarray]) -> np.ndarray:

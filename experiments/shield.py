@@ -16,9 +16,9 @@ import argparse
 import dataclasses
 import json
 import types
-from pathlib import Path
 
 import jax
+from results_io import write_results
 
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, evaluate
 from regrasp_mjx.policy import Policy, load_policy
@@ -79,11 +79,7 @@ def main() -> None:
             f"{ms(r['steps_mean'])} | {ms(r['planning_time_ms_median'])} |"
         )
     print("\n".join(lines))
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "shield.md").write_text("\n".join(lines) + "\n")
-        (out / "shield.json").write_text(json.dumps(rows, indent=2))
+    write_results(args.out, "shield", lines, rows)
 
 
 if __name__ == "__main__":
