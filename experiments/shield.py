@@ -13,31 +13,15 @@ and on held-out sets drawn with seeds of their own, and times single queries on 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-import types
 
 import jax
 from results_io import write_results
 
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, evaluate
-from regrasp_mjx.policy import Policy, load_policy
+from regrasp_mjx.policy import load_policy
 from regrasp_mjx.sampling import load_testset
 from regrasp_mjx.testset import make_testset
-
-
-def members(policy: Policy) -> list[Policy]:
-    """Each network of an ensemble as a policy of its own."""
-    out = []
-    for i in range(policy.members):
-        contract = json.loads(json.dumps(policy.contract))
-        contract["network"]["ensemble"] = 1
-        pick = lambda tree, i=i: jax.tree.map(lambda x: x[i : i + 1], tree)  # noqa: E731
-        norm = types.SimpleNamespace(mean=policy.normalizer.mean[i : i + 1], std=policy.normalizer.std[i : i + 1])
-        out.append(
-            dataclasses.replace(policy, contract=contract, actor_params=pick(policy.actor_params), normalizer=norm)
-        )
-    return out
 
 
 def main() -> None:
@@ -54,7 +38,7 @@ def main() -> None:
         sets[f"heldout{n}_seed{seed}"] = make_testset(n, seed, shipped.env_config)
     policies = {f"ensemble of {shipped.members}": shipped}
     if shipped.members > 1:
-        policies.update({f"member {i}": m for i, m in enumerate(members(shipped))})
+        policies.update({f"member {i}": shipped.member(i) for i in range(shipped.members)})
     rows = []
     for pname, policy in policies.items():
         for sname, episodes in sets.items():

@@ -58,7 +58,8 @@ def evaluate(
     big = (needle[rows], start[rows], goal[rows])
     batch_s = float("nan")
     if batch_repeats:
-        run(*big)  # compiles the batched program
+        if len(rows) != n:
+            run(*big)  # compiles the batched program (the test-set pass above compiled its own size)
         t0 = time.perf_counter()
         for _ in range(batch_repeats):
             run(*big)

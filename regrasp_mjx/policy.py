@@ -15,6 +15,7 @@ uses) until success, collision or the horizon, and returns the trajectory.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import os
@@ -79,6 +80,11 @@ def shield_candidates(members: list[jax.Array], action: jax.Array, key: jax.Arra
     noise = jax.random.normal(key, (len(SHIELD_NOISE) * SHIELD_PER_NOISE, 1, action.shape[-1]))
     std = jnp.repeat(jnp.asarray(SHIELD_NOISE), SHIELD_PER_NOISE)[:, None, None]
     return jnp.concatenate([jnp.stack(own + [0.5 * action]), jnp.clip(action[None] + std * noise, -1.0, 1.0)])
+
+
+def mean_action(actions: list[jax.Array]) -> jax.Array:
+    """An ensemble's action: the mean of its members' actions."""
+    return sum(actions) / len(actions)
 
 
 def check_poses(name: str, poses: Any) -> np.ndarray:
@@ -251,8 +257,7 @@ class Policy:
             return [one(pick(params, i), norm.mean[i], norm.std[i], obs) for i in range(int(norm.mean.shape[0]))]
 
         def act(obs):
-            actions = member_actions(obs)
-            return sum(actions) / len(actions)
+            return mean_action(member_actions(obs))
 
         object.__setattr__(self, "_member_actions", member_actions)
         object.__setattr__(self, "_actor", act)
@@ -262,6 +267,16 @@ class Policy:
     @property
     def members(self) -> int:
         return int(self.contract["network"].get("ensemble", 1))
+
+    def member(self, i: int) -> Policy:
+        """Network ``i`` of an ensemble as a policy of its own."""
+        if not 0 <= i < self.members:
+            raise ValueError(f"member {i} is not accepted: this policy has {self.members} (0..{self.members - 1})")
+        contract = copy.deepcopy(self.contract)
+        contract["network"]["ensemble"] = 1
+        norm = types.SimpleNamespace(mean=self.normalizer.mean[i : i + 1], std=self.normalizer.std[i : i + 1])
+        params = jax.tree.map(lambda x: x[i : i + 1], self.actor_params)
+        return dataclasses.replace(self, contract=contract, actor_params=params, normalizer=norm)
 
     @property
     def env_config(self):
@@ -296,7 +311,7 @@ class Policy:
         from regrasp_mjx.sampling import Episode
 
         env = RegraspEnv(self.env_config)
-        horizon, act = env.config.horizon, self._actor
+        horizon = env.config.horizon
 
         def rollout(needle, start, goal):
             b = needle.shape[0]
@@ -318,10 +333,11 @@ class Policy:
 
             step = jax.vmap(env.step)
 
-            def safer(state, t, a, nxt, need):
+            def safer(state, t, members, a, nxt, need):
                 """Replaces the actions of the rows in ``need`` (their policy action collides), a
                 chunk of at most SHIELD_CHUNK rows at a time, so the work follows the colliding
-                rows, not the batch; each row's alternatives depend only on its own state and t."""
+                rows, not the batch; each row's alternatives depend only on its own state and t.
+                ``members``: each network's actions for the whole batch (``a`` is their mean)."""
                 b = a.shape[0]
                 size = min(b, SHIELD_CHUNK)
                 key = jax.random.fold_in(jax.random.PRNGKey(SHIELD_SEED), t)
@@ -329,8 +345,9 @@ class Policy:
                 def chunk(c):
                     a, nxt, need = c
                     rows = jnp.nonzero(need, size=size, fill_value=b)[0]  # b: no row (dropped below)
-                    sub = jax.tree.map(lambda x: x[jnp.minimum(rows, b - 1)], state)
-                    cands = shield_candidates(self._member_actions(sub.obs), a[jnp.minimum(rows, b - 1)], key)
+                    safe_rows = jnp.minimum(rows, b - 1)
+                    sub = jax.tree.map(lambda x: x[safe_rows], state)
+                    cands = shield_candidates([m[safe_rows] for m in members], a[safe_rows], key)
                     tried = jax.vmap(step, in_axes=(None, 0))(sub, cands)  # [K, size, ...]
                     free = tried.metrics["collision"] == 0
                     first, cols = jnp.argmax(free, axis=0), jnp.arange(size)  # the first free candidate
@@ -343,11 +360,12 @@ class Policy:
 
             def body(c):
                 t, state, result, poses, actions = c
-                a = act(state.obs)
+                members = self._member_actions(state.obs)
+                a = mean_action(members)
                 nxt = step(state, a)
                 if shield:
                     live_collides = (nxt.metrics["collision"] > 0) & (result[:, 0] == 0)
-                    a, nxt = safer(state, t, a, nxt, live_collides)  # a no-op when none collides
+                    a, nxt = safer(state, t, members, a, nxt, live_collides)  # a no-op when none collides
                 live = result[:, 0] == 0
                 es = nxt.pipeline_state
                 pose = jnp.concatenate([es.ee_pos, es.ee_quat], axis=1)

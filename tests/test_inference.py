@@ -11,6 +11,7 @@ import pytest
 
 import regrasp_mjx
 from regrasp_mjx import host
+from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.grasps import GraspLibrary, pose_distance
 from regrasp_mjx.policy import PoseError, load_policy
 from regrasp_mjx.sampling import load_testset
@@ -25,12 +26,7 @@ def policy():
 @pytest.fixture(scope="module")
 def problems():
     ep, _ = load_testset(DEFAULT_TESTSET)
-    cat = lambda p, q: np.concatenate([p, q], axis=1)  # noqa: E731
-    return (
-        cat(ep.needle_pos, ep.needle_quat)[:40],
-        cat(ep.start_pos, ep.start_quat)[:40],
-        cat(ep.goal_pos, ep.goal_quat)[:40],
-    )
+    return tuple(x[:40] for x in episode_poses(ep))
 
 
 def _apply(T, poses):
@@ -72,8 +68,6 @@ COLLIDING_ROWS = [63, 97, 120]
 
 def test_shield_turns_the_colliding_test_problems_into_collision_free_plans(policy):
     ep, _ = load_testset(DEFAULT_TESTSET)
-    from regrasp_mjx.evaluate import episode_poses
-
     needle, start, goal = (x[COLLIDING_ROWS] for x in episode_poses(ep))
     bare = policy.plan(needle, start, goal, check_grasp=False, shield=False)
     assert bare.collision.all()  # the network alone hits the needle or the other tool

@@ -87,6 +87,7 @@ class Learner:
         self.actor_opt = optax.adam(config.lr_actor)
         self.critic_opt = optax.adam(config.lr_critic)
         self.devices = self._check_devices(config)
+        self.axis = AXIS if self.devices > 1 else None  # collectives only with several devices
         self.mesh = Mesh(np.array(jax.devices()[: self.devices]), (AXIS,))
         self.local_envs = config.num_envs // self.devices
         # Each device's slice of the online buffer, and its share of every batch.
@@ -133,10 +134,12 @@ class Learner:
         experience = jax.tree.map(lambda _: P(None, None, AXIS), ts.online.experience)
         return specs.replace(online=specs.online.replace(experience=experience))
 
+    def state_shardings(self, ts: TrainingState) -> TrainingState:
+        return jax.tree.map(lambda spec: NamedSharding(self.mesh, spec), self.state_specs(ts))
+
     def place(self, ts: TrainingState) -> TrainingState:
         """Puts a state (fresh or restored from a checkpoint) on the mesh."""
-        shardings = jax.tree.map(lambda spec: NamedSharding(self.mesh, spec), self.state_specs(ts))
-        return jax.device_put(ts, shardings)
+        return jax.device_put(ts, self.state_shardings(ts))
 
     def _shard_map(self, fn, in_specs, out_specs):
         # Replication of the outputs given P() is by construction (averaged gradients, summed
@@ -144,15 +147,11 @@ class Learner:
         return jax.shard_map(fn, mesh=self.mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)
 
     def _pmean(self, tree):
-        return jax.lax.pmean(tree, AXIS) if self.devices > 1 else tree
+        return jax.lax.pmean(tree, self.axis) if self.axis else tree
 
     def _device_key(self, key: jax.Array) -> jax.Array:
         """A key of this device's own (unchanged with one device, so runs reproduce across versions)."""
-        return jax.random.fold_in(key, jax.lax.axis_index(AXIS)) if self.devices > 1 else key
-
-    @property
-    def _axis_name(self) -> str | None:
-        return AXIS if self.devices > 1 else None
+        return jax.random.fold_in(key, jax.lax.axis_index(self.axis)) if self.axis else key
 
     # ---- state --------------------------------------------------------------------------------
     def init(self, demos: dict[str, jax.Array]) -> TrainingState:
@@ -168,8 +167,7 @@ class Learner:
             # No weakly typed leaves: a state restored from a checkpoint then traces like a fresh one.
             return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), ts)
 
-        shapes = jax.eval_shape(make, keys, demos)
-        shardings = jax.tree.map(lambda spec: NamedSharding(self.mesh, spec), self.state_specs(shapes))
+        shardings = self.state_shardings(jax.eval_shape(make, keys, demos))
         return jax.jit(make, out_shardings=shardings)(keys, demos)
 
     def init_one(self, key: jax.Array, demos: dict[str, jax.Array]) -> TrainingState:
@@ -223,7 +221,7 @@ class Learner:
     def _reset_keys(self, key: jax.Array) -> jax.Array:
         """One learner's reset keys for the iteration, all devices' in device order: ``[num_envs, 2]``."""
         k_roll = jax.random.split(key, 3)[1]  # as iteration_one splits the learner's key
-        per_device = [jax.random.fold_in(k_roll, d) if self.devices > 1 else k_roll for d in range(self.devices)]
+        per_device = [jax.random.fold_in(k_roll, d) if self.axis else k_roll for d in range(self.devices)]
         return jnp.concatenate([jax.random.split(jax.random.split(k)[0], self.local_envs) for k in per_device])
 
     def _rollout(self, ts: TrainingState, first, key: jax.Array, random_eps: jax.Array):
@@ -326,7 +324,7 @@ class Learner:
         outcome, transitions, rewards = self._rollout(ts, first, k_roll, random_eps)
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), transitions)
         online = self.online_buffer.add(ts.online, flat)
-        normalizer = running_statistics.update(ts.normalizer, flat["obs"], pmap_axis_name=self._axis_name)
+        normalizer = running_statistics.update(ts.normalizer, flat["obs"], pmap_axis_name=self.axis)
         ts = ts.replace(online=online, normalizer=normalizer, key=key)
         ts, metrics = jax.lax.scan(self.update, ts, jax.random.split(k_upd, self.config.updates_per_iteration))
         metrics = jax.tree.map(jnp.mean, metrics)
@@ -361,7 +359,7 @@ class Learner:
             pick = lambda tree: jax.tree.map(lambda x: x[member], tree)  # noqa: E731
             put = lambda tree, one: jax.tree.map(lambda x, y: x.at[member].set(y), tree, one)  # noqa: E731
             online = self.online_buffer.add(pick(ts.online), chunk)
-            normalizer = running_statistics.update(pick(ts.normalizer), chunk["obs"], pmap_axis_name=self._axis_name)
+            normalizer = running_statistics.update(pick(ts.normalizer), chunk["obs"], pmap_axis_name=self.axis)
             return ts.replace(online=put(ts.online, online), normalizer=put(ts.normalizer, normalizer))
 
         specs = self.state_specs(ts)
