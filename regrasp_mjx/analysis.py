@@ -1,0 +1,252 @@
+"""What the analysis notebooks compute: training logs as arrays, the funnel of the paper's Fig. 5,
+and Table II gathered from the shipped result files. Plotting stays in the notebooks.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from regrasp_mjx import geometry
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.sampling import Episode
+
+FIGURES_ENV = "REGRASP_FIGURES"  # a folder: notebooks save the README's figures there when it is set
+
+
+class ResultsError(ValueError):
+    """A results or log file is missing or not what it should be."""
+
+
+def repo_root(start: str | os.PathLike | None = None) -> Path:
+    """The checkout holding ``experiments/results`` (the shipped results), from ``start`` (default
+    the working directory, e.g. ``notebooks/``) upwards."""
+    here = Path(start or Path.cwd()).resolve()
+    for p in (here, *here.parents):
+        if (p / "experiments" / "results").is_dir():
+            return p
+    raise ResultsError(
+        f"no experiments/results above {here}: the notebooks read the results a checkout of the repository ships"
+    )
+
+
+def save_figure(figure: Any, name: str) -> Path | None:
+    """Saves a matplotlib figure (PNG) or frames ``[F, H, W, 3]`` (GIF) as ``name`` under the
+    folder ``$REGRASP_FIGURES`` (relative to the repository root), only when that is set; returns
+    the path written or None."""
+    folder = os.environ.get(FIGURES_ENV)
+    if not folder:
+        return None
+    path = Path(folder)
+    path = (path if path.is_absolute() else repo_root() / path) / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(figure, np.ndarray):
+        from regrasp_mjx.render import write_gif
+
+        return write_gif(path, figure)
+    tmp = path.with_name(path.name + ".tmp.png")
+    figure.savefig(tmp, dpi=110, bbox_inches="tight")
+    os.replace(tmp, path)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# Training logs.
+# ----------------------------------------------------------------------------------------------
+def _flatten(row: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in row.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def read_log(path: str | os.PathLike) -> dict[int, dict[str, np.ndarray]]:
+    """A training run's ``log.jsonl`` as ``{seed: {column: array over epochs}}``.
+
+    Nested fields are flattened with dots (``test.success_rate``); rows are sorted by epoch; a
+    column some rows lack is NaN there. Raises :class:`ResultsError` for a missing file, a line
+    that is not a JSON object with ``epoch``, or a file with no rows.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ResultsError(f"training log not found: {path} (a run writes <out>/log.jsonl)")
+    rows: dict[int, list[dict[str, Any]]] = {}
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError as err:
+            raise ResultsError(f"{path}:{n} is not JSON ({err})") from err
+        if not isinstance(row, dict) or "epoch" not in row:
+            raise ResultsError(f"{path}:{n} is not a log row (a JSON object with 'epoch')")
+        rows.setdefault(int(row.get("seed", 0)), []).append(_flatten(row))
+    if not rows:
+        raise ResultsError(f"{path} has no rows")
+    out = {}
+    for seed, rs in sorted(rows.items()):
+        rs.sort(key=lambda r: r["epoch"])
+        names = sorted({k for r in rs for k in r if isinstance(r[k], (int, float, type(None)))})
+        out[seed] = {k: np.array([np.nan if r.get(k) is None else r.get(k, np.nan) for r in rs], float) for k in names}
+    return out
+
+
+def seed_band(log: dict[int, dict[str, np.ndarray]], column: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(epochs, values [seeds, epochs])`` of one column over the epochs every seed logged."""
+    missing = [s for s, cols in log.items() if column not in cols]
+    if missing:
+        raise ResultsError(f"column {column!r} is not in the log of seeds {missing}; it has {sorted(log[missing[0]])}")
+    n = min(len(cols["epoch"]) for cols in log.values())
+    epochs = next(iter(log.values()))["epoch"][:n]
+    return epochs, np.stack([cols[column][:n] for cols in log.values()])
+
+
+# ----------------------------------------------------------------------------------------------
+# Fig. 5: how the collision-free space narrows near the goal.
+# ----------------------------------------------------------------------------------------------
+def free_fraction(
+    env: RegraspEnv,
+    episodes: Episode,
+    distances_mm: Any,
+    samples: int = 64,
+    rot_deg: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """The probability that a pose ``d`` mm from the goal is collision-free (the paper's Fig. 5).
+
+    For every problem of ``episodes`` and every distance, ``samples`` poses: the goal end-effector
+    moved by ``d`` along a uniformly random direction and turned by an angle ``U(-rot_deg,
+    rot_deg)`` about a uniformly random axis (in its own frame); a pose is free when no counted
+    pair of capsules overlaps (the environment's exact distances). Returns ``[len(distances)]``
+    fractions over all problems and samples.
+    """
+    d = np.asarray(distances_mm, np.float64)
+    if d.ndim != 1 or len(d) == 0 or not np.all(np.isfinite(d)) or np.any(d < 0):
+        raise ValueError(f"distances_mm must be a non-empty list of finite distances >= 0, got {distances_mm!r}")
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    if not (math.isfinite(rot_deg) and 0 <= rot_deg <= 180):
+        raise ValueError(f"rot_deg must be within [0, 180], got {rot_deg}")
+    rot = math.radians(rot_deg)
+
+    def one(key, dist, needle_pos, needle_quat, goal_pos, goal_quat):
+        k_dir, k_axis, k_angle = jax.random.split(key, 3)
+        u = jax.random.normal(k_dir, (3,))
+        axis = jax.random.normal(k_axis, (3,))
+        angle = jax.random.uniform(k_angle, (), minval=-rot, maxval=rot)
+        pos = goal_pos + dist * 1e-3 * u / jnp.linalg.norm(u)
+        quat = geometry.quat_mul(goal_quat, geometry.quat_from_rotvec(angle * axis / jnp.linalg.norm(axis)))
+        return jnp.min(env.distances(needle_pos, needle_quat, pos, quat)) > 0.0
+
+    @jax.jit
+    def fractions(key, ep):
+        n = ep.needle_pos.shape[0]
+        keys = jax.random.split(key, (len(d), n, samples))
+        per_sample = jax.vmap(one, in_axes=(0, None, None, None, None, None))
+        per_problem = jax.vmap(per_sample, in_axes=(0, None, 0, 0, 0, 0))
+        per_distance = jax.vmap(per_problem, in_axes=(0, 0, None, None, None, None))
+        free = per_distance(keys, jnp.asarray(d, jnp.float32), ep.needle_pos, ep.needle_quat, ep.goal_pos, ep.goal_quat)
+        return jnp.mean(free.astype(jnp.float32), axis=(1, 2))
+
+    ep = jax.tree.map(lambda x: jnp.asarray(np.atleast_2d(x) if np.ndim(x) == 1 else x, jnp.float32), episodes)
+    return np.asarray(fractions(jax.random.PRNGKey(seed), ep), np.float64)
+
+
+# ----------------------------------------------------------------------------------------------
+# Table II from the shipped result files.
+# ----------------------------------------------------------------------------------------------
+PAPER_TABLE2 = [  # the paper's Table II: success, mean planning time (s there, ms here), path (mm)
+    {"method": f"paper: {m}", "success": s, "median_ms": None, "mean_ms": t, "path_mm": p}
+    for m, s, t, p in [
+        ("PRM* (F)", 0.66, 103342.0, 5.2),
+        ("PRM* (R)", 0.72, 89985.6, 5.0),
+        ("RRT* (F)", 0.18, 186279.0, 5.1),
+        ("RRT* (R)", 0.2, 147657.4, 4.7),
+        ("BFMT* (F)", 0.0, None, None),
+        ("BFMT* (R)", 0.0, None, None),
+        ("BIT* (F)", 0.66, 3837.7, 5.2),
+        ("BIT* (R)", 0.72, 2590.5, 5.0),
+        ("DDPG+BC (mixed)", 0.97, 21.2, 4.2),
+    ]
+]
+POLICY_ROWS = {  # file under results/inference -> row name
+    "eval_cpu1_single.json": "policy, one network",
+    "eval_cpu1.json": "policy, 3-seed ensemble, bare",
+    "eval_cpu1_shield.json": "policy, shipped (ensemble + shield)",
+}
+
+
+def _json(path: Path) -> Any:
+    if not path.is_file():
+        raise ResultsError(f"result file not found: {path}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ResultsError(f"{path} is not JSON ({err})") from err
+
+
+def table2(results: str | os.PathLike, jaw_angle_deg: float = 20.0) -> list[dict[str, Any]]:
+    """Table II rows from ``results`` (``experiments/results``): every planner of ``planners.csv`` at
+    this jaw angle, the policy rows of ``inference/`` (one CPU core), and the paper's two rows.
+
+    Each row: ``method``, ``success``, ``median_ms``, ``mean_ms`` (over successes), ``path_mm``
+    (over successes), ``kind`` (``planner``, ``policy`` or ``paper``).
+    """
+    results = Path(results)
+    path = results / "planners.csv"
+    if not path.is_file():
+        raise ResultsError(f"planner results not found: {path} (experiments/planners.py writes it)")
+    rows = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            try:
+                if float(r["jaw_angle_deg"]) != jaw_angle_deg:
+                    continue
+                rows.append(
+                    {
+                        "method": r["algorithm"],
+                        "success": float(r["success_rate"]),
+                        "median_ms": 1e3 * float(r["plan_time_median_s"]),
+                        "mean_ms": 1e3 * float(r["plan_time_mean_s"]),
+                        "path_mm": float(r["path_length_mm"]),
+                        "kind": "planner",
+                    }
+                )
+            except (KeyError, ValueError) as err:
+                raise ResultsError(f"{path}: row {r} lacks a number ({err})") from err
+    if not rows:
+        raise ResultsError(f"{path} has no rows for a jaw angle of {jaw_angle_deg} deg")
+    for name, label in POLICY_ROWS.items():
+        d = _json(results / "inference" / name)
+        rows.append(
+            {
+                "method": label,
+                "success": float(d["success_rate"]),
+                "median_ms": float(d["planning_time_ms_median"]),
+                "mean_ms": float(d["planning_time_ms_mean"]),
+                "path_mm": float(d["path_length_mm"]),
+                "kind": "policy",
+            }
+        )
+    rows += [{**r, "kind": "paper"} for r in PAPER_TABLE2]
+    return rows
+
+
+def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str]]) -> str:
+    """A markdown table of ``rows``; ``columns`` are ``(key, header, format)``; None prints as -."""
+    lines = ["| " + " | ".join(h for _, h, _ in columns) + " |", "|" + " --- |" * len(columns)]
+    for r in rows:
+        cells = ["-" if r.get(k) is None else format(r[k], fmt) for k, _, fmt in columns]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
