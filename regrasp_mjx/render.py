@@ -31,9 +31,9 @@ GOAL_RGBA = (0.1, 0.8, 0.3, 0.35)  # the regrasping tool at its goal, drawn as a
 PATH_RGBA = (1.0, 0.75, 0.1, 1.0)  # the end-effector's path
 PATH_WIDTH = 0.00012  # m
 BACKGROUND = (236, 238, 242)  # pixels that nothing covers (MuJoCo clears to black)
-# The free camera: ``distance`` (m) from a point near the needle's centre, looking along the normal of the needle's
-# plane from the regrasping tool's side, turned by ``azimuth`` and ``elevation`` (degrees) from it so
-# that the arc is seen in 3-D rather than flat.
+# The free camera: ``distance`` (m) from a point between the needle's centre and the regrasping tool,
+# looking across both tools' shafts (so that neither hides the needle), turned by ``azimuth`` and
+# ``elevation`` (degrees) from that direction so that the scene is seen in depth.
 DEFAULT_VIEW = {"distance": 0.038, "azimuth": 25.0, "elevation": 25.0}
 LOOK_TOWARD_TOOL = 0.3
 
@@ -100,8 +100,9 @@ class SceneRenderer:
     Args:
       scene: a loaded :class:`Scene` or a :class:`SceneConfig` (default: the default scene).
       width, height: pixels (at most 2048 each).
-      view: the free camera, ``distance`` (m), ``azimuth`` and ``elevation`` (degrees), looking at
-        the needle's centre; or ``camera="overview"``, the MJCF's fixed camera.
+      view: the free camera's ``distance`` (m) and its ``azimuth`` and ``elevation`` (degrees) away
+        from the direction across both tools' shafts (``DEFAULT_VIEW``).
+      camera: a camera of the MJCF instead of the free one, e.g. ``"overview"``.
 
     Raises:
       RenderUnavailable: no OpenGL backend here (see the module's docstring).
@@ -150,7 +151,7 @@ class SceneRenderer:
             self._ctx.free()
             self._ctx = None
 
-    def _camera(self, needle: np.ndarray, side: np.ndarray) -> mujoco.MjvCamera:
+    def _camera(self, needle: np.ndarray, ee: np.ndarray) -> mujoco.MjvCamera:
         cam = mujoco.MjvCamera()
         if self.camera is not None:
             cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
@@ -158,10 +159,10 @@ class SceneRenderer:
             return cam
         cam.type = mujoco.mjtCamera.mjCAMERA_FREE
         # Between the needle and the regrasping tool's jaws, nearer the needle: both in the frame.
-        cam.lookat[:] = needle[:3] + LOOK_TOWARD_TOOL * (side[:3] - needle[:3])
+        cam.lookat[:] = needle[:3] + LOOK_TOWARD_TOOL * (ee[:3] - needle[:3])
         cam.distance = self.view["distance"]
         # MuJoCo's free camera looks along (cos el cos az, cos el sin az, sin el), in degrees.
-        forward = -self._eye_direction(needle, side)
+        forward = -self._eye_direction(needle, ee)
         cam.azimuth = np.degrees(np.arctan2(forward[1], forward[0])) + self.view["azimuth"]
         cam.elevation = np.degrees(np.arcsin(np.clip(forward[2], -1.0, 1.0))) - self.view["elevation"]
         return cam
@@ -183,10 +184,11 @@ class SceneRenderer:
         across = across / np.linalg.norm(across)
         return across if np.dot(across, normal) >= 0 else -across
 
-    def image(self, needle: Any, ee: Any, goal: Any = None, path: Any = None, side: Any = None) -> np.ndarray:
+    def image(self, needle: Any, ee: Any, goal: Any = None, path: Any = None, frame_for: Any = None) -> np.ndarray:
         """One RGB image ``[height, width, 3]`` (uint8): the needle, both tools, optionally the
         regrasping tool's goal as a green ghost and a path ``[N, 3]`` (m) as a yellow line. The free
-        camera is placed for the regrasping tool at ``side`` (a pose; default ``ee``)."""
+        camera is framed for the regrasping tool at ``frame_for`` (a pose; default ``ee``): a video keeps
+        one camera by passing its first pose."""
         if self._ctx is None:
             raise RuntimeError("this SceneRenderer is closed")
         needle, ee = _pose("needle", needle), _pose("ee", ee)
@@ -198,7 +200,7 @@ class SceneRenderer:
             self._data,
             self._opt,
             self._pert,
-            self._camera(needle, ee if side is None else _pose("side", side)),
+            self._camera(needle, ee if frame_for is None else _pose("frame_for", frame_for)),
             int(cat),
             self._scn,
         )
@@ -248,8 +250,8 @@ class SceneRenderer:
         frames per step (interpolated), the path drawn so far, the goal ghost, the last frame held
         ``hold`` extra times."""
         poses = interpolate(poses, substeps)
-        side = poses[0]  # one camera for the whole video
-        frames = [self.image(needle, p, goal, poses[: i + 1, :3], side) for i, p in enumerate(poses)]
+        first = poses[0]  # one camera for the whole video
+        frames = [self.image(needle, p, goal, poses[: i + 1, :3], first) for i, p in enumerate(poses)]
         frames += [frames[-1]] * hold
         return np.stack(frames)
 

@@ -268,14 +268,14 @@ def test_renderer_draws_the_scene_the_goal_and_the_path(renderer, paper_testset)
     assert plain.shape == (120, 160, 3) and plain.dtype == np.uint8
     background = np.all(plain == render.BACKGROUND, axis=-1).mean()
     assert 0.2 < background < 0.98  # the tools are in the picture, not filling it
-    ghost = renderer.image(needle, start, goal=goal, side=start)
+    ghost = renderer.image(needle, start, goal=goal, frame_for=start)
     assert np.any(ghost != plain)  # the goal ghost shows
     assert np.array_equal(renderer.image(needle, start), plain)  # the ghost does not stick
-    moved = renderer.image(needle, goal, side=start)
+    moved = renderer.image(needle, goal, frame_for=start)
     assert np.any(moved != plain)
     frames = renderer.video(needle, np.stack([start, goal]), goal=goal, substeps=3, hold=2)
     assert frames.shape == (3 + 1 + 2, 120, 160, 3)
-    np.testing.assert_array_equal(frames[0], renderer.image(needle, start, goal, start[None, :3], side=start))
+    np.testing.assert_array_equal(frames[0], renderer.image(needle, start, goal, start[None, :3], frame_for=start))
     with pytest.raises(ValueError, match="needle must be a finite pose"):
         renderer.image([np.nan] * 7, start)
     with pytest.raises(ValueError, match="path must be finite points"):
@@ -305,3 +305,15 @@ def test_a_context_without_a_display_is_render_unavailable(env, monkeypatch):
         pytest.raises(render.RenderUnavailable, match="no offscreen OpenGL context with MUJOCO_GL=glfw"),
     ):
         render.SceneRenderer(env.scene)
+
+
+def test_a_closed_renderer_refuses_to_draw(env, paper_testset):
+    try:
+        r = render.SceneRenderer(env.scene, width=32, height=32)
+    except render.RenderUnavailable as err:
+        pytest.skip(f"no OpenGL on this machine ({err})")
+    r.close()
+    r.close()  # twice is fine
+    episodes, _ = paper_testset
+    with pytest.raises(RuntimeError, match="closed"):
+        r.image(_pose(episodes, "needle", 0), _pose(episodes, "start", 0))
