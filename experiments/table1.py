@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from regrasp_mjx import analysis
+
 SETTINGS = ("ddpg_bc", "targeted", "mixed")
 LABEL = {"ddpg_bc": "DDPG+BC", "targeted": "DDPG+BC (targeted)", "mixed": "DDPG+BC (mixed)"}
 PAPER = {"ddpg_bc": (0.71, 0.0262, 4.2), "targeted": (0.64, 0.0233, 4.2), "mixed": (0.97, 0.0212, 4.2)}  # Table I
@@ -58,7 +60,7 @@ def _load(runs: Path) -> dict[str, dict]:
         if final.exists() and log.exists():
             found[setting] = {
                 "final": json.loads(final.read_text()),
-                "log": [json.loads(x) for x in log.read_text().splitlines() if x.strip()],
+                "log": analysis.read_log(log),  # {seed: {column: array over epochs}}
             }
     if not found:
         sys.exit(f"error: no finished runs under {runs} (expected {', '.join(SETTINGS)} with final_eval.json)")
@@ -82,7 +84,7 @@ def report(args: argparse.Namespace) -> None:
     for setting, run in found.items():
         seeds = run["final"]["seeds"]
         tm = timing.get(setting, {})
-        wall = max(r["wall_s"] for r in run["log"])
+        wall = max(float(cols["wall_s"].max()) for cols in run["log"].values())
         rows.append(
             {
                 "setting": setting,
@@ -94,7 +96,7 @@ def report(args: argparse.Namespace) -> None:
                 "plan_ms_median": tm.get("median_ms"),
                 "plan_ms_mean": tm.get("mean_ms"),
                 "wall_s": wall,
-                "epochs": max(r["epoch"] for r in run["log"]),
+                "epochs": int(max(cols["epoch"].max() for cols in run["log"].values())),
             }
         )
     lines = [
@@ -143,15 +145,10 @@ def _figure(found: dict[str, dict], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for setting, run in found.items():
-        by_seed: dict[int, list[dict]] = {}
-        for r in run["log"]:
-            by_seed.setdefault(r.get("seed", 0), []).append(r)
-        n = min(len(v) for v in by_seed.values())
-        succ = np.array([[r["test"]["success_rate"] for r in v[:n]] for v in by_seed.values()])
-        epochs = np.array([r["epoch"] for r in next(iter(by_seed.values()))[:n]])
-        minutes = np.array([r["wall_s"] for r in next(iter(by_seed.values()))[:n]]) / 60
+        epochs, succ = analysis.seed_band(run["log"], "test.success_rate")
+        minutes = analysis.seed_band(run["log"], "wall_s")[1][0] / 60  # the first seed's clock
         for ax, x in zip(axes, (epochs, minutes)):
-            ax.plot(x, succ.mean(0), label=f"{LABEL[setting]} ({len(by_seed)} seeds)")
+            ax.plot(x, succ.mean(0), label=f"{LABEL[setting]} ({len(run['log'])} seeds)")
             ax.fill_between(x, succ.min(0), succ.max(0), alpha=0.2)
     axes[0].set_xlabel("epoch (10 iterations)")
     axes[1].set_xlabel("training wall-clock (min, all seeds together)")

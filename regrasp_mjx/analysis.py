@@ -5,6 +5,7 @@ and Table II gathered from the shipped result files. Plotting stays in the noteb
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import math
 import os
@@ -112,6 +113,16 @@ def seed_band(log: dict[int, dict[str, np.ndarray]], column: str) -> tuple[np.nd
     return epochs, np.stack([cols[column][:n] for cols in log.values()])
 
 
+def in_needle_frame_mm(needle: Any, points: Any) -> np.ndarray:
+    """Points ``[N, 3]`` (m, in e_g) in the needle frame n, in mm; ``needle`` is one pose ``[7]``
+    for all of them or one per point ``[N, 7]``."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    needle = np.broadcast_to(np.asarray(needle, np.float64), (len(points), 7))
+    one = jnp.array([1.0, 0.0, 0.0, 0.0])
+    rel = jax.vmap(lambda n, p: geometry.relative((n[:3], n[3:]), (p, one))[0])
+    return np.asarray(rel(jnp.asarray(needle, jnp.float32), jnp.asarray(points, jnp.float32)), np.float64) * 1e3
+
+
 # ----------------------------------------------------------------------------------------------
 # Fig. 5: how the collision-free space narrows near the goal.
 # ----------------------------------------------------------------------------------------------
@@ -138,29 +149,42 @@ def free_fraction(
         raise ValueError(f"samples must be >= 1, got {samples}")
     if not (math.isfinite(rot_deg) and 0 <= rot_deg <= 180):
         raise ValueError(f"rot_deg must be within [0, 180], got {rot_deg}")
-    rot = math.radians(rot_deg)
+    fractions = _free_fraction_fn(env, int(samples))  # compiled once per environment and sample count
+    f32 = lambda x, k: jnp.asarray(np.reshape(x, (-1, k)), jnp.float32)  # noqa: E731  (one problem or a batch)
+    out = fractions(
+        jax.random.PRNGKey(seed),
+        jnp.asarray(d, jnp.float32),
+        jnp.float32(math.radians(rot_deg)),
+        f32(episodes.needle_pos, 3),
+        f32(episodes.needle_quat, 4),
+        f32(episodes.goal_pos, 3),
+        f32(episodes.goal_quat, 4),
+    )
+    return np.asarray(out, np.float64)
 
-    def one(key, dist, needle_pos, needle_quat, goal_pos, goal_quat):
+
+@functools.lru_cache(maxsize=8)
+def _free_fraction_fn(env: RegraspEnv, samples: int):
+    def one(key, dist_mm, rot, needle_pos, needle_quat, goal_pos, goal_quat):
         k_dir, k_axis, k_angle = jax.random.split(key, 3)
         u = jax.random.normal(k_dir, (3,))
         axis = jax.random.normal(k_axis, (3,))
         angle = jax.random.uniform(k_angle, (), minval=-rot, maxval=rot)
-        pos = goal_pos + dist * 1e-3 * u / jnp.linalg.norm(u)
+        pos = goal_pos + dist_mm * 1e-3 * u / jnp.linalg.norm(u)
         quat = geometry.quat_mul(goal_quat, geometry.quat_from_rotvec(angle * axis / jnp.linalg.norm(axis)))
         return jnp.min(env.distances(needle_pos, needle_quat, pos, quat)) > 0.0
 
+    per_sample = jax.vmap(one, in_axes=(0, None, None, None, None, None, None))
+    per_problem = jax.vmap(per_sample, in_axes=(0, None, None, 0, 0, 0, 0))
+    per_distance = jax.vmap(per_problem, in_axes=(0, 0, None, None, None, None, None))
+
     @jax.jit
-    def fractions(key, ep):
-        n = ep.needle_pos.shape[0]
-        keys = jax.random.split(key, (len(d), n, samples))
-        per_sample = jax.vmap(one, in_axes=(0, None, None, None, None, None))
-        per_problem = jax.vmap(per_sample, in_axes=(0, None, 0, 0, 0, 0))
-        per_distance = jax.vmap(per_problem, in_axes=(0, 0, None, None, None, None))
-        free = per_distance(keys, jnp.asarray(d, jnp.float32), ep.needle_pos, ep.needle_quat, ep.goal_pos, ep.goal_quat)
+    def fractions(key, dist_mm, rot, needle_pos, needle_quat, goal_pos, goal_quat):
+        keys = jax.random.split(key, (dist_mm.shape[0], needle_pos.shape[0], samples))
+        free = per_distance(keys, dist_mm, rot, needle_pos, needle_quat, goal_pos, goal_quat)
         return jnp.mean(free.astype(jnp.float32), axis=(1, 2))
 
-    ep = jax.tree.map(lambda x: jnp.asarray(np.atleast_2d(x) if np.ndim(x) == 1 else x, jnp.float32), episodes)
-    return np.asarray(fractions(jax.random.PRNGKey(seed), ep), np.float64)
+    return fractions
 
 
 # ----------------------------------------------------------------------------------------------

@@ -25,8 +25,10 @@ import numpy as np
 
 from regrasp_mjx import host
 from regrasp_mjx.config import SceneConfig
+from regrasp_mjx.policy import PoseError, check_poses
 from regrasp_mjx.scene import Scene, load_scene
 
+IDENTITY = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 GOAL_RGBA = (0.1, 0.8, 0.3, 0.35)  # the regrasping tool at its goal, drawn as a ghost
 PATH_RGBA = (1.0, 0.75, 0.1, 1.0)  # the end-effector's path
 PATH_WIDTH = 0.00012  # m
@@ -70,10 +72,20 @@ def _gl_context(model: mujoco.MjModel, width: int, height: int):
 
 
 def _pose(name: str, pose: Any) -> np.ndarray:
+    """One pose, checked as :meth:`Policy.plan` checks its inputs (finite, unit quaternion)."""
     p = np.asarray(pose, np.float64)
-    if p.shape != (7,) or not np.all(np.isfinite(p)):
-        raise ValueError(f"{name} must be a finite pose [x, y, z, qw, qx, qy, qz], got shape {p.shape}: {p}")
-    return np.concatenate([p[:3], p[3:] / np.linalg.norm(p[3:])])
+    try:
+        if p.shape != (7,):
+            raise PoseError(f"got shape {p.shape}")
+        return check_poses(name, p)
+    except PoseError as err:
+        raise ValueError(f"{name} must be a finite pose [x, y, z, qw, qx, qy, qz]: {err}") from err
+
+
+def _rotation(quat: np.ndarray) -> np.ndarray:
+    flat = np.empty(9)
+    mujoco.mju_quat2Mat(flat, quat)
+    return flat.reshape(3, 3)
 
 
 def interpolate(poses: Any, substeps: int) -> np.ndarray:
@@ -172,13 +184,8 @@ class SceneRenderer:
         """Unit vector from the needle's centre to the camera: across both tools' shafts (e_g's z and
         the regrasping end-effector's z), so that neither hides the needle, on the side its plane
         faces (the needle's x axis) so that the arc is seen open rather than edge-on."""
-        mats = []
-        for q in (needle[3:], ee[3:]):
-            flat = np.empty(9)
-            mujoco.mju_quat2Mat(flat, q)
-            mats.append(flat.reshape(3, 3))
-        normal = mats[0][:, 0]
-        across = np.cross([0.0, 0.0, 1.0], mats[1][:, 2])
+        normal = _rotation(needle[3:])[:, 0]
+        across = np.cross([0.0, 0.0, 1.0], _rotation(ee[3:])[:, 2])
         if np.linalg.norm(across) < 0.2:  # shafts nearly parallel: look at the needle's face
             across = normal
         across = across / np.linalg.norm(across)
@@ -286,16 +293,11 @@ def capsule_segments(scene: Scene, needle: Any, ee: Any) -> dict[str, list[tuple
     needle, ee = _pose("needle", needle), _pose("ee", ee)
 
     def place(caps, pose):
-        rot = np.eye(3)
-        if pose is not None:
-            flat = np.empty(9)
-            mujoco.mju_quat2Mat(flat, pose[3:])
-            rot = flat.reshape(3, 3)
-        origin = pose[:3] if pose is not None else np.zeros(3)
-        return [(origin + rot @ c.p0, origin + rot @ c.p1, c.radius) for c in caps]
+        rot = _rotation(pose[3:])
+        return [(pose[:3] + rot @ c.p0, pose[:3] + rot @ c.p1, c.radius) for c in caps]
 
     return {
-        "grasp": place(scene.grasp_capsules, None),
+        "grasp": place(scene.grasp_capsules, IDENTITY),  # the grasping tool's frame is the world
         "needle": place(scene.needle_capsules, needle),
         "regrasp": place(scene.regrasp_capsules, ee),
     }

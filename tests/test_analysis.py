@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import analysis, render
+from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.host import HostChecker
 from tests.conftest import ROOT
 
@@ -18,7 +19,7 @@ RESULTS = ROOT / "experiments" / "results"
 
 
 def _pose(ep, field, i):
-    return np.concatenate([np.asarray(getattr(ep, field + "_pos")[i]), np.asarray(getattr(ep, field + "_quat")[i])])
+    return episode_poses(ep)[("needle", "start", "goal").index(field)][i]
 
 
 # ---- logs --------------------------------------------------------------------------------------
@@ -63,6 +64,18 @@ def test_shipped_table1_logs_read():
     epochs, success = analysis.seed_band(log, "test.success_rate")
     assert success.shape == (3, 90) and epochs[0] == 1 and epochs[-1] == 90
     assert success[:, 0].max() < 0.5 < success[:, -1].min()  # learned
+
+
+def test_in_needle_frame_by_hand():
+    half = math.sqrt(0.5)
+    needle = np.array([1.0, 2.0, 3.0, half, 0.0, 0.0, half])  # 90 deg about z
+    points = np.array([[1.0, 2.001, 3.0], [1.0, 2.0, 3.002]])
+    # A point 1 mm along e_g's y lies along the needle's x; z stays z.
+    np.testing.assert_allclose(
+        analysis.in_needle_frame_mm(needle, points), [[1.0, 0.0, 0.0], [0.0, 0.0, 2.0]], atol=2e-4
+    )
+    both = analysis.in_needle_frame_mm(np.stack([needle, needle]), points)
+    np.testing.assert_allclose(both, analysis.in_needle_frame_mm(needle, points))
 
 
 # ---- Fig. 5 ------------------------------------------------------------------------------------
