@@ -2,7 +2,7 @@
 
 ``Policy.plan`` replaces a policy action that would collide by the first collision-free one of a
 fixed list of alternatives (the ensemble members' own actions, half the action, Gaussian
-perturbations of it; ``regrasp_mjx.policy.shield_candidates``). This script measures what that does
+perturbations of it; ``regrasp_mjx.shield.shield_candidates``). This script measures what that does
 for the shipped ensemble and for each of its member networks alone, on the paper's 300 problems
 and on held-out sets drawn with seeds of their own, and times single queries on this machine
 (the same machine for both, so the ratio is the point).

@@ -23,9 +23,10 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.planning.episodes import DemosError, _atomic_write, make_replay, replay_paths, save_demos
+from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
 from regrasp_mjx.planning.ompl_planner import PLANNERS, PlannerConfig
 from regrasp_mjx.planning.pool import PlannerPool
 from regrasp_mjx.sampling import Episode, sample_episode
@@ -76,7 +77,7 @@ def _write_plan(plans: Path, i: int, result: dict | None, error: str) -> None:
         "plan_time_s": np.array(result["plan_time_s"] if result else np.nan),
         "error": np.array(error or (result or {}).get("error", "")),
     }
-    _atomic_write(_plan_path(plans, i), lambda f: np.savez(f, **arrays))
+    atomic_write(_plan_path(plans, i), lambda f: np.savez(f, **arrays))
 
 
 def _read_plan(path: Path) -> dict:
@@ -106,7 +107,7 @@ def build(args: argparse.Namespace) -> Path:
             "versions": versions(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
-        _atomic_write(meta_path, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+        atomic_write(meta_path, lambda f: f.write(json.dumps(meta, indent=2).encode()))
 
     env = RegraspEnv(dataclasses.replace(config, check_actions=False))
     replay = make_replay(env)

@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError, load_policy
+from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import TestsetError, load_testset
 
 DEFAULT_TESTSET = Path(__file__).resolve().parent.parent / "experiments" / "testsets" / "paper300.npz"
@@ -37,6 +38,23 @@ def episode_poses(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         cat(ep.start_pos, ep.start_quat),
         cat(ep.goal_pos, ep.goal_quat),
     )
+
+
+def outcomes(policy, episodes) -> dict[str, dict]:
+    """A loaded policy planned on the problems through ``Policy.plan``, bare and shielded."""
+    out = {}
+    for shield in (False, True):
+        plan = policy.plan(*episode_poses(episodes), check_grasp=False, shield=shield)
+        result = {
+            "success": plan.success,
+            "collision": plan.collision | ~plan.start_valid,
+            "time_out": plan.time_out,
+            "path_length_mm": plan.path_length_mm,
+            "steps": plan.steps,
+        }
+        name = "shielded" if shield else "bare"
+        out[name] = summarize(result, name)
+    return out
 
 
 def evaluate(

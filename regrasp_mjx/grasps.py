@@ -52,10 +52,10 @@ class GraspLibrary:
         return cls(needle, np.asarray(ep.grasp), {"n": n, "seed": seed, "env": dataclasses.asdict(env_config)})
 
     def save(self, path: str | os.PathLike) -> None:
-        from regrasp_mjx.planning.episodes import _atomic_write
+        from regrasp_mjx.atomic import atomic_write
 
         meta = json.dumps(self.meta)
-        _atomic_write(Path(path), lambda f: np.savez(f, needle=self.needle, grasp=self.grasp, meta=np.array(meta)))
+        atomic_write(Path(path), lambda f: np.savez(f, needle=self.needle, grasp=self.grasp, meta=np.array(meta)))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> GraspLibrary:

@@ -31,8 +31,9 @@ from brax.training.acme import running_statistics
 from flax import traverse_util
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
+from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.config import env_config_from_dict
-from regrasp_mjx.planning.episodes import _atomic_write
+from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
 
 POLICY_FORMAT = "regrasp_mjx.policy"
 POLICY_VERSION = 2
@@ -62,24 +63,6 @@ class PoseError(ValueError):
 WEIGHT_DTYPES = ("float32", "float16")
 QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the pose is refused
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
-
-
-# The planner's collision shield (ours): alternatives to a colliding policy action, in the order tried.
-SHIELD_SEED = 20211
-SHIELD_NOISE = (0.25, 0.5, 1.0)  # std of the Gaussian perturbations of the policy action ...
-SHIELD_PER_NOISE = 8  # ... this many of each
-SHIELD_CHUNK = 64  # colliding rows of a batch shielded together
-
-
-def shield_candidates(members: list[jax.Array], action: jax.Array, key: jax.Array) -> jax.Array:
-    """``[K, b, 6]`` alternatives to the policy's (mean) action ``[b, 6]``: each ensemble member's own
-    action (when there are several), half the action, then the action plus Gaussian noise of std
-    0.25, 0.5 and 1.0 (8 draws each, from ``key``, the same for every row), clipped to [-1, 1].
-    Closest to the policy first."""
-    own = list(members) if len(members) > 1 else []
-    noise = jax.random.normal(key, (len(SHIELD_NOISE) * SHIELD_PER_NOISE, 1, action.shape[-1]))
-    std = jnp.repeat(jnp.asarray(SHIELD_NOISE), SHIELD_PER_NOISE)[:, None, None]
-    return jnp.concatenate([jnp.stack(own + [0.5 * action]), jnp.clip(action[None] + std * noise, -1.0, 1.0)])
 
 
 def mean_action(actions: list[jax.Array]) -> jax.Array:
@@ -160,8 +143,8 @@ def save_policy(
         "versions": versions(),
         **(extra or {}),
     }
-    _atomic_write(out / "policy.npz", lambda f: np.savez(f, **flat))
-    _atomic_write(out / "policy.json", lambda f: f.write(json.dumps(contract, indent=2).encode()))
+    atomic_write(out / "policy.npz", lambda f: np.savez(f, **flat))
+    atomic_write(out / "policy.json", lambda f: f.write(json.dumps(contract, indent=2).encode()))
     return out
 
 
@@ -295,6 +278,11 @@ class Policy:
         jitting into other programs or exporting)."""
         return self._actor
 
+    def members_fn(self):
+        """The pure function ``obs[..., 21] -> [action[..., 6] of each member]`` (one entry for one
+        network); :meth:`actor_fn` is their mean."""
+        return self._member_actions
+
     # ---- planning ---------------------------------------------------------------------------
     def _planner(self, camera: bool, shield: bool = True):
         """One jitted program: poses in, rollout until every query ended, trajectory out.
@@ -340,7 +328,7 @@ class Policy:
                 ``members``: each network's actions for the whole batch (``a`` is their mean)."""
                 b = a.shape[0]
                 size = min(b, SHIELD_CHUNK)
-                key = jax.random.fold_in(jax.random.PRNGKey(SHIELD_SEED), t)
+                key = step_key(t)
 
                 def chunk(c):
                     a, nxt, need = c

@@ -32,9 +32,11 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, PRESETS, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.train import TRANSITION, Learner, TrainingState
+from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import ConfigError
-from regrasp_mjx.planning.episodes import DemosError, _atomic_write, load_demos, make_replay, replay_paths
+from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, replay_paths
 from regrasp_mjx.policy import save_policy
+from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import Episode, TestsetError, load_testset
 
 VALIDATION_SEED = 1_000_003
@@ -83,36 +85,13 @@ def _like(template: Any, saved: np.ndarray) -> Any:
     return jnp.asarray(saved, dtype=template.dtype)
 
 
+def _copy_policy(src: Path, dst: Path) -> None:
+    for name in ("policy.npz", "policy.json"):
+        atomic_write(dst / name, lambda f, src=src / name: f.write(src.read_bytes()))
+
+
 def _mm(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f} mm"
-
-
-def evaluate_policy(policy, episodes: Episode) -> dict[str, float]:
-    """Success, collision, time-out and path length of a loaded policy's plans for the problems."""
-    from regrasp_mjx.evaluate import episode_poses
-
-    plan = policy.plan(*episode_poses(episodes), check_grasp=False)
-    return summarize_eval(
-        {
-            "success": plan.success,
-            "collision": plan.collision | ~plan.start_valid,
-            "time_out": plan.time_out,
-            "path_length_mm": plan.path_length_mm,
-            "steps": plan.steps,
-        }
-    )
-
-
-def summarize_eval(result: dict[str, Any]) -> dict[str, float]:
-    r = {k: np.asarray(v) for k, v in result.items()}
-    ok = r["success"] > 0
-    return {
-        "success_rate": float(ok.mean()),
-        "collision_rate": float(r["collision"].mean()),
-        "time_out_rate": float(r["time_out"].mean()),
-        "path_length_mm": float(r["path_length_mm"][ok].mean()) if ok.any() else None,
-        "steps": float(r["steps"][ok].mean()) if ok.any() else None,
-    }
 
 
 class Run:
@@ -168,8 +147,8 @@ class Run:
         plain arrays in tree order, then the metadata; each file written atomically, state first."""
         leaves = jax.device_get(jax.tree_util.tree_leaves(ts))
         arrays = {f"leaf_{i:05d}": np.asarray(x) for i, x in enumerate(leaves)}
-        _atomic_write(self.ckpt / "state.npz", lambda f: np.savez(f, **arrays))
-        _atomic_write(self.ckpt / "meta.json", lambda f: f.write(json.dumps(meta).encode()))
+        atomic_write(self.ckpt / "state.npz", lambda f: np.savez(f, **arrays))
+        atomic_write(self.ckpt / "meta.json", lambda f: f.write(json.dumps(meta).encode()))
 
     def load(self, template: TrainingState) -> tuple[TrainingState, dict[str, Any]]:
         meta_path, state_path = self.ckpt / "meta.json", self.ckpt / "state.npz"
@@ -212,15 +191,16 @@ class Run:
     def _export(self, folder: Path, ts: TrainingState, m: int, training: dict[str, Any]) -> None:
         pick = lambda tree: jax.tree.map(lambda x: x[m], tree)  # noqa: E731
         cfg = self.cfg
-        training = {"config": _config_json(cfg), "seed": cfg.seed + m, **training}
-        save_policy(folder, pick(ts.actor), pick(ts.normalizer), cfg.hidden, cfg.env, extra={"training": training})
+        training = {"config": _config_json(cfg), "seed": cfg.seed + m, "actor_ema": cfg.actor_ema, **training}
+        params = self.learner.policy_params(ts)
+        save_policy(folder, pick(params), pick(ts.normalizer), cfg.hidden, cfg.env, extra={"training": training})
 
     def _truncate_log(self, epoch: int) -> None:
         """Drops log rows of epochs after the checkpoint (they will be run again)."""
         path = self.out / "log.jsonl"
         if path.exists():
             keep = [x for x in path.read_text().splitlines() if x.strip() and json.loads(x)["epoch"] <= epoch]
-            _atomic_write(path, lambda f: f.write("".join(x + "\n" for x in keep).encode()))
+            atomic_write(path, lambda f: f.write("".join(x + "\n" for x in keep).encode()))
 
     def train(self, resume: bool = False) -> dict[str, Any]:
         cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_seeds
@@ -281,10 +261,11 @@ class Run:
                         self._submit(pool, problems, chosen, meta)
                         ts = self._receive(pool, ts, pending, meta)
                 eval_s = time.perf_counter()
-                ev_all = jax.device_get(learner.evaluate(ts.actor, ts.normalizer, test))
-                va_all = jax.device_get(learner.evaluate(ts.actor, ts.normalizer, val))
-                evs = [summarize_eval({k: v[m] for k, v in ev_all.items()}) for m in range(seeds)]
-                vas = [summarize_eval({k: v[m] for k, v in va_all.items()}) for m in range(seeds)]
+                actor = learner.policy_params(ts)
+                ev_all = jax.device_get(learner.evaluate(actor, ts.normalizer, test))
+                va_all = jax.device_get(learner.evaluate_q(actor, ts.normalizer, val, ts.critic))
+                evs = [summarize({k: v[m] for k, v in ev_all.items()}, "bare") for m in range(seeds)]
+                vas = [summarize({k: v[m] for k, v in va_all.items()}, "bare") for m in range(seeds)]
                 for m, va in enumerate(vas):
                     if va["success_rate"] >= meta["best_val"][m]:  # export the best by validation
                         meta["best_val"][m], meta["best_epoch"][m] = va["success_rate"], epoch + 1
@@ -368,41 +349,60 @@ class Run:
     def finish(
         self, ts: TrainingState, last: list[dict[str, Any]], compile_s: float | None, meta: dict[str, Any]
     ) -> dict[str, Any]:
-        """Exports each seed's last policy beside its best (by validation), tests the best ones, and
-        with several seeds copies the best seed's policy to ``OUT/policy``."""
+        """Exports each seed's last policy beside its best (by validation), tests the best ones bare
+        and shielded, distils them when ``distill.iterations`` > 0, and with several seeds copies the
+        best seed's policy (and student) to ``OUT/policy`` (``OUT/student``)."""
         cfg = self.cfg
+        from regrasp_mjx.evaluate import outcomes
         from regrasp_mjx.policy import load_policy
 
         members = []
         for m in range(cfg.num_seeds):
             self._export(self.member_dir(m) / "policy_last", ts, m, {"epoch": meta["epoch"]})
             policy_dir = self.member_dir(m) / "policy"
-            ev = evaluate_policy(load_policy(policy_dir), self.testset)  # the exported file, as deployed
             members.append(
                 {
                     "seed": cfg.seed + m,
                     "policy": str(policy_dir),
                     "best_epoch": meta["best_epoch"][m],
                     "best_validation_success": meta["best_val"][m],
-                    "test": ev,
+                    "test": outcomes(load_policy(policy_dir), self.testset),  # the exported file, as deployed
                     "last_epoch": last[m] if last else None,
                 }
             )
-        best = max(range(cfg.num_seeds), key=lambda m: meta["best_val"][m])
-        if cfg.num_seeds > 1:
-            for name in ("policy.npz", "policy.json"):
-                src = Path(members[best]["policy"]) / name
-                _atomic_write(self.out / "policy" / name, lambda f, src=src: f.write(src.read_bytes()))
-        final = {**members[best], "policy": str(self.out / "policy"), "compile_s": compile_s, "seeds": members}
-        _atomic_write(self.out / "final_eval.json", lambda f: f.write(json.dumps(final, indent=2).encode()))
         for mem in members:
             ev = mem["test"]
             self.log(
                 f"seed {mem['seed']}: exported {mem['policy']} (epoch {mem['best_epoch']}, best on validation); "
-                f"on the test set: success {ev['success_rate']:.3f}, collision {ev['collision_rate']:.3f}, "
-                f"path {_mm(ev['path_length_mm'])}"
+                f"on the test set: success {ev['bare']['success_rate']:.3f} bare, {ev['shielded']['success_rate']:.3f} "
+                f"shielded; collision {ev['bare']['collision_rate']:.3f} bare; path {_mm(ev['bare']['path_length_mm'])}"
             )
+        best = max(range(cfg.num_seeds), key=lambda m: meta["best_val"][m])
+        if cfg.num_seeds > 1:
+            _copy_policy(Path(members[best]["policy"]), self.out / "policy")
+        final = {**members[best], "policy": str(self.out / "policy"), "compile_s": compile_s, "seeds": members}
+        if cfg.distill.iterations > 0:
+            final["students"] = self.distill(members)
+            top = max(range(cfg.num_seeds), key=lambda m: final["students"][m]["best_validation_success"])
+            if cfg.num_seeds > 1:
+                _copy_policy(Path(final["students"][top]["student"]), self.out / "student" / "policy")
+            final["student"] = {**final["students"][top], "student": str(self.out / "student" / "policy")}
+        write_json(self.out / "final_eval.json", final)
         return final
+
+    def distill(self, members: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """Each seed's exported policy teaches a student (``SEED_DIR/student``), one seed after another."""
+        from regrasp_mjx.distill import distill
+        from regrasp_mjx.policy import load_policy
+
+        students = []
+        for m, mem in enumerate(members):
+            cfg = dataclasses.replace(self.cfg.distill, seed=self.cfg.seed + m)
+            folder = self.member_dir(m) / "student"
+            self.log(f"seed {mem['seed']}: distilling {mem['policy']} into {folder}")
+            result = distill(load_policy(mem["policy"]), folder, cfg, self.testset, mem["policy"], self.quiet)
+            students.append({"seed": mem["seed"], **result})
+        return students
 
     # ---- the planner exchange ---------------------------------------------------------------
     def _pool(self):
@@ -522,7 +522,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, DemosError, TestsetError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(json.dumps({"out": str(out), "test": final["test"]}))
+    summary = {"out": str(out), "test": final["test"]}
+    if "student" in final:
+        summary["student"] = {"policy": final["student"]["student"], "test": final["student"]["test"]}
+    print(json.dumps(summary))
     return 0
 
 

@@ -84,7 +84,7 @@ def test_shield_candidates_order_and_range():
     import jax
     import jax.numpy as jnp
 
-    from regrasp_mjx.policy import SHIELD_NOISE, SHIELD_PER_NOISE, shield_candidates
+    from regrasp_mjx.shield import SHIELD_NOISE, SHIELD_PER_NOISE, shield_candidates
 
     a = jnp.array([[0.9, -0.9, 0.0, 0.5, 0.0, -0.2], [0.0] * 6])
     members = [a + 0.1, a - 0.1, a]

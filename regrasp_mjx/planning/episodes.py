@@ -31,7 +31,6 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import quat_conj, quat_mul, quat_to_rotvec
 from regrasp_mjx.sampling import Episode
@@ -181,19 +181,6 @@ class Demos:
         return int(self.length.shape[0])
 
 
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_demos(path: str | os.PathLike, episodes: list[dict[str, Any]], meta: dict[str, Any]) -> Path:
     """Writes episodes (dicts from :func:`replay_paths` plus ``problem_index``, ``plan_time_s``)."""
     path = Path(path)
@@ -215,7 +202,7 @@ def save_demos(path: str | os.PathLike, episodes: list[dict[str, Any]], meta: di
         "steps": int(cat["length"].sum()),
         **meta,
     }
-    _atomic_write(path, lambda f: np.savez_compressed(f, meta=np.array(json.dumps(meta, sort_keys=True)), **cat))
+    atomic_write(path, lambda f: np.savez_compressed(f, meta=np.array(json.dumps(meta, sort_keys=True)), **cat))
     return path
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from regrasp_mjx.agents.dagger import DistillConfig
 from regrasp_mjx.config import ConfigError, EnvConfig
 
 
@@ -65,6 +66,17 @@ class TrainConfig:
         time (one compiled insert).
       action_noise: std of Gaussian noise added to the policy's (non-random) actions in training
         rollouts, clipped to [-1, 1] (HER's ``noise_eps``; ours, 0 = the paper's uniform-only E_R).
+        It keeps exploring after E_R reaches 0, so the replay buffer keeps actions around the
+        policy's own for the critic to rank (see experiments/RESULTS.md, "Why training decayed").
+      critics: 1 (the paper) or 2 (ours: TD3's clipped double Q, the target takes the minimum).
+      target_noise, target_noise_clip: std and clip of the Gaussian noise on the target policy's
+        action in the critic's target (ours: TD3's target policy smoothing; 0 = off).
+      actor_ema: per-update decay of an exponential moving average of the actor's weights, which
+        evaluation, model selection and export use (ours; 0 = off, the raw actor).
+      lr_decay_to: both learning rates follow a cosine from their value to this fraction of it
+        over the configured epochs (ours; 1 = constant, the paper).
+      distill: after the last epoch, each seed's exported policy teaches a student by DAgger with
+        lookahead (ours, :mod:`regrasp_mjx.agents.dagger`); ``distill.iterations`` 0 = no such stage.
       checkpoint_every: epochs between checkpoints (the last epoch always writes one); a checkpoint
         holds the full replay buffers (200 MB per seed once full), so writing it every epoch can cost
         more than the epoch.
@@ -101,6 +113,12 @@ class TrainConfig:
     planner_queue: int = 256
     demo_chunk: int = 512
     action_noise: float = 0.0
+    critics: int = 1
+    target_noise: float = 0.0
+    target_noise_clip: float = 0.5
+    actor_ema: float = 0.0
+    lr_decay_to: float = 1.0
+    distill: DistillConfig = DistillConfig(iterations=0)
     checkpoint_every: int = 1
     validation_size: int = 1000
     seed: int = 0
@@ -139,7 +157,13 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
-        for name in ("action_l2", "prm_coef", "bc_coef", "action_noise"):
+        if self.critics not in (1, 2):
+            raise ConfigError(f"critics={self.critics!r} is not accepted: 1 (the paper) or 2 (clipped double Q)")
+        if not (isinstance(self.actor_ema, (int, float)) and 0.0 <= self.actor_ema < 1.0):
+            raise ConfigError(f"actor_ema={self.actor_ema!r} is not accepted: a decay in [0, 1) (0 = off)")
+        if not (isinstance(self.lr_decay_to, (int, float)) and 0.0 < self.lr_decay_to <= 1.0):
+            raise ConfigError(f"lr_decay_to={self.lr_decay_to!r} is not accepted: a fraction in (0, 1] (1 = constant)")
+        for name in ("action_l2", "prm_coef", "bc_coef", "action_noise", "target_noise", "target_noise_clip"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number >= 0")
@@ -160,6 +184,10 @@ class TrainConfig:
     @property
     def online_batch(self) -> int:
         return self.batch_size - self.demo_batch
+
+    @property
+    def total_updates(self) -> int:
+        return self.epochs * self.iterations_per_epoch * self.updates_per_iteration
 
 
 PRESETS = {

@@ -45,6 +45,7 @@ from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.rollout import evaluate_actor
 from regrasp_mjx.sampling import Episode
 
 TRANSITION = ("obs", "action", "reward", "next_obs", "terminal")
@@ -55,6 +56,7 @@ AXIS = "data"  # the mesh axis the environments and batches are split over
 class TrainingState:
     actor: Any
     critic: Any
+    ema_actor: Any  # moving average of the actor (what is evaluated and exported when actor_ema > 0)
     target_actor: Any
     target_critic: Any
     actor_opt: Any
@@ -83,9 +85,9 @@ class Learner:
     def __init__(self, config: TrainConfig, env: RegraspEnv | None = None):
         self.config = config
         self.env = env if env is not None else RegraspEnv(config.env)
-        self.nets: DDPGNetworks = make_networks(self.env.action_size, config.hidden)
-        self.actor_opt = optax.adam(config.lr_actor)
-        self.critic_opt = optax.adam(config.lr_critic)
+        self.nets: DDPGNetworks = make_networks(self.env.action_size, config.hidden, config.critics)
+        self.actor_opt = optax.adam(self._learning_rate(config.lr_actor))
+        self.critic_opt = optax.adam(self._learning_rate(config.lr_critic))
         self.devices = self._check_devices(config)
         self.axis = AXIS if self.devices > 1 else None  # collectives only with several devices
         self.mesh = Mesh(np.array(jax.devices()[: self.devices]), (AXIS,))
@@ -101,8 +103,22 @@ class Learner:
         self.iteration = jax.jit(self._iteration, donate_argnums=(0,))
         # actor and normaliser carry the seed axis; the problems are shared
         self.evaluate = jax.jit(jax.vmap(self.evaluate_one, in_axes=(0, 0, None)))
+        # ... and with the critic: its estimate at the start against the return the rollout got
+        self.evaluate_q = jax.jit(jax.vmap(self.evaluate_one, in_axes=(0, 0, None, 0)))
         self.add_online = jax.jit(self._add_online, donate_argnums=(0,))
         self.demo_buffer = None
+
+    def _learning_rate(self, lr: float):
+        """A constant, or a cosine from ``lr`` to ``lr * lr_decay_to`` over the configured updates."""
+        cfg = self.config
+        if cfg.lr_decay_to >= 1.0:
+            return lr
+        return optax.cosine_decay_schedule(lr, decay_steps=cfg.total_updates, alpha=cfg.lr_decay_to)
+
+    def policy_params(self, ts: TrainingState) -> Any:
+        """The actor that is evaluated, selected and exported: the moving average when ``actor_ema``
+        > 0, else the actor itself. (Rollouts explore with the actor itself.)"""
+        return ts.ema_actor if self.config.actor_ema > 0 else ts.actor
 
     @staticmethod
     def _check_devices(cfg: TrainConfig) -> int:
@@ -193,6 +209,7 @@ class Learner:
         return TrainingState(
             actor=actor,
             critic=critic,  # targets start equal, in buffers of their own (donation)
+            ema_actor=jax.tree.map(jnp.copy, actor),
             target_actor=jax.tree.map(jnp.copy, actor),
             target_critic=jax.tree.map(jnp.copy, critic),
             actor_opt=self.actor_opt.init(actor),
@@ -279,11 +296,14 @@ class Learner:
         k_online, k_demo = jax.random.split(self._device_key(key))
         online = self.online_buffer.sample(ts.online, k_online).experience
         demo = self.demo_buffer.sample(ts.demos, k_demo).experience
-        return self.learn(ts, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), online, demo))
+        # folded, not split: the batches stay those of runs without target noise
+        k_noise = jax.random.fold_in(self._device_key(key), 1)
+        return self.learn(ts, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), online, demo), k_noise)
 
-    def learn(self, ts: TrainingState, batch: dict[str, jax.Array]):
+    def learn(self, ts: TrainingState, batch: dict[str, jax.Array], key: jax.Array | None = None):
         """The gradient step on a batch (online samples first, then demonstrations); under several
-        devices ``batch`` is this device's share and the gradients are averaged across devices."""
+        devices ``batch`` is this device's share and the gradients are averaged across devices.
+        ``key`` draws the target-policy noise (needed when ``target_noise`` > 0)."""
         cfg, nets = self.config, self.nets
         n_online = cfg.online_batch // self.devices
         is_demo = jnp.arange(batch["reward"].shape[0]) >= n_online
@@ -291,7 +311,16 @@ class Learner:
         q = functools.partial(lambda p, o, a: nets.q(p, ts.normalizer, o, a))
 
         (_, c_metrics), c_grad = jax.value_and_grad(losses.critic_loss, has_aux=True)(
-            ts.critic, ts.target_actor, ts.target_critic, batch, policy, q, cfg.gamma
+            ts.critic,
+            ts.target_actor,
+            ts.target_critic,
+            batch,
+            policy,
+            q,
+            cfg.gamma,
+            key,
+            cfg.target_noise,
+            cfg.target_noise_clip,
         )
         c_upd, critic_opt = self.critic_opt.update(self._pmean(c_grad), ts.critic_opt, ts.critic)
         critic = optax.apply_updates(ts.critic, c_upd)
@@ -303,12 +332,17 @@ class Learner:
         a_upd, actor_opt = self.actor_opt.update(self._pmean(a_grad), ts.actor_opt, ts.actor)
         actor = optax.apply_updates(ts.actor, a_upd)
 
+        if cfg.actor_ema > 0:
+            ema_actor = jax.tree.map(lambda e, a: cfg.actor_ema * e + (1.0 - cfg.actor_ema) * a, ts.ema_actor, actor)
+        else:
+            ema_actor = ts.ema_actor
         updates = ts.updates + 1
         sync = (updates % cfg.target_every) == 0
         blend = lambda t, p: jnp.where(sync, cfg.polyak * t + (1.0 - cfg.polyak) * p, t)  # noqa: E731
         ts = ts.replace(
             actor=actor,
             critic=critic,
+            ema_actor=ema_actor,
             actor_opt=actor_opt,
             critic_opt=critic_opt,
             updates=updates,
@@ -366,38 +400,18 @@ class Learner:
         return self._shard_map(body, (specs, P(), P(AXIS)), specs)(ts, member, chunk)
 
     # ---- evaluation ---------------------------------------------------------------------------
-    def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode) -> dict[str, jax.Array]:
-        """Deterministic policy on given problems, one pass: success, collision, time-out, path."""
-        env = self.env
-        state = jax.vmap(env.reset_from)(episodes)
+    def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode, critic: Any = None) -> dict[str, jax.Array]:
+        """Deterministic policy on given problems, one pass: success, collision, time-out, path.
+
+        With ``critic``, also the critic's estimate at each start, ``Q(s_0, pi(s_0))`` (the first
+        critic), and the discounted return the rollout actually got: their difference is the
+        critic's over-estimation on the policy's own starts (time-outs bootstrap in training, so
+        theirs reads low by at most ``gamma^horizon``)."""
         policy = functools.partial(self.nets.policy, actor, normalizer)
-
-        def step(carry, _):
-            state, result = carry
-            nxt = jax.vmap(env.step)(state, policy(state.obs))
-            live = result[:, 0] == 0
-            new = jnp.stack(
-                [
-                    nxt.done,
-                    nxt.metrics["success"],
-                    nxt.metrics["collision"],
-                    nxt.metrics["time_out"],
-                    nxt.metrics["path_length_mm"],
-                    nxt.pipeline_state.t.astype(jnp.float32),
-                ],
-                axis=1,
-            )
-            result = jnp.where((live & (nxt.done > 0))[:, None], new, result)
-            state = jax.tree.map(lambda a, b: jnp.where(live.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), nxt, state)
-            return (state, result), None
-
-        result0 = jnp.zeros((episodes.needle_pos.shape[0], 6))
-        (_, result), _ = jax.lax.scan(step, (state, result0), None, length=env.config.horizon)
-        success = result[:, 1]
-        return {
-            "success": success,
-            "collision": result[:, 2],
-            "time_out": result[:, 3],
-            "path_length_mm": result[:, 4],
-            "steps": result[:, 5],
-        }
+        out = evaluate_actor(self.env, policy, episodes, self.config.gamma)
+        obs0, ret = out.pop("obs0"), out.pop("return")
+        if critic is not None:
+            q0 = self.nets.q(critic, normalizer, obs0, policy(obs0))
+            out["q_start"] = q0 if q0.ndim == 1 else q0[0]
+            out["return_start"] = ret
+        return out
