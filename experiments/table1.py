@@ -1,17 +1,18 @@
 """The paper's Table I and Fig. 3: DDPG+BC with the three exploration settings, several seeds each.
 
-Each setting is one training program with a seed axis (``--seeds`` learners vmapped together, see
-``regrasp_mjx.agents.ddpg_bc.train``), from one shared set of demonstrations. A setting whose run
-folder already holds ``final_eval.json`` is not trained again; one with a checkpoint resumes, so a
-device call that ends mid-run loses at most an epoch.
+All settings and seeds train as one program (``--exploration ddpg_bc,targeted,mixed``: members are
+settings x seeds, vmapped; seed s of each setting starts from the same networks and problems), from
+one shared set of demonstrations. A run folder that holds ``final_eval.json`` is not trained again;
+one with a checkpoint resumes.
 
-    python experiments/table1.py train --demos runs/demos --out runs/table1 [--settings mixed,ddpg_bc,targeted]
-    python experiments/table1.py report --runs runs/table1 --out experiments/results/table1
+    python experiments/table1.py train --demos runs/demos --out runs/table1 --preset paper --set epochs=250
+    python experiments/table1.py report --runs runs/table1 --out experiments/results/table1_paper
 
-``report`` reads the runs' ``log.jsonl`` and ``final_eval.json`` (which the repository ships under
-``experiments/results/table1/``), and writes ``table1.md``, ``table1.csv`` and ``fig3.png`` (test
-success against epoch and against training wall-clock, mean and range over seeds). Planning time
-comes from ``planning_time.json`` beside them when present (``regrasp_mjx.evaluate``).
+``report`` reads the run's ``log.jsonl`` and ``final_eval.json`` and writes ``table1.md``,
+``table1.csv``, ``table1.json`` and ``fig3.png``. Every success rate is of the bare policy (the
+network alone, no collision shield), as the paper counts: at the last epoch, the mean of the last
+ten epochs, the best epoch, and the exported policy (epoch best on validation problems of its own
+seed, planned again through ``Policy.plan``).
 """
 
 from __future__ import annotations
@@ -35,129 +36,130 @@ PAPER = {"ddpg_bc": (0.71, 0.0262, 4.2), "targeted": (0.64, 0.0233, 4.2), "mixed
 
 def train(args: argparse.Namespace) -> None:
     from regrasp_mjx.agents.ddpg_bc.config import make_config
-    from regrasp_mjx.train import DEFAULT_TESTSET, Run, _parse_overrides
+    from regrasp_mjx.distill import parse_overrides
+    from regrasp_mjx.train import DEFAULT_TESTSET, Run
 
     out = Path(args.out)
-    for setting in args.settings.split(","):
-        folder = out / setting
-        if (folder / "final_eval.json").exists():
-            print(f"{setting}: done already ({folder})", flush=True)
-            continue
-        overrides = _parse_overrides(args.set)
-        cfg = make_config(args.preset, setting, seed=args.seed, num_seeds=args.seeds, **overrides)
-        folder.mkdir(parents=True, exist_ok=True)
-        resume = (folder / "checkpoint" / "meta.json").exists()
-        print(f"{setting}: training {args.seeds} seeds in {folder}{' (resumed)' if resume else ''}", flush=True)
-        run = Run(cfg, folder, Path(args.demos), Path(args.testset or DEFAULT_TESTSET), quiet=args.quiet)
-        final = run.train(resume=resume)
-        print(json.dumps({"setting": setting, "test": [m["test"] for m in final["seeds"]]}), flush=True)
+    if (out / "final_eval.json").exists():
+        print(f"done already ({out})", flush=True)
+        return
+    cfg = make_config(
+        args.preset, args.settings, args.learner, seed=args.seed, num_seeds=args.seeds, **parse_overrides(args.set)
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    resume = (out / "checkpoint" / "meta.json").exists()
+    print(f"training {args.settings} x {args.seeds} seeds in {out}{' (resumed)' if resume else ''}", flush=True)
+    Run(cfg, out, Path(args.demos), Path(args.testset or DEFAULT_TESTSET), quiet=args.quiet).train(resume=resume)
 
 
-def _load(runs: Path) -> dict[str, dict]:
-    found = {}
-    for setting in SETTINGS:
-        final, log = runs / setting / "final_eval.json", runs / setting / "log.jsonl"
-        if final.exists() and log.exists():
-            found[setting] = {
-                "final": json.loads(final.read_text()),
-                "log": analysis.read_log(log),  # {seed: {column: array over epochs}}
-            }
-    if not found:
-        sys.exit(f"error: no finished runs under {runs} (expected {', '.join(SETTINGS)} with final_eval.json)")
-    return found
-
-
-def _mean_std(xs: list[float | None]) -> str:
-    xs = [x for x in xs if x is not None]
+def _mean_std(xs) -> str:
+    xs = [x for x in xs if x is not None and np.isfinite(x)]
     if not xs:
         return "-"
     return f"{np.mean(xs):.3f} ± {np.std(xs):.3f}" if len(xs) > 1 else f"{xs[0]:.3f}"
 
 
+def summarize(log: dict[int, dict[str, np.ndarray]], exported: list[dict]) -> dict:
+    """Per-seed numbers of one setting from its log rows and its exported policies' final evaluation."""
+    _, test = analysis.seed_band(log, "test.success_rate")
+    _, coll = analysis.seed_band(log, "test.collision_rate")
+    _, path = analysis.seed_band(log, "test.path_length_mm")
+    return {
+        "seeds": sorted(log),
+        "epochs": int(next(iter(log.values()))["epoch"][-1]),
+        "last": test[:, -1].tolist(),
+        "last10": test[:, -10:].mean(1).tolist(),
+        "best": test.max(1).tolist(),
+        "collision_last": coll[:, -1].tolist(),
+        "path_last": path[:, -1].tolist(),
+        "exported": [m["test"]["bare"]["success_rate"] for m in exported],
+        "exported_shielded": [m["test"]["shielded"]["success_rate"] for m in exported],
+        "best_epoch": [m["best_epoch"] for m in exported],
+        "wall_s": float(max(cols["wall_s"].max() for cols in log.values())),
+    }
+
+
 def report(args: argparse.Namespace) -> None:
     runs, out = Path(args.runs), Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    found = _load(runs)
-    timing_path = runs / "planning_time.json"
-    timing = json.loads(timing_path.read_text()) if timing_path.exists() else {}
-    rows = []
-    for setting, run in found.items():
-        seeds = run["final"]["seeds"]
-        tm = timing.get(setting, {})
-        wall = max(float(cols["wall_s"].max()) for cols in run["log"].values())
-        rows.append(
-            {
-                "setting": setting,
-                "seeds": [m["seed"] for m in seeds],
-                "success": [m["test"]["success_rate"] for m in seeds],
-                "collision": [m["test"]["collision_rate"] for m in seeds],
-                "path_mm": [m["test"]["path_length_mm"] for m in seeds],
-                "best_epoch": [m["best_epoch"] for m in seeds],
-                "plan_ms_median": tm.get("median_ms"),
-                "plan_ms_mean": tm.get("mean_ms"),
-                "wall_s": wall,
-                "epochs": int(max(cols["epoch"].max() for cols in run["log"].values())),
-            }
-        )
+    final = json.loads((runs / "final_eval.json").read_text())
+    present = analysis.settings_in_log(runs / "log.jsonl")
+    if not present:
+        sys.exit(f"error: {runs}/log.jsonl holds one setting; train with experiments/table1.py train")
+    rows = {}
+    for setting in [s for s in SETTINGS if s in present]:
+        log = analysis.read_log(runs / "log.jsonl", setting)
+        rows[setting] = summarize(log, [m for m in final["seeds"] if m["setting"] == setting])
     lines = [
-        "| setting | seeds | success rate | collision rate | path length (mm) | planning time mean / median (ms) "
-        "| paper: success, time (s), path (mm) |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        f"Bare policy (no shield) on paper300; {len(next(iter(rows.values()))['seeds'])} seeds per setting; "
+        f"{next(iter(rows.values()))['epochs']} epochs; mean ± std over seeds.",
+        "",
+        "| setting | last epoch | mean of last 10 epochs | best epoch | exported (best on validation) | "
+        "exported, shielded | collision, last epoch | path (mm), last epoch | paper |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
-    for r in rows:
-        plan = f"{r['plan_ms_mean']:.2f} / {r['plan_ms_median']:.2f}" if r["plan_ms_median"] is not None else "-"
-        paper = PAPER[r["setting"]]
+    for setting, r in rows.items():
         lines.append(
-            f"| {LABEL[r['setting']]} | {len(r['seeds'])} | {_mean_std(r['success'])} | {_mean_std(r['collision'])} "
-            f"| {_mean_std(r['path_mm'])} | {plan} | {paper[0]}, {paper[1]}, {paper[2]} |"
+            f"| {LABEL[setting]} | {_mean_std(r['last'])} | {_mean_std(r['last10'])} | {_mean_std(r['best'])} | "
+            f"{_mean_std(r['exported'])} | {_mean_std(r['exported_shielded'])} | {_mean_std(r['collision_last'])} | "
+            f"{_mean_std(r['path_last'])} | {PAPER[setting][0]} |"
         )
-    lines.append("")
-    lines.append("Per seed (success / collision / path mm, best epoch by validation):")
-    lines.append("")
-    for r in rows:
+    lines += ["", "Per seed (last epoch / exported, bare):", ""]
+    for setting, r in rows.items():
         each = ", ".join(
-            f"seed {s}: {a:.3f} / {c:.3f} / {p:.2f} (epoch {e})"
-            for s, a, c, p, e in zip(r["seeds"], r["success"], r["collision"], r["path_mm"], r["best_epoch"])
+            f"seed {s}: {a:.3f} / {e:.3f} (epoch {b})"
+            for s, a, e, b in zip(r["seeds"], r["last"], r["exported"], r["best_epoch"])
         )
-        lines.append(f"- {LABEL[r['setting']]}: {each}; training {r['wall_s'] / 60:.1f} min for {r['epochs']} epochs")
+        lines.append(f"- {LABEL[setting]}: {each}")
+    lines.append(
+        f"\nTraining wall-clock (all settings and seeds in one program): {max(r['wall_s'] for r in rows.values()) / 60:.1f} min ({platform.node()})."
+    )
     (out / "table1.md").write_text("\n".join(lines) + "\n")
+    (out / "table1.json").write_text(json.dumps({"rows": rows}, indent=2))
     with open(out / "table1.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["setting", "seed", "success_rate", "collision_rate", "path_length_mm", "best_epoch"])
-        for r in rows:
-            for row in zip(r["seeds"], r["success"], r["collision"], r["path_mm"], r["best_epoch"]):
-                w.writerow([r["setting"], *row])
-    if runs.resolve() != out.resolve():  # ship the logs the figure is made from
-        for setting in found:
-            (out / setting).mkdir(exist_ok=True)
-            for name in ("log.jsonl", "final_eval.json"):
-                shutil.copyfile(runs / setting / name, out / setting / name)
-    _figure(found, out / "fig3.png")
+        w.writerow(["setting", "seed", "last", "last10", "best", "exported", "exported_shielded", "best_epoch"])
+        for setting, r in rows.items():
+            for row in zip(
+                r["seeds"], r["last"], r["last10"], r["best"], r["exported"], r["exported_shielded"], r["best_epoch"]
+            ):
+                w.writerow([setting, *row])
+    if runs.resolve() != out.resolve():  # ship the log and final evaluation the table is made from
+        for name in ("log.jsonl", "final_eval.json"):
+            shutil.copyfile(runs / name, out / name)
+    figure(runs / "log.jsonl", list(rows), out / "fig3.png")
     print("\n".join(lines))
-    print(f"wrote {out / 'table1.md'}, {out / 'table1.csv'}, {out / 'fig3.png'} ({platform.node()})")
 
 
-def _figure(found: dict[str, dict], path: Path) -> None:
+def figure(log_path: Path, settings: list[str], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    for setting, run in found.items():
-        epochs, succ = analysis.seed_band(run["log"], "test.success_rate")
-        minutes = analysis.seed_band(run["log"], "wall_s")[1][0] / 60  # the first seed's clock
-        for ax, x in zip(axes, (epochs, minutes)):
-            ax.plot(x, succ.mean(0), label=f"{LABEL[setting]} ({len(run['log'])} seeds)")
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    for setting in settings:
+        log = analysis.read_log(log_path, setting)
+        epochs, succ = analysis.seed_band(log, "test.success_rate")
+        _, bias = analysis.seed_band(log, "validation.q_bias")
+        minutes = analysis.seed_band(log, "wall_s")[1][0] / 60
+        for ax, x in zip(axes[:2], (epochs, minutes)):
+            ax.plot(x, succ.mean(0), label=f"{LABEL[setting]} ({len(log)} seeds)")
             ax.fill_between(x, succ.min(0), succ.max(0), alpha=0.2)
+        axes[2].plot(epochs, bias.mean(0), label=LABEL[setting])
+        axes[2].fill_between(epochs, bias.min(0), bias.max(0), alpha=0.2)
     axes[0].set_xlabel("epoch (10 iterations)")
-    axes[1].set_xlabel("training wall-clock (min, all seeds together)")
-    axes[0].set_ylabel("test-set success rate")
-    for ax in axes:
+    axes[1].set_xlabel("training wall-clock (min, all settings and seeds in one program)")
+    axes[0].set_ylabel("test success rate (bare)")
+    axes[2].set_ylabel("critic over-estimation at the start, Q - return")
+    axes[2].set_xlabel("epoch")
+    for ax in axes[:2]:
         ax.axhline(0.97, color="grey", ls="--", lw=0.8)
+        ax.set_ylim(0, 1)
+    for ax in axes:
         ax.grid(alpha=0.3)
     axes[0].legend(loc="lower right")
-    fig.suptitle("Fig. 3: test-set success during training (mean, range over seeds); dashed: paper's 0.97")
+    fig.suptitle("Fig. 3: test success during training (mean, range over seeds); dashed: paper's mixed 0.97")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -166,18 +168,19 @@ def _figure(found: dict[str, dict], path: Path) -> None:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("train", help="train the settings (resumable)")
+    t = sub.add_parser("train", help="train the settings side by side (resumable)")
     t.add_argument("--demos", required=True, help="demonstration folder (python -m regrasp_mjx.demos)")
-    t.add_argument("--out", required=True, help="runs folder, one subfolder per setting")
+    t.add_argument("--out", required=True, help="run folder")
     t.add_argument("--settings", default=",".join(SETTINGS))
-    t.add_argument("--preset", default="fast")
+    t.add_argument("--preset", default="paper")
+    t.add_argument("--learner", default="ours", choices=("ours", "paper"))
     t.add_argument("--seeds", type=int, default=3)
     t.add_argument("--seed", type=int, default=0, help="first seed")
     t.add_argument("--testset", default=None)
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     t.add_argument("--quiet", action="store_true")
-    r = sub.add_parser("report", help="tables and figure from finished runs")
-    r.add_argument("--runs", required=True)
+    r = sub.add_parser("report", help="tables and figure from a finished run")
+    r.add_argument("--runs", required=True, help="the run folder")
     r.add_argument("--out", required=True)
     args = p.parse_args(argv)
     train(args) if args.cmd == "train" else report(args)

@@ -72,12 +72,13 @@ def _flatten(row: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def read_log(path: str | os.PathLike) -> dict[int, dict[str, np.ndarray]]:
-    """A training run's ``log.jsonl`` as ``{seed: {column: array over epochs}}``.
+def read_log(path: str | os.PathLike, setting: str | None = None) -> dict[int, dict[str, np.ndarray]]:
+    """A training run's ``log.jsonl`` as ``{seed: {column: array over epochs}}``; for a run of
+    several Table I settings, the rows of ``setting`` (``settings_in_log`` lists them).
 
     Nested fields are flattened with dots (``test.success_rate``); rows are sorted by epoch; a
     column some rows lack is NaN there. Raises :class:`ResultsError` for a missing file, a line
-    that is not a JSON object with ``epoch``, or a file with no rows.
+    that is not a JSON object with ``epoch``, or a file with no rows (of that setting).
     """
     path = Path(path)
     if not path.is_file():
@@ -92,15 +93,28 @@ def read_log(path: str | os.PathLike) -> dict[int, dict[str, np.ndarray]]:
             raise ResultsError(f"{path}:{n} is not JSON ({err})") from err
         if not isinstance(row, dict) or "epoch" not in row:
             raise ResultsError(f"{path}:{n} is not a log row (a JSON object with 'epoch')")
+        if setting is not None and row.get("setting") != setting:
+            continue
         rows.setdefault(int(row.get("seed", 0)), []).append(_flatten(row))
     if not rows:
-        raise ResultsError(f"{path} has no rows")
+        raise ResultsError(f"{path} has no rows" + (f" of setting {setting!r}" if setting is not None else ""))
     out = {}
     for seed, rs in sorted(rows.items()):
         rs.sort(key=lambda r: r["epoch"])
         names = sorted({k for r in rs for k in r if isinstance(r[k], (int, float, type(None)))})
         out[seed] = {k: np.array([np.nan if r.get(k) is None else r.get(k, np.nan) for r in rs], float) for k in names}
     return out
+
+
+def settings_in_log(path: str | os.PathLike) -> list[str]:
+    """The Table I settings a ``log.jsonl`` holds rows of, in order of appearance (``[]``: one)."""
+    seen: dict[str, None] = {}
+    for line in Path(path).read_text().splitlines():
+        if line.strip():
+            name = json.loads(line).get("setting")
+            if name:
+                seen.setdefault(name)
+    return list(seen)
 
 
 def seed_band(log: dict[int, dict[str, np.ndarray]], column: str) -> tuple[np.ndarray, np.ndarray]:

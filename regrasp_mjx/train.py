@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, PRESETS, TrainConfig, make_config
+from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.train import TRANSITION, Learner, TrainingState
 from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import ConfigError
@@ -185,13 +185,29 @@ class Run:
 
     # ---- the loop ----------------------------------------------------------------------------
     def member_dir(self, m: int) -> Path:
-        """Where seed ``seed + m`` writes its policies: OUT itself for a single seed."""
-        return self.out if self.cfg.num_seeds == 1 else self.out / f"seed{self.cfg.seed + m}"
+        """Where member ``m`` writes its policies: OUT itself for a single learner, ``OUT/seedS`` for
+        several seeds, ``OUT/SETTING/seedS`` for several settings."""
+        cfg = self.cfg
+        setting = cfg.member_setting(m)[0]
+        if cfg.num_members == 1:
+            return self.out
+        return (self.out / setting if setting else self.out) / f"seed{cfg.member_seed(m)}"
+
+    def setting_dir(self, m: int) -> Path:
+        """Where the best seed of member ``m``'s setting is copied: OUT, or ``OUT/SETTING``."""
+        setting = self.cfg.member_setting(m)[0]
+        return self.out / setting if setting else self.out
 
     def _export(self, folder: Path, ts: TrainingState, m: int, training: dict[str, Any]) -> None:
         pick = lambda tree: jax.tree.map(lambda x: x[m], tree)  # noqa: E731
         cfg = self.cfg
-        training = {"config": _config_json(cfg), "seed": cfg.seed + m, "actor_ema": cfg.actor_ema, **training}
+        training = {
+            "config": _config_json(cfg),
+            "setting": cfg.member_setting(m)[0] or None,
+            "seed": cfg.member_seed(m),
+            "actor_ema": cfg.actor_ema,
+            **training,
+        }
         params = self.learner.policy_params(ts)
         save_policy(folder, pick(params), pick(ts.normalizer), cfg.hidden, cfg.env, extra={"training": training})
 
@@ -203,7 +219,7 @@ class Run:
             atomic_write(path, lambda f: f.write("".join(x + "\n" for x in keep).encode()))
 
     def train(self, resume: bool = False) -> dict[str, Any]:
-        cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_seeds
+        cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_members
         demos = {k: jnp.asarray(getattr(self.demos, k)) for k in ("obs", "action", "reward", "next_obs")}
         demos["terminal"] = jnp.asarray(self.demos.done)
         ts = learner.init(demos)
@@ -225,8 +241,8 @@ class Run:
         rng.bit_generator.state = meta["rng"]
         test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
         val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.valset)
-        explo = cfg.exploration
-        pool = self._pool() if explo.targeted_eps > 0 else None
+        explos = [cfg.member_setting(m)[1] for m in range(seeds)]
+        pool = self._pool() if any(x.targeted_eps > 0 for x in explos) else None
         pending = [{k: [] for k in TRANSITION} for _ in range(seeds)]
         log_path = self.out / "log.jsonl"
         writers = [self._tensorboard(self.member_dir(m)) for m in range(seeds)]
@@ -239,9 +255,9 @@ class Run:
                 outcomes = []
                 iter_s, timed = 0.0, 0
                 for _ in range(cfg.iterations_per_epoch):
-                    e_r, e_t = explo.at(meta["iteration"])
+                    e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
                     t_it = time.perf_counter()
-                    ts, metrics, outcome, problems = learner.iteration(ts, jnp.float32(e_r))
+                    ts, metrics, outcome, problems = learner.iteration(ts, jnp.asarray(e_r))
                     outcome = np.asarray(outcome)  # [seed, env, 5]; waits for the device
                     if compile_s is None:
                         compile_s = time.perf_counter() - t_it
@@ -257,7 +273,7 @@ class Run:
                         chosen = []
                         for m in range(seeds):
                             failed = np.flatnonzero(outcome[m, :, 1] == 0)
-                            chosen.append(failed[rng.random(len(failed)) < e_t])
+                            chosen.append(failed[rng.random(len(failed)) < e_t[m]])
                         self._submit(pool, problems, chosen, meta)
                         ts = self._receive(pool, ts, pending, meta)
                 eval_s = time.perf_counter()
@@ -275,7 +291,7 @@ class Run:
                 epoch_s = time.perf_counter() - t_epoch
                 mean = {k: np.mean([x[k] for x in metrics_acc], axis=0) for k in metrics_acc[0]}  # [seed]
                 out = np.concatenate(outcomes, axis=1)
-                e_r, e_t = explo.at(meta["iteration"])
+                e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos]).T
                 iter_s = max(iter_s, 1e-9)
                 per_s = timed / iter_s if timed else float("nan")  # iterations per second
                 rows = []
@@ -283,8 +299,10 @@ class Run:
                     rows.append(
                         {
                             "epoch": epoch + 1,
-                            "seed": cfg.seed + m,
+                            "setting": cfg.member_setting(m)[0] or None,
+                            "seed": cfg.member_seed(m),
                             "iteration": meta["iteration"],
+                            "rollout": "bare",  # test and validation: the network alone, no shield
                             "test": evs[m],
                             "validation": vas[m],
                             "train_success": float(out[m, :, 1].mean()),
@@ -295,8 +313,8 @@ class Run:
                             "bc_loss": float(mean["bc_loss"][m]),
                             "q": float(mean["q"][m]),
                             "q_filter_kept": float(mean["q_filter_kept"][m]),
-                            "E_R": e_r,
-                            "E_T": e_t,
+                            "E_R": float(e_r[m]),
+                            "E_T": float(e_t[m]),
                             "demos_received": meta["demos_received"][m],
                             "planned": meta["planned"][m],
                             "env_steps_per_s": steps_per_iter * per_s,  # all seeds together
@@ -333,7 +351,7 @@ class Run:
                     f"(collision {each(e['collision_rate'] for e in evs)}, path {'/'.join(_mm(e['path_length_mm']) for e in evs)})  "
                     f"return {each((r['return'] for r in rows), '{:+.3f}')}  critic {each((r['critic_loss'] for r in rows), '{:.4f}')}  "
                     f"actor {each((r['actor_loss'] for r in rows), '{:+.5f}')}  Q {each((r['q'] for r in rows), '{:+.3f}')}  "
-                    f"E_R {e_r:.3f}  E_T {e_t:.3f}  demos+ {each(meta['demos_received'], '{}')}  "
+                    f"E_R {each(e_r)}  E_T {each(e_t)}  demos+ {each(meta['demos_received'], '{}')}  "
                     f"{r0['env_steps_per_s']:,.0f} env-steps/s  {r0['updates_per_s']:,.0f} updates/s  "
                     f"ETA {eta / 60:.1f} min"
                 )
@@ -349,20 +367,22 @@ class Run:
     def finish(
         self, ts: TrainingState, last: list[dict[str, Any]], compile_s: float | None, meta: dict[str, Any]
     ) -> dict[str, Any]:
-        """Exports each seed's last policy beside its best (by validation), tests the best ones bare
-        and shielded, distils them when ``distill.iterations`` > 0, and with several seeds copies the
-        best seed's policy (and student) to ``OUT/policy`` (``OUT/student``)."""
+        """Exports each member's last policy beside its best (by validation), tests the best ones
+        bare and shielded, distils them when ``distill.iterations`` > 0, and copies each setting's
+        best seed (by validation) to ``OUT/policy`` (``OUT/SETTING/policy`` for several settings),
+        its student to ``.../student/policy``."""
         cfg = self.cfg
         from regrasp_mjx.evaluate import outcomes
         from regrasp_mjx.policy import load_policy
 
         members = []
-        for m in range(cfg.num_seeds):
+        for m in range(cfg.num_members):
             self._export(self.member_dir(m) / "policy_last", ts, m, {"epoch": meta["epoch"]})
             policy_dir = self.member_dir(m) / "policy"
             members.append(
                 {
-                    "seed": cfg.seed + m,
+                    "setting": cfg.member_setting(m)[0] or None,
+                    "seed": cfg.member_seed(m),
                     "policy": str(policy_dir),
                     "best_epoch": meta["best_epoch"][m],
                     "best_validation_success": meta["best_val"][m],
@@ -370,38 +390,50 @@ class Run:
                     "last_epoch": last[m] if last else None,
                 }
             )
-        for mem in members:
-            ev = mem["test"]
+            ev = members[-1]["test"]
             self.log(
-                f"seed {mem['seed']}: exported {mem['policy']} (epoch {mem['best_epoch']}, best on validation); "
-                f"on the test set: success {ev['bare']['success_rate']:.3f} bare, {ev['shielded']['success_rate']:.3f} "
-                f"shielded; collision {ev['bare']['collision_rate']:.3f} bare; path {_mm(ev['bare']['path_length_mm'])}"
+                f"{members[-1]['setting'] or 'seed'} {members[-1]['seed']}: exported {policy_dir} (epoch "
+                f"{meta['best_epoch'][m]}, best on validation); on the test set: success {ev['bare']['success_rate']:.3f} "
+                f"bare, {ev['shielded']['success_rate']:.3f} shielded; collision {ev['bare']['collision_rate']:.3f} bare; "
+                f"path {_mm(ev['bare']['path_length_mm'])}"
             )
-        best = max(range(cfg.num_seeds), key=lambda m: meta["best_val"][m])
-        if cfg.num_seeds > 1:
-            _copy_policy(Path(members[best]["policy"]), self.out / "policy")
-        final = {**members[best], "policy": str(self.out / "policy"), "compile_s": compile_s, "seeds": members}
-        if cfg.distill.iterations > 0:
-            final["students"] = self.distill(members)
-            top = max(range(cfg.num_seeds), key=lambda m: final["students"][m]["best_validation_success"])
-            if cfg.num_seeds > 1:
-                _copy_policy(Path(final["students"][top]["student"]), self.out / "student" / "policy")
-            final["student"] = {**final["students"][top], "student": str(self.out / "student" / "policy")}
+        students = self.distill(members) if cfg.distill.iterations > 0 else None
+        groups: dict[str, dict[str, Any]] = {}
+        for m0 in range(0, cfg.num_members, cfg.num_seeds):  # one group of seeds per setting
+            group = range(m0, m0 + cfg.num_seeds)
+            best = max(group, key=lambda m: meta["best_val"][m])
+            home = self.setting_dir(m0)
+            if cfg.num_members > 1:
+                _copy_policy(Path(members[best]["policy"]), home / "policy")
+            entry = {**members[best], "policy": str(home / "policy")}
+            if students is not None:
+                top = max(group, key=lambda m: students[m]["best_validation_success"])
+                if cfg.num_members > 1:
+                    _copy_policy(Path(students[top]["student"]), home / "student" / "policy")
+                entry["student"] = {**students[top], "student": str(home / "student" / "policy")}
+            groups[cfg.member_setting(m0)[0]] = entry
+        final: dict[str, Any] = {"compile_s": compile_s, "seeds": members}
+        if students is not None:
+            final["students"] = students
+        if cfg.settings:
+            final["settings"] = groups
+        else:
+            final = {**groups[""], **final}
         write_json(self.out / "final_eval.json", final)
         return final
 
     def distill(self, members: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        """Each seed's exported policy teaches a student (``SEED_DIR/student``), one seed after another."""
+        """Each member's exported policy teaches a student (``MEMBER_DIR/student``), one after another."""
         from regrasp_mjx.distill import distill
         from regrasp_mjx.policy import load_policy
 
         students = []
         for m, mem in enumerate(members):
-            cfg = dataclasses.replace(self.cfg.distill, seed=self.cfg.seed + m)
+            cfg = dataclasses.replace(self.cfg.distill, seed=mem["seed"])
             folder = self.member_dir(m) / "student"
-            self.log(f"seed {mem['seed']}: distilling {mem['policy']} into {folder}")
+            self.log(f"{mem['setting'] or 'seed'} {mem['seed']}: distilling {mem['policy']} into {folder}")
             result = distill(load_policy(mem["policy"]), folder, cfg, self.testset, mem["policy"], self.quiet)
-            students.append({"seed": mem["seed"], **result})
+            students.append({"setting": mem["setting"], "seed": mem["seed"], **result})
         return students
 
     # ---- the planner exchange ---------------------------------------------------------------
@@ -479,7 +511,17 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m regrasp_mjx.train", description=__doc__.splitlines()[0])
     p.add_argument("--preset", default="smoke", choices=sorted(PRESETS), help="scale preset (default smoke)")
     p.add_argument(
-        "--exploration", default="mixed", choices=sorted(EXPLORATION), help="Table I setting (default mixed)"
+        "--exploration",
+        default="mixed",
+        help=f"Table I setting, one of {', '.join(sorted(EXPLORATION))} (default mixed); several, comma-separated, "
+        "train side by side in one program (OUT/SETTING/seedS)",
+    )
+    p.add_argument(
+        "--learner",
+        default="ours",
+        choices=LEARNERS,
+        help="ours (default: Gaussian exploration floor, twin critics, target smoothing, actor EMA, cosine LR) "
+        "or paper (SPEC's DDPG+BC as the paper ran it)",
     )
     p.add_argument("--out", required=True, help="run folder: logs, checkpoint, demos, exported policy")
     p.add_argument("--seed", type=int, default=None, help="PRNG seed (default: the preset's, 0)")
@@ -510,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
             overrides["num_seeds"] = args.seeds
         if args.devices is not None:
             overrides["devices"] = args.devices
-        cfg = make_config(args.preset, args.exploration, **overrides)
+        cfg = make_config(args.preset, args.exploration, args.learner, **overrides)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         if jax.default_backend() == "cpu" and args.preset != "smoke":
@@ -522,10 +564,18 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, DemosError, TestsetError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    summary = {"out": str(out), "test": final["test"]}
-    if "student" in final:
-        summary["student"] = {"policy": final["student"]["student"], "test": final["student"]["test"]}
-    print(json.dumps(summary))
+    groups = final.get("settings", {"": final})
+    summary = {
+        name or "test": {
+            "policy": g["policy"],
+            "test": g["test"],
+            **(
+                {"student": {"policy": g["student"]["student"], "test": g["student"]["test"]}} if "student" in g else {}
+            ),
+        }
+        for name, g in groups.items()
+    }
+    print(json.dumps({"out": str(out), **summary}))
     return 0
 
 

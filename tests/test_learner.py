@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx.agents.ddpg_bc import losses
-from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, Exploration, TrainConfig, make_config
+from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, PAPER_LEARNER, Exploration, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.train import Learner
 from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.env import RegraspEnv
@@ -131,6 +131,7 @@ def _tiny_config(**kw) -> TrainConfig:
         lr_critic=1e-3,
         bc_coef=1e-2,
         num_demos=48,
+        **PAPER_LEARNER,  # the paper's learner; our additions are tested on their own below
     )
     return dataclasses.replace(base, **kw)
 

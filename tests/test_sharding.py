@@ -37,6 +37,9 @@ def _config(devices: int, **kw):
         polyak=0.5,
         num_seeds=2,
         devices=devices,
+        # target-policy noise is drawn per device, so the halves of a batch get other draws than the
+        # whole: off here; twin critics and the actor EMA are on (the defaults) and must agree
+        target_noise=0.0,
         env=EnvConfig(horizon=12, check_actions=False),
     )
     return TrainConfig(**{**fields, **kw})

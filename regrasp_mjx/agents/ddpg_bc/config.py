@@ -51,6 +51,10 @@ class TrainConfig:
     Attributes:
       env: the MDP.
       exploration: E_R / E_T schedules (Table I).
+      settings: Table I settings trained side by side in one program (ours): ``(name, schedule)``
+        pairs, each given ``num_seeds`` members; empty = the one setting ``exploration``. Member
+        ``m`` has the setting ``m // num_seeds`` and the seed ``seed + m % num_seeds``, so the
+        settings' seeds pair up (same initial networks and problems).
       num_envs: environments rolled out in parallel per iteration (paper 5).
       updates_per_iteration: gradient steps per iteration (paper 200).
       iterations_per_epoch: iterations between evaluations and checkpoints (paper 10).
@@ -91,6 +95,7 @@ class TrainConfig:
 
     env: EnvConfig = EnvConfig(check_actions=False)
     exploration: Exploration = EXPLORATION["mixed"]
+    settings: tuple[tuple[str, Exploration], ...] = ()
     num_envs: int = 5
     updates_per_iteration: int = 200
     iterations_per_epoch: int = 10
@@ -112,12 +117,12 @@ class TrainConfig:
     planner_workers: int = 0
     planner_queue: int = 256
     demo_chunk: int = 512
-    action_noise: float = 0.0
-    critics: int = 1
-    target_noise: float = 0.0
+    action_noise: float = 0.2
+    critics: int = 2
+    target_noise: float = 0.2
     target_noise_clip: float = 0.5
-    actor_ema: float = 0.0
-    lr_decay_to: float = 1.0
+    actor_ema: float = 0.9995
+    lr_decay_to: float = 0.1
     distill: DistillConfig = DistillConfig(iterations=0)
     checkpoint_every: int = 1
     validation_size: int = 1000
@@ -167,6 +172,9 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number >= 0")
+        names = [s[0] for s in self.settings]
+        if len(set(names)) != len(names) or not all(isinstance(n, str) and n for n in names):
+            raise ConfigError(f"settings={names!r} is not accepted: distinct, non-empty names")
         if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
             raise ConfigError(f"hidden={self.hidden!r} is not accepted: a tuple of positive layer sizes")
         if self.demo_batch < 1 or self.demo_batch >= self.batch_size:
@@ -184,6 +192,18 @@ class TrainConfig:
     @property
     def online_batch(self) -> int:
         return self.batch_size - self.demo_batch
+
+    @property
+    def num_members(self) -> int:
+        """Learners in the program: settings x seeds."""
+        return max(1, len(self.settings)) * self.num_seeds
+
+    def member_setting(self, m: int) -> tuple[str, Exploration]:
+        """``(name, schedule)`` of member ``m`` (name ``""`` when the run has one setting)."""
+        return self.settings[m // self.num_seeds] if self.settings else ("", self.exploration)
+
+    def member_seed(self, m: int) -> int:
+        return self.seed + m % self.num_seeds
 
     @property
     def total_updates(self) -> int:
@@ -219,20 +239,44 @@ PRESETS = {
 }
 
 
-def make_config(preset: str, exploration: str = "mixed", **overrides) -> TrainConfig:
-    """A preset with Table I's exploration setting and dotted overrides (``env.horizon=50``)."""
-    from regrasp_mjx.config import replace
+# The paper's learner (SPEC "Learner"): uniform random actions with probability E_R and no other
+# exploration noise, one critic, no target smoothing, the raw actor, constant learning rates. Our
+# defaults change these five (experiments/RESULTS.md, "Why training decayed"); ``--learner paper``
+# puts them back.
+PAPER_LEARNER = {"action_noise": 0.0, "critics": 1, "target_noise": 0.0, "actor_ema": 0.0, "lr_decay_to": 1.0}
+LEARNERS = ("ours", "paper")
 
-    if preset not in PRESETS:
-        raise ConfigError(f"preset={preset!r} is not accepted: one of {sorted(PRESETS)}")
-    if exploration not in EXPLORATION:
-        raise ConfigError(f"exploration={exploration!r} is not accepted: one of {sorted(EXPLORATION)}")
-    base = PRESETS[preset]
-    explo = EXPLORATION[exploration]
-    if preset == "fast" and exploration != "targeted":  # keep the scaled schedule's span
+
+def scaled_exploration(preset: str, setting: str) -> Exploration:
+    """Table I's schedule of ``setting``, stretched for presets with fewer iterations than the
+    paper's so that E_R and E_T span the same share of training."""
+    if setting not in EXPLORATION:
+        raise ConfigError(f"exploration={setting!r} is not accepted: one of {sorted(EXPLORATION)}")
+    base, explo = PRESETS[preset], EXPLORATION[setting]
+    if preset == "fast" and setting != "targeted":  # keep the scaled schedule's span
         explo = dataclasses.replace(
             base.exploration,
             targeted_eps=explo.targeted_eps,
             targeted_eps_growth=base.exploration.targeted_eps_growth if explo.targeted_eps else 0.0,
         )
-    return replace(dataclasses.replace(base, exploration=explo), **overrides)
+    return explo
+
+
+def make_config(preset: str, exploration: str = "mixed", learner: str = "ours", **overrides) -> TrainConfig:
+    """A preset with Table I's exploration setting (or several, comma-separated, trained side by
+    side), the learner (``ours`` or ``paper``) and dotted overrides (``env.horizon=50``)."""
+    from regrasp_mjx.config import replace
+
+    if preset not in PRESETS:
+        raise ConfigError(f"preset={preset!r} is not accepted: one of {sorted(PRESETS)}")
+    if learner not in LEARNERS:
+        raise ConfigError(f"learner={learner!r} is not accepted: one of {LEARNERS}")
+    names = [s.strip() for s in exploration.split(",")]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"exploration={exploration!r} is not accepted: each setting once")
+    schedules = [scaled_exploration(preset, name) for name in names]
+    settings = tuple(zip(names, schedules)) if len(names) > 1 else ()
+    base = dataclasses.replace(PRESETS[preset], exploration=schedules[0], settings=settings)
+    if learner == "paper":
+        base = dataclasses.replace(base, **PAPER_LEARNER)
+    return replace(base, **overrides)

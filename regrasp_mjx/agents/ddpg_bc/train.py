@@ -9,7 +9,8 @@ demonstration samples (flashbax item buffers); the target networks move by polya
 ``target_every`` updates. The first episode of each environment is the one that counts for
 Algorithm 1: the host sends failed ones to the planner pool with probability E_T.
 
-Seeds are a batch axis: ``num_seeds`` independent learners (seeds ``seed, seed + 1, ...``), each with
+Members are a batch axis: ``num_members`` independent learners (seeds ``seed, seed + 1, ...``, for
+each of the config's ``settings``; E_R comes per member), each with
 its own networks, optimisers, normaliser, buffers and key, run as one vmapped program, so several
 seeds of Table I cost about what one costs on a GPU. Every state leaf has that leading axis (1 for
 a single seed); the single-learner functions (``init_one``, ``update``, ``iteration_one``,
@@ -171,9 +172,9 @@ class Learner:
 
     # ---- state --------------------------------------------------------------------------------
     def init(self, demos: dict[str, jax.Array]) -> TrainingState:
-        """Fresh learners for seeds ``seed .. seed + num_seeds - 1``, stacked on a leading axis."""
+        """Fresh learners, one per member (``TrainConfig.member_seed``), stacked on a leading axis."""
         cfg = self.config
-        keys = jnp.stack([jax.random.PRNGKey(cfg.seed + m) for m in range(cfg.num_seeds)])
+        keys = jnp.stack([jax.random.PRNGKey(cfg.member_seed(m)) for m in range(cfg.num_members)])
 
         def make(keys, demos):
             ts = jax.vmap(self.init_one, in_axes=(0, None))(keys, demos)
@@ -305,10 +306,12 @@ class Learner:
         devices ``batch`` is this device's share and the gradients are averaged across devices.
         ``key`` draws the target-policy noise (needed when ``target_noise`` > 0)."""
         cfg, nets = self.config, self.nets
+        if cfg.target_noise > 0 and key is None:
+            raise ValueError("learn() needs a key when target_noise > 0 (it draws the target-policy noise)")
         n_online = cfg.online_batch // self.devices
         is_demo = jnp.arange(batch["reward"].shape[0]) >= n_online
-        policy = functools.partial(lambda p, o: nets.policy(p, ts.normalizer, o))
-        q = functools.partial(lambda p, o, a: nets.q(p, ts.normalizer, o, a))
+        policy = lambda p, o: nets.policy(p, ts.normalizer, o)  # noqa: E731
+        q = lambda p, o, a: nets.q(p, ts.normalizer, o, a)  # noqa: E731
 
         (_, c_metrics), c_grad = jax.value_and_grad(losses.critic_loss, has_aux=True)(
             ts.critic,
@@ -367,19 +370,21 @@ class Learner:
         return ts, self._pmean(metrics), outcome
 
     def _iteration(self, ts: TrainingState, random_eps: jax.Array):
-        """All seeds' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``,
-        environments (outcomes and problems: axis 1) split over the devices.
+        """All members' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``,
+        environments (outcomes and problems: axis 1) split over the devices; ``random_eps`` is each
+        member's E_R, ``[S]`` (or one for all).
 
         The resets are drawn outside the ``shard_map``, partitioned by XLA from a sharding
         constraint: on two H200s (jax 0.11.2) XLA's GPU compiler crashes (segfault) on the reset's
         rejection-sampling while loop (collision distances in its body) inside a manually sharded
         program, and compiles the same loop auto-partitioned."""
         self.trace_count += 1
+        random_eps = jnp.broadcast_to(random_eps, ts.iteration.shape)  # one for all, or one per member
         split_envs = NamedSharding(self.mesh, P(None, AXIS))
         keys = jax.lax.with_sharding_constraint(jax.vmap(self._reset_keys)(ts.key), split_envs)
         first = jax.lax.with_sharding_constraint(jax.vmap(jax.vmap(self.env.reset))(keys), split_envs)
         specs = self.state_specs(ts)
-        body = jax.vmap(self.iteration_one, in_axes=(0, 0, None))
+        body = jax.vmap(self.iteration_one, in_axes=(0, 0, 0))
         ts, metrics, outcome = self._shard_map(body, (specs, P(None, AXIS), P()), (specs, P(), P(None, AXIS)))(
             ts, first, random_eps
         )

@@ -5,7 +5,7 @@ One learner iteration is bound by the latency of its small sequential updates, n
 arithmetic, so programs that share a GPU lose little to each other; this is how the settings of
 Table I and the ablations run side by side. Each command's output goes to ``OUT/NAME.log``.
 
-    python experiments/concurrent.py --out runs/c1 --deadline-s 540 \\
+    python experiments/run_parallel.py --out runs/c1 --deadline-s 540 \\
         --run "v0=-m regrasp_mjx.train --preset fast --seeds 3 --out runs/c1/v0" \\
         --run "v3=-m regrasp_mjx.train --preset fast --seeds 3 --out runs/c1/v3 --set action_noise=0.2"
 """
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"started {name}: python {shlex.join(cmd)}", flush=True)
     codes = {}
     while len(codes) < len(procs):
-        for name, (proc, log) in procs.items():
+        for name, (proc, _) in procs.items():
             if name not in codes and proc.poll() is not None:
                 codes[name] = proc.returncode
                 print(f"{name} ended with {proc.returncode} after {time.monotonic() - t0:.0f} s", flush=True)
