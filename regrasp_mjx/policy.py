@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
 import os
 import types
@@ -63,6 +64,21 @@ class PoseError(ValueError):
 WEIGHT_DTYPES = ("float32", "float16")
 QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the pose is refused
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
+
+
+_PLANNERS: dict[tuple, Any] = {}  # jitted planners by (hidden, members, env, camera, shield)
+
+
+def _members_apply(hidden: tuple[int, ...]):
+    """``apply(weights, obs) -> [each member's action]``, ``weights`` one ``(params, mean, std)``
+    per member. Members are unrolled (not vmapped): K is small, and exporters (jax2onnx) see plain
+    dense layers."""
+    nets = make_networks(6, hidden)
+
+    def apply(weights, obs):
+        return [nets.policy(p, types.SimpleNamespace(mean=m, std=s), obs) for p, m, s in weights]
+
+    return apply
 
 
 def mean_action(actions: list[jax.Array]) -> jax.Array:
@@ -228,24 +244,25 @@ class Policy:
     normalizer: Any
 
     def __post_init__(self) -> None:
-        nets = make_networks(6, tuple(self.contract["network"]["hidden"]))
-        params, norm = self.actor_params, self.normalizer
-
-        def one(p, mean, std, obs):
-            return nets.policy(p, types.SimpleNamespace(mean=mean, std=std), obs)
+        apply = _members_apply(tuple(self.contract["network"]["hidden"]))
+        # the weights as one pytree of device arrays: the planners take them as an argument, so
+        # policies of one network shape share their compiled programs
+        pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
+        norm = self.normalizer
+        weights = jax.device_put(
+            tuple((pick(self.actor_params, i), norm.mean[i], norm.std[i]) for i in range(self.members))
+        )
 
         def member_actions(obs):
-            # Members unrolled (not vmapped): K is small, and exporters (jax2onnx) see plain dense layers.
-            pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
-            return [one(pick(params, i), norm.mean[i], norm.std[i], obs) for i in range(int(norm.mean.shape[0]))]
+            return apply(weights, obs)
 
         def act(obs):
             return mean_action(member_actions(obs))
 
+        object.__setattr__(self, "_weights", weights)
         object.__setattr__(self, "_member_actions", member_actions)
         object.__setattr__(self, "_actor", act)
         object.__setattr__(self, "_act", jax.jit(act))
-        object.__setattr__(self, "_planners", {})
 
     @property
     def members(self) -> int:
@@ -292,8 +309,13 @@ class Policy:
         checked with the same collision model the plan is judged by; a plan then only collides
         when none of them is free. The alternatives are only computed at steps where some query's
         policy action collides."""
-        if (camera, shield) in self._planners:
-            return self._planners[(camera, shield)]
+        key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]), camera, shield)
+        if key not in _PLANNERS:
+            _PLANNERS[key] = self._make_planner(camera, shield)
+        return functools.partial(_PLANNERS[key], self._weights)
+
+    def _make_planner(self, camera: bool, shield: bool):
+        """The jitted program of :meth:`_planner`, taking the weights as its first argument."""
         from regrasp_mjx import geometry
         from regrasp_mjx.env import RegraspEnv
         from regrasp_mjx.sampling import Episode
@@ -301,7 +323,9 @@ class Policy:
         env = RegraspEnv(self.env_config)
         horizon = env.config.horizon
 
-        def rollout(needle, start, goal):
+        apply = _members_apply(tuple(self.contract["network"]["hidden"]))
+
+        def rollout(weights, needle, start, goal):
             b = needle.shape[0]
             zeros = jnp.zeros((b, 4))
             episodes = Episode(
@@ -348,12 +372,17 @@ class Policy:
 
             def body(c):
                 t, state, result, poses, actions = c
-                members = self._member_actions(state.obs)
+                members = apply(weights, state.obs)
                 a = mean_action(members)
                 nxt = step(state, a)
                 if shield:
                     live_collides = (nxt.metrics["collision"] > 0) & (result[:, 0] == 0)
-                    a, nxt = safer(state, t, members, a, nxt, live_collides)  # a no-op when none collides
+                    # only steps where some live query's action collides pay for the alternatives
+                    a, nxt = jax.lax.cond(
+                        jnp.any(live_collides),
+                        lambda: safer(state, t, members, a, nxt, live_collides),
+                        lambda: (a, nxt),
+                    )
                 live = result[:, 0] == 0
                 es = nxt.pipeline_state
                 pose = jnp.concatenate([es.ee_pos, es.ee_quat], axis=1)
@@ -385,10 +414,10 @@ class Policy:
         task = env.config.task
         radius = env.needle_radius
 
-        def from_eg(needle, start, goal):
-            return rollout(needle, start, goal)
+        def from_eg(weights, needle, start, goal):
+            return rollout(weights, needle, start, goal)
 
-        def from_camera(c_eg, c_er, c_n, goal_depth):
+        def from_camera(weights, c_eg, c_er, c_n, goal_depth):
             pose = lambda x: (x[:, :3], x[:, 3:])  # noqa: E731
             join = lambda p: jnp.concatenate([p[0], p[1]], axis=-1)  # noqa: E731
             eg_inv = geometry.inverse(pose(c_eg))
@@ -402,13 +431,11 @@ class Policy:
             needle, start = join(needle), join(start)
             start = start.at[:, 3:].set(geometry.canonical_quat(start[:, 3:]))
             needle = needle.at[:, 3:].set(geometry.canonical_quat(needle[:, 3:]))
-            valid, result, poses, actions = rollout(needle, start, goal)
+            valid, result, poses, actions = rollout(weights, needle, start, goal)
             cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
             return valid, result, poses, actions, cam
 
-        fn = jax.jit(from_camera if camera else from_eg)
-        self._planners[(camera, shield)] = fn
-        return fn
+        return jax.jit(from_camera if camera else from_eg)
 
     def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
         out = jax.device_get(out)
@@ -468,7 +495,7 @@ class Policy:
         if goal.shape != needle.shape:
             raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
         nearest = self._check_grasp(needle) if check_grasp else None
-        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
         out = self._planner(False, shield)(f32(needle), f32(start), f32(goal))
         return self._finish(out, single, False, nearest)
 
@@ -499,7 +526,7 @@ class Policy:
             rel = [host.relative(e[:3], e[3:], n[:3], n[3:]) for e, n in zip(c_eg, c_n)]
             rel_p, rel_q = np.stack([r[0] for r in rel]), np.stack([r[1] for r in rel])
             nearest = self._check_grasp(np.concatenate([rel_p, rel_q], axis=1))
-        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
         out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(depth))
         return self._finish(out, single, True, nearest)
 

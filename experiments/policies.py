@@ -1,0 +1,77 @@
+"""Success of several policies on paper300 and on held-out problems, bare and shielded.
+
+    python experiments/policies.py --policy "student=runs/x/student/policy" --policy "shipped=" \\
+        --heldout 3000:2022 --out experiments/results/policies --name policies
+
+Each policy is planned through ``Policy.plan`` (as deployed) on the committed test set and on a
+held-out set drawn here from its own seed (never used to choose anything), once without the
+collision shield (``bare``: the network alone) and once with it. Writes ``NAME.md`` and
+``NAME.json``. Timings are not taken here: time one query on one core with
+``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate --json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import jax
+from results_io import write_results
+
+from regrasp_mjx.evaluate import DEFAULT_TESTSET, outcomes
+from regrasp_mjx.policy import load_policy
+from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.testset import make_testset
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--policy", action="append", required=True, metavar="NAME=FOLDER", help="empty FOLDER: shipped")
+    p.add_argument("--heldout", default="3000:2022", help="N:SEED of a held-out set drawn here (empty: none)")
+    p.add_argument("--out", default=None)
+    p.add_argument("--name", default="policies")
+    args = p.parse_args(argv)
+    policies = {}
+    for item in args.policy:
+        name, _, folder = item.partition("=")
+        policies[name] = (folder or "shipped", load_policy(folder or None))
+    env_config = next(iter(policies.values()))[1].env_config
+    sets = {"paper300": load_testset(DEFAULT_TESTSET)[0]}
+    if args.heldout:
+        n, seed = (int(x) for x in args.heldout.split(":"))
+        sets[f"held-out {n} (seed {seed})"] = make_testset(n, seed, env_config)
+    rows = []
+    for name, (folder, policy) in policies.items():
+        for sname, episodes in sets.items():
+            for r in outcomes(policy, episodes).values():
+                rows.append(
+                    {
+                        "policy": name,
+                        "folder": folder,
+                        "hidden": policy.contract["network"]["hidden"],
+                        "members": policy.members,
+                        "testset": sname,
+                        **r,
+                    }
+                )
+                print(json.dumps(rows[-1]), flush=True)
+    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    lines = [
+        f"Machine: {jax.default_backend()} ({jax.devices()[0].device_kind}); planned through Policy.plan.",
+        "",
+        "| policy | network | test set | rollout | success | collision | time-out | path (mm) | steps |",
+        "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in rows:
+        net = f"{r['members']} x " if r["members"] > 1 else ""
+        net += "x".join(str(h) for h in r["hidden"])
+        lines.append(
+            f"| {r['policy']} | {net} | {r['testset']} | {r['rollout']} | {r['success_rate']:.3f} | "
+            f"{r['collision_rate']:.3f} | {r['time_out_rate']:.3f} | {fmt(r['path_length_mm'])} | {fmt(r['steps'])} |"
+        )
+    print("\n".join(lines))
+    write_results(args.out, args.name, lines, rows)
+
+
+if __name__ == "__main__":
+    main()
