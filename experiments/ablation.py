@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     rows = {}
     for item in args.run:
-        name, _, spec = item.partition("=")
+        name, _, spec = item.rpartition("=")
         folder, _, epochs = spec.partition(":")
         rows[name] = summarize_run(Path(folder), int(epochs) if epochs else None)
     lines = [
@@ -120,7 +120,7 @@ def figure(runs: list[str], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.2))
     for item in runs:
-        name, _, spec = item.partition("=")
+        name, _, spec = item.rpartition("=")
         folder, _, epochs = spec.partition(":")
         log = analysis.read_log(Path(folder) / "log.jsonl")
         if epochs:

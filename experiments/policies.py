@@ -4,9 +4,10 @@
         --heldout 3000:2022 --out experiments/results/policies --name policies
 
 Each policy is planned through ``Policy.plan`` (as deployed) on the committed test set and on a
-held-out set drawn here from its own seed (never used to choose anything), once without the
+held-out set drawn here from its own seed, once without the
 collision shield (``bare``: the network alone) and once with it. Writes ``NAME.md`` and
-``NAME.json``. Timings are not taken here: time one query on one core with
+``NAME.json``. With ``--no-paper300`` and a validation seed of its own it picks a policy without
+touching a test set. Timings are not taken here: time one query on one core with
 ``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate --json``.
 """
 
@@ -27,7 +28,10 @@ from regrasp_mjx.testset import make_testset
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--policy", action="append", required=True, metavar="NAME=FOLDER", help="empty FOLDER: shipped")
-    p.add_argument("--heldout", default="3000:2022", help="N:SEED of a held-out set drawn here (empty: none)")
+    p.add_argument(
+        "--heldout", action="append", default=None, help="N:SEED of a set drawn here (repeatable; default 3000:2022)"
+    )
+    p.add_argument("--no-paper300", action="store_true", help="leave the committed test set out (e.g. to select)")
     p.add_argument("--out", default=None)
     p.add_argument("--name", default="policies")
     args = p.parse_args(argv)
@@ -36,9 +40,9 @@ def main(argv: list[str] | None = None) -> None:
         name, _, folder = item.partition("=")
         policies[name] = (folder or "shipped", load_policy(folder or None))
     env_config = next(iter(policies.values()))[1].env_config
-    sets = {"paper300": load_testset(DEFAULT_TESTSET)[0]}
-    if args.heldout:
-        n, seed = (int(x) for x in args.heldout.split(":"))
+    sets = {} if args.no_paper300 else {"paper300": load_testset(DEFAULT_TESTSET)[0]}
+    for spec in args.heldout or ["3000:2022"]:
+        n, seed = (int(x) for x in spec.split(":"))
         sets[f"held-out {n} (seed {seed})"] = make_testset(n, seed, env_config)
     rows = []
     for name, (folder, policy) in policies.items():

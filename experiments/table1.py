@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import platform
 import shutil
 import sys
 from pathlib import Path
@@ -60,8 +59,22 @@ def _mean_std(xs) -> str:
 
 
 def summarize(log: dict[int, dict[str, np.ndarray]], exported: list[dict]) -> dict:
-    """Per-seed numbers of one setting from its log rows and its exported policies' final evaluation."""
-    _, test = analysis.seed_band(log, "test.success_rate")
+    """Per-seed numbers of one setting from its log rows and its exported policies' final evaluation.
+
+    Without the final evaluation (a run stopped after its last epoch), the exported policy's bare
+    success is read off the log: the test row of the epoch it was exported at (the last epoch of
+    best validation success), the same network and rollout."""
+    epochs, test = analysis.seed_band(log, "test.success_rate")
+    if not exported:
+        _, val = analysis.seed_band(log, "validation.success_rate")
+        at = [len(v) - 1 - int(np.argmax(v[::-1])) for v in val]  # the last epoch of the best
+        exported = [
+            {
+                "test": {"bare": {"success_rate": float(t[i])}, "shielded": {"success_rate": None}},
+                "best_epoch": int(epochs[i]),
+            }
+            for t, i in zip(test, at)
+        ]
     _, coll = analysis.seed_band(log, "test.collision_rate")
     _, path = analysis.seed_band(log, "test.path_length_mm")
     return {
@@ -82,7 +95,8 @@ def summarize(log: dict[int, dict[str, np.ndarray]], exported: list[dict]) -> di
 def report(args: argparse.Namespace) -> None:
     runs, out = Path(args.runs), Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    final = json.loads((runs / "final_eval.json").read_text())
+    final_path = runs / "final_eval.json"
+    final = json.loads(final_path.read_text()) if final_path.exists() else {"seeds": []}
     present = analysis.settings_in_log(runs / "log.jsonl")
     if not present:
         sys.exit(f"error: {runs}/log.jsonl holds one setting; train with experiments/table1.py train")
@@ -112,7 +126,7 @@ def report(args: argparse.Namespace) -> None:
         )
         lines.append(f"- {LABEL[setting]}: {each}")
     lines.append(
-        f"\nTraining wall-clock (all settings and seeds in one program): {max(r['wall_s'] for r in rows.values()) / 60:.1f} min ({platform.node()})."
+        f"\nTraining wall-clock (all settings and seeds in one program): {max(r['wall_s'] for r in rows.values()) / 60:.1f} min (the log's clock, compilation included)."
     )
     (out / "table1.md").write_text("\n".join(lines) + "\n")
     (out / "table1.json").write_text(json.dumps({"rows": rows}, indent=2))
@@ -126,7 +140,8 @@ def report(args: argparse.Namespace) -> None:
                 w.writerow([setting, *row])
     if runs.resolve() != out.resolve():  # ship the log and final evaluation the table is made from
         for name in ("log.jsonl", "final_eval.json"):
-            shutil.copyfile(runs / name, out / name)
+            if (runs / name).exists():
+                shutil.copyfile(runs / name, out / name)
     figure(runs / "log.jsonl", list(rows), out / "fig3.png")
     print("\n".join(lines))
 

@@ -75,7 +75,11 @@ def distill(
     log_path.unlink(missing_ok=True)
     ds = distiller.init()
     best, best_it, compile_s = -1.0, 0, None
-    training = {"teacher": teacher_name, "distill": dataclasses.asdict(cfg)}
+    training = {
+        "teacher": teacher_name,
+        "teacher_training": teacher.contract.get("training"),
+        "distill": dataclasses.asdict(cfg),
+    }
     save = lambda folder, ds, extra: save_policy(  # noqa: E731
         folder, ds.params, ds.normalizer, cfg.hidden, env_cfg, extra={"training": {**training, **extra}}
     )

@@ -38,7 +38,8 @@ from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
 
 POLICY_FORMAT = "regrasp_mjx.policy"
 POLICY_VERSION = 2
-DEFAULT_POLICY = Path(__file__).resolve().parent / "policies" / "default"
+SHIPPED = Path(__file__).resolve().parent / "policies"
+DEFAULT_POLICY = SHIPPED / "default"
 OBS_LAYOUT = [
     "p_eg_n (3, m)",
     "q_eg_n (4, wxyz, w>=0)",
@@ -556,10 +557,21 @@ class Policy:
         return dist
 
 
+def shipped_policies() -> list[str]:
+    """Names of the policies shipped in the package (``default``: one network; ``ensemble3``: the
+    earlier three-network ensemble)."""
+    return sorted(p.name for p in SHIPPED.iterdir() if (p / "policy.json").is_file())
+
+
 def load_policy(path: str | os.PathLike | None = None) -> Policy:
     """Reads a policy folder (or its ``policy.json``/``policy.npz``) and checks it against its
-    contract; with no path, the policy shipped in the package."""
-    path = Path(path) if path is not None else DEFAULT_POLICY
+    contract; with no path, the policy shipped in the package; a bare name that is no existing
+    path, one of :func:`shipped_policies` (``load_policy("ensemble3")``)."""
+    if path is None:
+        path = DEFAULT_POLICY
+    elif isinstance(path, str) and path in shipped_policies() and not Path(path).exists():
+        path = SHIPPED / path
+    path = Path(path)
     folder = path if path.is_dir() else path.parent
     js, npz = folder / "policy.json", folder / "policy.npz"
     for f in (js, npz):
