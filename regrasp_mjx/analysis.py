@@ -219,9 +219,11 @@ PAPER_TABLE2 = [  # the paper's Table II: success, mean planning time (s there, 
     ]
 ]
 POLICY_ROWS = {  # file under results/inference -> row name
-    "eval_cpu1_single.json": "policy, one network",
-    "eval_cpu1.json": "policy, 3-seed ensemble, bare",
-    "eval_cpu1_shield.json": "policy, shipped (ensemble + shield)",
+    "eval_cpu1_single.json": "policy, one 3x512 network (paper's learner), bare",
+    "eval_cpu1_ensemble3.json": "policy, 3-network ensemble (earlier default), bare",
+    "eval_cpu1_ensemble3_shield.json": "policy, 3-network ensemble + shield (earlier default)",
+    "eval_cpu1_student3x256_bare.json": "policy, distilled 3x256 network, bare",
+    "eval_cpu1_shipped.json": "policy, shipped (distilled 2x256 network + shield)",
 }
 
 

@@ -57,6 +57,38 @@ def test_actor_loss_by_hand():
     assert float(loss) == pytest.approx(0.64, abs=1e-6)
 
 
+# Two linear critics (ours, TD3's clipped double Q): Q_k(p, o, a) = p[k] * (o[:, 0] + a[:, 0]).
+Q2 = lambda p, o, a: p[:, None] * (o[:, 0] + a[:, 0])[None]  # noqa: E731
+
+
+def test_twin_critics_take_the_minimum_target_and_both_regress_on_it():
+    # Target critics [0.2, 0.4] at a' = [0.5, 1.5]: Q' = [[0.3, 0.9], [0.6, 1.8]], min [0.3, 0.9], so the
+    # targets are those of the one-critic case, y = [0.13, 1.0]. Critics [1, 2]: Q(s, a) = [[1.5, 1.0],
+    # [3.0, 2.0]]; loss = ((1.5 - 0.13)^2 + 0) / 2 + ((3 - 0.13)^2 + (2 - 1)^2) / 2 = 0.93845 + 4.61845.
+    loss, m = losses.critic_loss(jnp.array([1.0, 2.0]), 0.5, jnp.array([0.2, 0.4]), BATCH, POLICY, Q2, gamma=0.5)
+    assert float(loss) == pytest.approx(5.5569, abs=1e-5)
+    assert float(m["q_target"]) == pytest.approx((0.13 + 1.0) / 2, abs=1e-6)
+    assert float(m["q"]) == pytest.approx(1.25, abs=1e-6)  # the first critic's mean
+    # The actor and the Q-filter use the first critic: critics [-1, 5] give the one-critic numbers.
+    is_demo = jnp.array([False, True])
+    _, a = losses.actor_loss(
+        1.0, jnp.array([-1.0, 5.0]), BATCH, is_demo, POLICY, Q2, prm_coef=0.1, bc_coef=0.01, action_l2=1.0
+    )
+    assert float(a["primary_loss"]) == pytest.approx(0.55, abs=1e-6) and float(a["bc_loss"]) == pytest.approx(
+        0.09, abs=1e-6
+    )
+
+
+def test_target_policy_noise_is_clipped():
+    # std 10 with clip 0.1: the target action of row 1 (0.5) moves by exactly +-0.1, so its target is
+    # -0.02 + 0.5 * 0.2 * (1 + 0.5 +- 0.1) = 0.13 +- 0.01; row 2 is terminal (1.0).
+    targets = set()
+    for k in range(8):
+        _, m = losses.critic_loss(1.0, 0.5, 0.2, BATCH, POLICY, Q, 0.5, jax.random.PRNGKey(k), 10.0, 0.1)
+        targets.add(round(float(m["q_target"]) * 2 - 1.0, 6))
+    assert targets == {0.12, 0.14}
+
+
 def test_q_filter_keeps_exactly_the_demos_the_critic_prefers():
     q_demo = jnp.array([1.0, 0.2, 0.5, 0.9, -1.0])
     q_pi = jnp.array([0.5, 0.3, 0.5, 0.1, -2.0])
@@ -182,6 +214,46 @@ def test_seeds_axis_runs_independent_learners(easy_env, easy_demos):
     np.testing.assert_allclose(m_pair["critic_loss"][1], m_alone["critic_loss"][0], rtol=1e-4)
     for a, b in zip(jax.tree_util.tree_leaves(ts_pair.actor), jax.tree_util.tree_leaves(ts_alone.actor)):
         np.testing.assert_allclose(np.asarray(a[1]), np.asarray(b[0]), rtol=1e-4, atol=1e-6)
+
+
+def test_actor_ema_and_cosine_learning_rate(easy_env, easy_demos):
+    cfg = _tiny_config(actor_ema=0.5, lr_decay_to=0.1, target_noise=0.2)
+    learner = Learner(cfg, easy_env)
+    ts = learner.add_online(learner.init(easy_demos[1]), jnp.int32(0), {k: v[:512] for k, v in easy_demos[1].items()})
+    ts = jax.tree.map(lambda x: x[0], ts)  # the one seed
+    before = jax.tree_util.tree_leaves(ts.actor)
+    ts1, _ = jax.jit(learner.update)(ts, jax.random.PRNGKey(0))
+    # the moving average starts at the initial actor and moves half way to the updated one
+    for e0, e1, a1 in zip(before, jax.tree_util.tree_leaves(ts1.ema_actor), jax.tree_util.tree_leaves(ts1.actor)):
+        np.testing.assert_allclose(np.asarray(e1), 0.5 * np.asarray(e0) + 0.5 * np.asarray(a1), atol=1e-7)
+    assert learner.policy_params(ts1) is ts1.ema_actor  # evaluated and exported
+    lr = learner._learning_rate(1e-3)
+    total = cfg.total_updates
+    assert float(lr(0)) == pytest.approx(1e-3) and float(lr(total)) == pytest.approx(1e-4)
+    assert float(lr(total // 2)) == pytest.approx(0.55e-3, rel=1e-3)
+    with pytest.raises(ValueError, match="needs a key"):
+        learner.learn(ts, {k: v[:64] for k, v in easy_demos[1].items()})
+
+
+def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):
+    cfg = make_config("smoke", "mixed,ddpg_bc", num_seeds=2)
+    assert cfg.num_members == 4
+    assert [cfg.member_setting(m)[0] for m in range(4)] == ["mixed", "mixed", "ddpg_bc", "ddpg_bc"]
+    assert [cfg.member_seed(m) for m in range(4)] == [0, 1, 0, 1]
+    assert cfg.member_setting(0)[1].targeted_eps > 0 and cfg.member_setting(2)[1].targeted_eps == 0
+    with pytest.raises(ConfigError, match="each setting once"):
+        make_config("smoke", "mixed,mixed")
+    # Two settings, one seed: the members start alike and differ only through their own E_R.
+    tiny = _tiny_config(
+        updates_per_iteration=5, settings=(("a", EXPLORATION["ddpg_bc"]), ("b", EXPLORATION["ddpg_bc"]))
+    )
+    learner = Learner(tiny, easy_env)
+    ts = learner.init(easy_demos[1])
+    _, same, _, _ = learner.iteration(ts, jnp.array([0.3, 0.3]))
+    np.testing.assert_array_equal(np.asarray(same["critic_loss"][0]), np.asarray(same["critic_loss"][1]))
+    ts = learner.init(easy_demos[1])
+    _, differ, _, _ = learner.iteration(ts, jnp.array([1.0, 0.0]))
+    assert float(differ["rollout_reward"][0]) != float(differ["rollout_reward"][1])
 
 
 # ---- a run killed and resumed is the run uninterrupted -------------------------------------------

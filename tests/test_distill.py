@@ -1,0 +1,85 @@
+"""DAgger distillation: the lookahead teacher repairs the shipped network's failures and keeps its
+successes, a small student learns it, and bad settings are refused."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import regrasp_mjx
+from regrasp_mjx.agents.dagger import DistillConfig, Distiller, teacher_actions
+from regrasp_mjx.config import ConfigError
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.rollout import evaluate_actor
+from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.testset import make_testset
+from regrasp_mjx.train import DEFAULT_TESTSET
+
+# paper300 rows where the shipped network alone collides (two of them on its first step), and rows
+# it plans to the goal (RESULTS, "The shipped network")
+FAILING, SUCCEEDING = [161, 179, 228], [0, 1, 2]
+
+
+@pytest.fixture(scope="module")
+def setup():
+    teacher = regrasp_mjx.load_policy()
+    env = RegraspEnv(teacher.env_config)
+    episodes, _ = load_testset(DEFAULT_TESTSET)
+    return teacher, env, episodes
+
+
+def _starts(env, episodes, rows):
+    ep = jax.tree.map(lambda x: jnp.asarray(x[rows], jnp.float32), episodes)
+    return jax.vmap(env.reset_from)(ep)
+
+
+def test_teacher_keeps_the_policy_where_it_succeeds_and_repairs_where_it_collides(setup):
+    teacher, env, episodes = setup
+    members = teacher.members_fn()
+    label = jax.jit(lambda s, k: teacher_actions(env, members, s, k, 40))
+    step = jax.jit(jax.vmap(env.step))
+
+    ok = _starts(env, episodes, SUCCEEDING)
+    action, overridden, reaches = label(ok, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(np.asarray(action), np.asarray(teacher.actor_fn()(ok.obs)))
+    assert not np.asarray(overridden).any() and np.asarray(reaches).all()
+
+    bad = _starts(env, episodes, [161, 228])  # the policy's first step collides
+    assert np.asarray(step(bad, teacher.actor_fn()(bad.obs)).metrics["collision"]).all()
+    action, overridden, reaches = label(bad, jax.random.PRNGKey(0))
+    assert np.asarray(overridden).all() and np.asarray(reaches).all()
+    assert not np.asarray(step(bad, action).metrics["collision"]).any()  # the label is a free step
+
+
+def test_a_small_student_learns_the_teacher(setup):
+    teacher, env, _ = setup
+    cfg = DistillConfig(
+        hidden=(64, 64), iterations=3, problems=64, label_states=1024, updates=300, batch_size=256, lr=3e-3,
+        lookahead=30, validation_size=64,
+    )  # fmt: skip
+    distiller = Distiller(env, teacher.members_fn(), cfg)
+    ds = distiller.init()
+    val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), make_testset(64, 5, teacher.env_config))
+    success = lambda ds: float(jnp.mean(evaluate_actor(env, lambda o: distiller.act(ds, o), val)["success"]))  # noqa: E731
+    before = success(ds)
+    for it in range(cfg.iterations):
+        ds, m = distiller.iteration(ds, it == 0)
+        if it == 0:  # the teacher's own rollouts: every visited state labelled, all reach the goal
+            assert float(m["states_labelled"]) == float(m["states_visited"]) > 0
+            assert float(m["rollout_success"]) >= 0.9
+    assert before < 0.2 and success(ds) >= 0.6, (before, success(ds))  # seen 0.0 -> 0.86
+    assert float(m["loss_last"]) < 0.1
+
+
+def test_distill_config_errors():
+    with pytest.raises(ConfigError, match=r"distill.hidden=\(\) is not accepted"):
+        DistillConfig(hidden=())
+    with pytest.raises(ConfigError, match="distill.lr_decay_to=0 is not accepted"):
+        DistillConfig(lr_decay_to=0)
+    with pytest.raises(ConfigError, match="at least one batch"):
+        DistillConfig(buffer_size=10, batch_size=64)
+    assert DistillConfig(iterations=0).iterations == 0  # a training config without the stage
+    with pytest.raises(ConfigError, match="at least 1"):
+        Distiller(RegraspEnv(), lambda obs: [obs[..., :6]], DistillConfig(iterations=0))
