@@ -23,7 +23,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError, load_policy
+from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError, load_policy, shipped_policies
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import TestsetError, load_testset
 
@@ -112,7 +112,7 @@ def evaluate(
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m regrasp_mjx.evaluate", description=__doc__.splitlines()[0])
-    p.add_argument("--policy", default=None, help=f"policy folder (default: the shipped one, {DEFAULT_POLICY})")
+    p.add_argument("--policy", default=None, help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY})")
     p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="test set .npz (default paper300)")
     p.add_argument("--queries", type=int, default=None, help="time only the first N single queries")
     p.add_argument("--repeats", type=int, default=5, help="repeats of the batched call")
