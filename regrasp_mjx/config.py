@@ -7,6 +7,7 @@ environment is built. Defaults are SPEC's; the README lists which of them are ou
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import math
 from typing import Any
@@ -237,3 +238,19 @@ def env_config_from_dict(d: dict[str, Any]) -> EnvConfig:
         return EnvConfig(scene=SceneConfig(**d["scene"]), task=TaskConfig(**task), **rest)
     except (KeyError, TypeError) as err:
         raise ConfigError(f"not an EnvConfig description: {err}") from err
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` items as ``{KEY: value}``, values read as Python literals where they parse
+    (``3``, ``0.2``, ``(256, 256)``, ``False``) and as strings otherwise; for :func:`replace`."""
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {item!r} is not accepted: KEY=VALUE, e.g. --set env.horizon=80")
+        try:
+            out[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            out[key.strip()] = value.strip()
+    return out

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 
 from regrasp_mjx.agents.dagger import DistillConfig, Distiller
 from regrasp_mjx.atomic import write_json
-from regrasp_mjx.config import ConfigError, replace
+from regrasp_mjx.config import ConfigError, parse_overrides, replace
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.evaluate import outcomes
 from regrasp_mjx.policy import Policy, PolicyError, load_policy, save_policy
@@ -133,22 +133,6 @@ def distill(
         f"shielded {tt['shielded']['success_rate']:.3f}"
     )
     return final
-
-
-def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``--set KEY=VALUE`` items as a dict, values read as Python literals where they parse."""
-    import ast
-
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ConfigError(f"--set {item!r} is not accepted: KEY=VALUE, e.g. --set hidden=(256,256)")
-        try:
-            out[key.strip()] = ast.literal_eval(value.strip())
-        except (ValueError, SyntaxError):
-            out[key.strip()] = value.strip()
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -112,7 +112,11 @@ def evaluate(
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m regrasp_mjx.evaluate", description=__doc__.splitlines()[0])
-    p.add_argument("--policy", default=None, help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY})")
+    p.add_argument(
+        "--policy",
+        default=None,
+        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY})",
+    )
     p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="test set .npz (default paper300)")
     p.add_argument("--queries", type=int, default=None, help="time only the first N single queries")
     p.add_argument("--repeats", type=int, default=5, help="repeats of the batched call")

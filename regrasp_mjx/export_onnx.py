@@ -56,7 +56,11 @@ def check(policy: Policy, path: str | os.PathLike, n: int = 1000, seed: int = 0)
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m regrasp_mjx.export_onnx", description=__doc__.splitlines()[0])
-    p.add_argument("--policy", default=None, help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY})")
+    p.add_argument(
+        "--policy",
+        default=None,
+        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY})",
+    )
     p.add_argument("--out", required=True, help="the .onnx file to write")
     p.add_argument("--no-check", action="store_true", help="skip the ONNX Runtime comparison")
     args = p.parse_args(argv)

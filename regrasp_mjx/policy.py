@@ -264,6 +264,7 @@ class Policy:
         object.__setattr__(self, "_member_actions", member_actions)
         object.__setattr__(self, "_actor", act)
         object.__setattr__(self, "_act", jax.jit(act))
+        object.__setattr__(self, "_planners", {})  # (camera, shield) -> the shared program, weights bound
 
     @property
     def members(self) -> int:
@@ -310,10 +311,13 @@ class Policy:
         checked with the same collision model the plan is judged by; a plan then only collides
         when none of them is free. The alternatives are only computed at steps where some query's
         policy action collides."""
-        key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]), camera, shield)
-        if key not in _PLANNERS:
-            _PLANNERS[key] = self._make_planner(camera, shield)
-        return functools.partial(_PLANNERS[key], self._weights)
+        if (camera, shield) not in self._planners:  # looked up once per policy, not per plan
+            key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
+            key += (camera, shield)
+            if key not in _PLANNERS:
+                _PLANNERS[key] = self._make_planner(camera, shield)
+            self._planners[(camera, shield)] = functools.partial(_PLANNERS[key], self._weights)
+        return self._planners[(camera, shield)]
 
     def _make_planner(self, camera: bool, shield: bool):
         """The jitted program of :meth:`_planner`, taking the weights as its first argument."""

@@ -15,7 +15,6 @@ TensorBoard and JSONL logs and an atomic checkpoint. At the end the policy is ex
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
 import json
 import math
@@ -33,7 +32,7 @@ import numpy as np
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.train import TRANSITION, Learner, TrainingState
 from regrasp_mjx.atomic import atomic_write, write_json
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.config import ConfigError, parse_overrides
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, replay_paths
 from regrasp_mjx.policy import save_policy
 from regrasp_mjx.rollout import summarize
@@ -41,19 +40,6 @@ from regrasp_mjx.sampling import Episode, TestsetError, load_testset
 
 VALIDATION_SEED = 1_000_003
 DEFAULT_TESTSET = Path(__file__).resolve().parent.parent / "experiments" / "testsets" / "paper300.npz"
-
-
-def _parse_overrides(items: list[str]) -> dict[str, Any]:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ConfigError(f"--set {item!r} is not accepted: KEY=VALUE, e.g. --set env.horizon=80")
-        try:
-            out[key.strip()] = ast.literal_eval(value.strip())
-        except (ValueError, SyntaxError):
-            out[key.strip()] = value.strip()
-    return out
 
 
 def _config_json(cfg: TrainConfig) -> dict[str, Any]:
@@ -545,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     try:
-        overrides = _parse_overrides(args.set)
+        overrides = parse_overrides(args.set)
         if args.seed is not None:
             overrides["seed"] = args.seed
         if args.seeds is not None:

@@ -60,10 +60,16 @@ def test_read_log_bad_files_are_clear_errors(tmp_path):
 
 
 def test_shipped_table1_logs_read():
-    log = analysis.read_log(RESULTS / "table1" / "mixed" / "log.jsonl")
+    path = RESULTS / "table1_paper" / "log.jsonl"  # three settings x 3 seeds in one log
+    assert analysis.settings_in_log(path) == ["ddpg_bc", "targeted", "mixed"]
+    log = analysis.read_log(path, "mixed")
     epochs, success = analysis.seed_band(log, "test.success_rate")
-    assert success.shape == (3, 90) and epochs[0] == 1 and epochs[-1] == 90
+    assert sorted(log) == [0, 1, 2] and success.shape == (3, 200) and epochs[0] == 1 and epochs[-1] == 200
     assert success[:, 0].max() < 0.5 < success[:, -1].min()  # learned
+    with pytest.raises(analysis.ResultsError, match="no rows of setting 'nope'"):
+        analysis.read_log(path, "nope")
+    # a log of one setting has none named
+    assert analysis.settings_in_log(RESULTS / "ablation" / "ours" / "log.jsonl") == []
 
 
 def test_in_needle_frame_by_hand():

@@ -210,30 +210,24 @@ class TrainConfig:
         return self.epochs * self.iterations_per_epoch * self.updates_per_iteration
 
 
+# Massively parallel (ours): many more episodes per iteration, fewer iterations; the schedules step
+# per iteration, so they are scaled to span the same share of training as the paper's.
+FAST = TrainConfig(
+    num_envs=512,
+    updates_per_iteration=200,
+    iterations_per_epoch=10,
+    epochs=60,
+    exploration=Exploration(0.3, 0.3 / 150, 0.1, 0.9 / 60),
+    checkpoint_every=10,
+)
+
 PRESETS = {
     # The paper's schedule: 500 epochs x 10 iterations x (5 episodes, 200 updates).
     "paper": TrainConfig(),
-    # Massively parallel (ours): many more episodes per iteration, fewer iterations; the schedules
-    # step per iteration, so they are scaled to span the same share of training as the paper's.
-    "fast": TrainConfig(
-        num_envs=512,
-        updates_per_iteration=200,
-        iterations_per_epoch=10,
-        epochs=60,
-        exploration=Exploration(0.3, 0.3 / 150, 0.1, 0.9 / 60),
-        checkpoint_every=10,
-    ),
-    # The shipped policy's recipe (ours): `fast`, then each seed's exported network teaches a
-    # 3x256 student by DAgger with lookahead (the shipped default is seed 0's, distilled into 2x256).
-    "distilled": TrainConfig(
-        num_envs=512,
-        updates_per_iteration=200,
-        iterations_per_epoch=10,
-        epochs=60,
-        exploration=Exploration(0.3, 0.3 / 150, 0.1, 0.9 / 60),
-        checkpoint_every=10,
-        distill=DistillConfig(iterations=20),
-    ),
+    "fast": FAST,
+    # The shipped policy's recipe (ours): `fast`, then each seed's exported network teaches a 3x256
+    # student by DAgger with lookahead (the shipped default is seed 0's, distilled into 2x256).
+    "distilled": dataclasses.replace(FAST, distill=DistillConfig(iterations=20)),
     # A minute on a CPU: the README's main command and CI.
     "smoke": TrainConfig(
         num_envs=16,
