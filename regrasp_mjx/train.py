@@ -550,18 +550,17 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, DemosError, TestsetError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    groups = final.get("settings", {"": final})
-    summary = {
-        name or "test": {
-            "policy": g["policy"],
-            "test": g["test"],
-            **(
-                {"student": {"policy": g["student"]["student"], "test": g["student"]["test"]}} if "student" in g else {}
-            ),
-        }
-        for name, g in groups.items()
-    }
-    print(json.dumps({"out": str(out), **summary}))
+
+    def summary(g: dict[str, Any]) -> dict[str, Any]:
+        out = {"policy": g["policy"], "test": g["test"]}
+        if "student" in g:
+            out["student"] = {"policy": g["student"]["student"], "test": g["student"]["test"]}
+        return out
+
+    if "settings" in final:
+        print(json.dumps({"out": str(out), "settings": {k: summary(g) for k, g in final["settings"].items()}}))
+    else:
+        print(json.dumps({"out": str(out), **summary(final)}))
     return 0
 
 
