@@ -8,6 +8,9 @@ one with a checkpoint resumes.
     python experiments/table1.py train --demos runs/demos --out runs/table1 --preset paper --set epochs=250
     python experiments/table1.py report --runs runs/table1 --out experiments/results/table1_paper
 
+One setting per run works too (``--settings mixed``; each device call then holds one program of three
+learners), and ``report`` merges such runs: ``--runs runs/t1_mixed --runs runs/t1_ddpg_bc ...``.
+
 ``report`` reads the run's ``log.jsonl`` and ``final_eval.json`` and writes ``table1.md``,
 ``table1.csv``, ``table1.json`` and ``fig3.png``. Every success rate is of the bare policy (the
 network alone, no collision shield), as the paper counts: at the last epoch, the mean of the last
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import shutil
 import sys
@@ -45,6 +49,8 @@ def train(args: argparse.Namespace) -> None:
     cfg = make_config(
         args.preset, args.settings, args.learner, seed=args.seed, num_seeds=args.seeds, **parse_overrides(args.set)
     )
+    if not cfg.settings:  # one setting: still named in the log, so reports can merge runs
+        cfg = dataclasses.replace(cfg, settings=((args.settings.strip(), cfg.exploration),))
     out.mkdir(parents=True, exist_ok=True)
     resume = (out / "checkpoint" / "meta.json").exists()
     print(f"training {args.settings} x {args.seeds} seeds in {out}{' (resumed)' if resume else ''}", flush=True)
@@ -93,17 +99,24 @@ def summarize(log: dict[int, dict[str, np.ndarray]], exported: list[dict]) -> di
 
 
 def report(args: argparse.Namespace) -> None:
-    runs, out = Path(args.runs), Path(args.out)
+    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    final_path = runs / "final_eval.json"
-    final = json.loads(final_path.read_text()) if final_path.exists() else {"seeds": []}
-    present = analysis.settings_in_log(runs / "log.jsonl")
-    if not present:
-        sys.exit(f"error: {runs}/log.jsonl holds one setting; train with experiments/table1.py train")
+    where: dict[str, Path] = {}  # setting -> the run folder holding it (runs of one setting each merge)
+    finals = []
+    for runs in map(Path, args.runs):
+        final_path = runs / "final_eval.json"
+        finals += json.loads(final_path.read_text())["seeds"] if final_path.exists() else []
+        present = analysis.settings_in_log(runs / "log.jsonl")
+        if not present:
+            sys.exit(f"error: {runs}/log.jsonl names no setting; train with experiments/table1.py train")
+        for setting in present:
+            if setting in where:
+                sys.exit(f"error: setting {setting} is in both {where[setting]} and {runs}")
+            where[setting] = runs
     rows = {}
-    for setting in [s for s in SETTINGS if s in present]:
-        log = analysis.read_log(runs / "log.jsonl", setting)
-        rows[setting] = summarize(log, [m for m in final["seeds"] if m["setting"] == setting])
+    for setting in [s for s in SETTINGS if s in where]:
+        log = analysis.read_log(where[setting] / "log.jsonl", setting)
+        rows[setting] = summarize(log, [m for m in finals if m["setting"] == setting])
     lines = [
         f"Bare policy (no shield) on paper300; {len(next(iter(rows.values()))['seeds'])} seeds per setting; "
         f"{next(iter(rows.values()))['epochs']} epochs; mean ± std over seeds.",
@@ -138,22 +151,24 @@ def report(args: argparse.Namespace) -> None:
                 r["seeds"], r["last"], r["last10"], r["best"], r["exported"], r["exported_shielded"], r["best_epoch"]
             ):
                 w.writerow([setting, *row])
-    if runs.resolve() != out.resolve():  # ship the log and final evaluation the table is made from
+    for k, runs in enumerate(dict.fromkeys(where.values())):  # ship the logs the table is made from
+        dest = out if len(args.runs) == 1 else out / f"run{k}"
+        dest.mkdir(exist_ok=True)
         for name in ("log.jsonl", "final_eval.json"):
-            if (runs / name).exists():
-                shutil.copyfile(runs / name, out / name)
-    figure(runs / "log.jsonl", list(rows), out / "fig3.png")
+            if (runs / name).exists() and runs.resolve() != dest.resolve():
+                shutil.copyfile(runs / name, dest / name)
+    figure({s: where[s] / "log.jsonl" for s in rows}, out / "fig3.png")
     print("\n".join(lines))
 
 
-def figure(log_path: Path, settings: list[str], path: Path) -> None:
+def figure(logs: dict[str, Path], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    for setting in settings:
+    for setting, log_path in logs.items():
         log = analysis.read_log(log_path, setting)
         epochs, succ = analysis.seed_band(log, "test.success_rate")
         _, bias = analysis.seed_band(log, "validation.q_bias")
@@ -195,7 +210,9 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     t.add_argument("--quiet", action="store_true")
     r = sub.add_parser("report", help="tables and figure from a finished run")
-    r.add_argument("--runs", required=True, help="the run folder")
+    r.add_argument(
+        "--runs", action="append", required=True, help="a run folder (repeatable: runs of one setting each merge)"
+    )
     r.add_argument("--out", required=True)
     args = p.parse_args(argv)
     train(args) if args.cmd == "train" else report(args)

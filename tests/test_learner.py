@@ -107,6 +107,17 @@ def test_exploration_schedules():
     assert EXPLORATION["targeted"].at(0) == EXPLORATION["targeted"].at(999) == pytest.approx((0.02, 0.5))
 
 
+def test_set_overrides_parse_as_literals():
+    from regrasp_mjx.config import parse_overrides
+
+    got = parse_overrides(["env.horizon=80", "distill.hidden=(256, 256)", "critics = 1", "name=abc"])
+    assert got == {"env.horizon": 80, "distill.hidden": (256, 256), "critics": 1, "name": "abc"}
+    cfg = make_config("smoke", **parse_overrides(["distill.hidden=(32,32)", "actor_ema=0"]))
+    assert cfg.distill.hidden == (32, 32) and cfg.actor_ema == 0
+    with pytest.raises(ConfigError, match="KEY=VALUE"):
+        parse_overrides(["horizon"])
+
+
 def test_train_config_errors():
     with pytest.raises(ConfigError, match="preset='huge' is not accepted"):
         make_config("huge")
