@@ -23,7 +23,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from regrasp_mjx.atomic import atomic_write
+from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
@@ -107,7 +107,7 @@ def build(args: argparse.Namespace) -> Path:
             "versions": versions(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
-        atomic_write(meta_path, lambda f: f.write(json.dumps(meta, indent=2).encode()))
+        write_json(meta_path, meta)
 
     env = RegraspEnv(dataclasses.replace(config, check_actions=False))
     replay = make_replay(env)

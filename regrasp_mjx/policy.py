@@ -32,7 +32,7 @@ from brax.training.acme import running_statistics
 from flax import traverse_util
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
-from regrasp_mjx.atomic import atomic_write
+from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import env_config_from_dict
 from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
 
@@ -161,7 +161,7 @@ def save_policy(
         **(extra or {}),
     }
     atomic_write(out / "policy.npz", lambda f: np.savez(f, **flat))
-    atomic_write(out / "policy.json", lambda f: f.write(json.dumps(contract, indent=2).encode()))
+    write_json(out / "policy.json", contract)
     return out
 
 
@@ -419,9 +419,6 @@ class Policy:
         task = env.config.task
         radius = env.needle_radius
 
-        def from_eg(weights, needle, start, goal):
-            return rollout(weights, needle, start, goal)
-
         def from_camera(weights, c_eg, c_er, c_n, goal_depth):
             pose = lambda x: (x[:, :3], x[:, 3:])  # noqa: E731
             join = lambda p: jnp.concatenate([p[0], p[1]], axis=-1)  # noqa: E731
@@ -440,7 +437,7 @@ class Policy:
             cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
             return valid, result, poses, actions, cam
 
-        return jax.jit(from_camera if camera else from_eg)
+        return jax.jit(from_camera if camera else rollout)
 
     def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
         out = jax.device_get(out)

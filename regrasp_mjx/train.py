@@ -31,7 +31,7 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.train import TRANSITION, Learner, TrainingState
-from regrasp_mjx.atomic import atomic_write, write_json
+from regrasp_mjx.atomic import atomic_write, write_json, write_text
 from regrasp_mjx.config import ConfigError, parse_overrides
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, replay_paths
 from regrasp_mjx.policy import save_policy
@@ -134,7 +134,7 @@ class Run:
         leaves = jax.device_get(jax.tree_util.tree_leaves(ts))
         arrays = {f"leaf_{i:05d}": np.asarray(x) for i, x in enumerate(leaves)}
         atomic_write(self.ckpt / "state.npz", lambda f: np.savez(f, **arrays))
-        atomic_write(self.ckpt / "meta.json", lambda f: f.write(json.dumps(meta).encode()))
+        write_json(self.ckpt / "meta.json", meta, indent=None)
 
     def load(self, template: TrainingState) -> tuple[TrainingState, dict[str, Any]]:
         meta_path, state_path = self.ckpt / "meta.json", self.ckpt / "state.npz"
@@ -202,7 +202,7 @@ class Run:
         path = self.out / "log.jsonl"
         if path.exists():
             keep = [x for x in path.read_text().splitlines() if x.strip() and json.loads(x)["epoch"] <= epoch]
-            atomic_write(path, lambda f: f.write("".join(x + "\n" for x in keep).encode()))
+            write_text(path, "".join(x + "\n" for x in keep))
 
     def train(self, resume: bool = False) -> dict[str, Any]:
         cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_members
