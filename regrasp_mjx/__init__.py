@@ -6,8 +6,20 @@ Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no
 ``python -m regrasp_mjx.{train,evaluate,demos,testset,grasps,export_onnx}``.
 """
 
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig, TaskConfig
-from regrasp_mjx.geometry import grasp_pose
+import contextlib as _contextlib
+import io as _io
+
+# mujoco.mjx prints "Failed to import warp" (twice) to stdout when the optional NVIDIA Warp backend
+# is absent, which we never use; importing it once here with stdout captured keeps every command's
+# output (e.g. `evaluate --json`) to this project's own. Anything else it prints is passed on.
+with _contextlib.redirect_stdout(_io.StringIO()) as _captured:
+    import mujoco.mjx  # noqa: F401
+for _line in _captured.getvalue().splitlines():
+    if not _line.startswith(("Failed to import warp", "Failed to import mujoco_warp")):
+        print(_line)
+
+from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig, TaskConfig  # noqa: E402
+from regrasp_mjx.geometry import grasp_pose  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["ConfigError", "EnvConfig", "SceneConfig", "TaskConfig", "grasp_pose", "load_policy", "__version__"]

@@ -44,11 +44,16 @@ class SceneConfig:
       jaw_angle_deg: angle between the two open jaws of the regrasping tool (SPEC: 20, ours).
       needle_radius_mm: needle radius R (paper: 5.4).
       wire_radius_mm: needle wire radius (SPEC: 0.25, ours).
+      conservative_needle: the needle's straight capsule chords get the wire radius plus their
+        sagitta (the most an arc point lies off its chord, 20.5 um for R = 5.4 mm and 18 chords), so
+        the collision model contains the true wire and never reports more clearance than there is
+        (ours; False = the wire radius alone, which under-reports contact by up to the sagitta).
     """
 
     jaw_angle_deg: float = 20.0
     needle_radius_mm: float = 5.4
     wire_radius_mm: float = 0.25
+    conservative_needle: bool = True
 
     def __post_init__(self) -> None:
         _check(
@@ -68,6 +73,9 @@ class SceneConfig:
             "wire_radius_mm",
             self.wire_radius_mm,
             "a number of millimetres in [0.05, 1]",
+        )
+        _check(
+            isinstance(self.conservative_needle, bool), "conservative_needle", self.conservative_needle, "True or False"
         )
 
 
@@ -144,6 +152,9 @@ class EnvConfig:
       step_reward: beta, the reward of a step that neither collides nor succeeds.
       collision_reward, success_reward: terminal rewards.
       success_pos_mm, success_rot_deg: the success tolerances of eqs. (8) and (9).
+      clearance_mm: a pose collides when any counted pair is closer than this (ours; 0 = only
+        penetration, SPEC). With a margin > 0 the derived sub-step count also guarantees that no
+        pose between two checked ones penetrates (:meth:`regrasp_mjx.scene.Scene.required_substeps`).
       collision_substeps: poses checked per step, the end pose included. ``None`` derives the
         smallest count that makes tunnelling impossible from the geometry
         (:meth:`regrasp_mjx.scene.Scene.required_substeps`); a smaller count is refused.
@@ -161,6 +172,7 @@ class EnvConfig:
     success_reward: float = 1.0
     success_pos_mm: float = 1.0
     success_rot_deg: float = 5.0
+    clearance_mm: float = 0.0
     collision_substeps: int | None = None
     check_actions: bool = True
 
@@ -201,6 +213,12 @@ class EnvConfig:
             "success_rot_deg",
             self.success_rot_deg,
             "a tolerance in (0, 180] degrees",
+        )
+        _check(
+            _finite(self.clearance_mm) and 0.0 <= self.clearance_mm <= 1.0,
+            "clearance_mm",
+            self.clearance_mm,
+            "a margin in [0, 1] mm",
         )
         _check(
             self.collision_substeps is None

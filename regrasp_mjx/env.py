@@ -68,6 +68,8 @@ METRIC_NAMES = (
 class RegraspEnv(Env):
     """The regrasping task (SPEC "MDP"): 21-D ego-centric observation, 6-D action in [-1, 1].
 
+    A pose collides when a counted pair is closer than ``clearance_mm`` (0: when it penetrates).
+
     ``reset(rng)`` samples a problem from the paper's distributions; ``reset_from(episode)`` starts
     from a given one (a test-set row). Both and ``step`` are pure and jit/vmap-able.
 
@@ -91,15 +93,20 @@ class RegraspEnv(Env):
         self.max_dp = config.max_dp_mm * 1e-3
         self.max_drot = math.radians(config.max_drot_deg)
         self.needle_radius = config.scene.needle_radius_mm * 1e-3
-        required = self.scene.required_substeps(self.max_dp, self.max_drot)
+        self.clearance = config.clearance_mm * 1e-3
+        required = self.scene.required_substeps(self.max_dp, self.max_drot, self.clearance)
         if config.collision_substeps is not None and config.collision_substeps < required:
             raise ConfigError(
                 f"collision_substeps={config.collision_substeps} is not accepted: with max_dp_mm="
                 f"{config.max_dp_mm} and max_drot_deg={config.max_drot_deg} a step could pass through "
-                f"the wire between checks; accepted: None or an integer >= {required}"
+                f"the wire between checks{' or come closer than its clearance margin' if self.clearance else ''}; "
+                f"accepted: None or an integer >= {required}"
             )
         self.substeps = config.collision_substeps or required
         self.distances = self.scene.distance_fn()
+        # what the validity tests use: clearances less the margin (negative = colliding)
+        distances, margin = self.distances, self.clearance
+        self._free_distances = distances if margin == 0.0 else (lambda *pose: distances(*pose) - margin)
 
     # ---- brax Env interface ------------------------------------------------------------------
     @property
@@ -116,8 +123,9 @@ class RegraspEnv(Env):
 
     # ---- reset -------------------------------------------------------------------------------
     def reset(self, rng: jax.Array) -> State:
-        """A new problem from the paper's distributions (colliding starts and goals redrawn)."""
-        episode, valid = sample_episode(rng, self.config.task, self.needle_radius, self.distances)
+        """A new problem from the paper's distributions (colliding starts and goals redrawn; with a
+        clearance margin, those closer than it too)."""
+        episode, valid = sample_episode(rng, self.config.task, self.needle_radius, self._free_distances)
         return self._first_state(episode, valid)
 
     def reset_from(self, episode: Episode) -> State:
@@ -128,12 +136,8 @@ class RegraspEnv(Env):
             start_quat=_normalise(episode.start_quat),
             goal_quat=_normalise(episode.goal_quat),
         )
-        start_free = (
-            jnp.min(
-                self._pose_distances(episode.needle_pos, episode.needle_quat, episode.start_pos, episode.start_quat)
-            )
-            > 0.0
-        )
+        start = self.distances(episode.needle_pos, episode.needle_quat, episode.start_pos, episode.start_quat)
+        start_free = jnp.min(start) > self.clearance
         return self._first_state(episode, start_free)
 
     def _first_state(self, episode: Episode, valid: jax.Array) -> State:
@@ -152,13 +156,13 @@ class RegraspEnv(Env):
             t=jnp.int32(0),
             path_length=jnp.float32(0.0),
         )
-        dist = self._pose_distances(es.needle_pos, es.needle_quat, es.ee_pos, es.ee_quat)
+        dist = self.distances(es.needle_pos, es.needle_quat, es.ee_pos, es.ee_quat)
         metrics = self._metrics(es, jnp.min(dist), jnp.bool_(False), jnp.bool_(False), jnp.bool_(False))
         metrics["reset_valid"] = valid.astype(jnp.float32)
         zero = jnp.float32(0.0)
         return State(
             pipeline_state=es,
-            obs=self._obs(es),
+            obs=self.observe(es),
             reward=zero,
             done=zero,
             metrics=metrics,
@@ -195,10 +199,8 @@ class RegraspEnv(Env):
         s = jnp.arange(1, self.substeps + 1, dtype=jnp.float32) / self.substeps
         sub_pos = es.ee_pos + s[:, None] * dp
         sub_quat = geometry.quat_mul(geometry.quat_from_rotvec(s[:, None] * rotvec), es.ee_quat)
-        dist = jax.vmap(self._pose_distances, in_axes=(None, None, 0, 0))(
-            es.needle_pos, es.needle_quat, sub_pos, sub_quat
-        )
-        collision = jnp.any(jnp.min(dist, axis=-1) < 0.0)
+        dist = jax.vmap(self.distances, in_axes=(None, None, 0, 0))(es.needle_pos, es.needle_quat, sub_pos, sub_quat)
+        collision = jnp.any(jnp.min(dist, axis=-1) < self.clearance)
 
         es = es.replace(
             ee_pos=sub_pos[-1],
@@ -224,7 +226,7 @@ class RegraspEnv(Env):
         info = {**state.info, "truncation": time_out.astype(jnp.float32)}
         return state.replace(
             pipeline_state=es,
-            obs=self._obs(es),
+            obs=self.observe(es),
             reward=reward,
             done=(terminal | time_out).astype(jnp.float32),
             metrics=metrics,
@@ -232,9 +234,6 @@ class RegraspEnv(Env):
         )
 
     # ---- reward terms and observation ---------------------------------------------------------
-    def _pose_distances(self, needle_pos, needle_quat, ee_pos, ee_quat) -> jax.Array:
-        return self.distances(needle_pos, needle_quat, ee_pos, ee_quat)
-
     def _goal_error(self, es: EpisodeState) -> tuple[jax.Array, jax.Array]:
         """Distance [m] and angle [rad] between ``T_er_n`` now and at the goal (eqs. 8, 9)."""
         needle_in_ee = geometry.relative((es.ee_pos, es.ee_quat), (es.needle_pos, es.needle_quat))
@@ -253,7 +252,7 @@ class RegraspEnv(Env):
             "path_length_mm": es.path_length * 1e3,
         }
 
-    def _obs(self, es: EpisodeState) -> jax.Array:
+    def observe(self, es: EpisodeState) -> jax.Array:
         """The ego-centric state (paper §III-B), world frame = e_g."""
         return geometry.ego_observation_eg((es.needle_pos, es.needle_quat), (es.ee_pos, es.ee_quat))
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from regrasp_mjx.config import ConfigError
 from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError, load_policy, shipped_policies
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import TestsetError, load_testset
@@ -124,16 +125,26 @@ def main(argv: list[str] | None = None) -> int:
         "--batch-size", type=int, default=None, help="queries per batched call (test set repeated; default its size)"
     )
     p.add_argument("--no-shield", action="store_true", help="roll the bare policy out (no collision shield)")
+    p.add_argument(
+        "--clearance-mm",
+        type=float,
+        default=None,
+        help="collision margin: a pose collides closer than this to the needle or the other tool "
+        "(default: the policy's own, 0 for the shipped ones)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
     try:
         policy = load_policy(args.policy)
+        if args.clearance_mm is not None:
+            policy = policy.with_env(clearance_mm=args.clearance_mm)
         episodes, _ = load_testset(args.testset)
-    except (PolicyError, TestsetError) as err:
+    except (PolicyError, TestsetError, ConfigError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     r = evaluate(policy, episodes, args.queries, args.repeats, args.batch_size, shield=not args.no_shield)
     r["policy"] = str(args.policy or DEFAULT_POLICY)
+    r["clearance_mm"] = policy.env_config.clearance_mm
     r["testset"] = args.testset
     if args.json:
         print(json.dumps(r))
@@ -141,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     path = "-" if r["path_length_mm"] is None else f"{r['path_length_mm']:.2f} mm"
     print(
         f"{r['policy']} on {r['testset']} ({r['problems']} problems, {r['backend']}: {r['device']}; "
-        f"shield {'on' if r['shield'] else 'off'})\n"
+        f"shield {'on' if r['shield'] else 'off'}, clearance margin {r['clearance_mm']:g} mm)\n"
         f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}\n"
         + (
             f"  planning time per query: mean {r['planning_time_ms_mean']:.2f} ms, median "

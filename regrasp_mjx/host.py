@@ -66,13 +66,18 @@ def quat_angle(q1: np.ndarray, q2: np.ndarray) -> float:
 class HostChecker:
     """Collision verdicts and clearances for a needle pose and a regrasping end-effector pose.
 
-    Not thread-safe (it owns one ``MjData``); give each worker process its own.
+    ``clearance`` (m, kept as ``margin``): a pose collides when a counted pair is closer than this
+    (0: when it penetrates), as in :class:`regrasp_mjx.env.RegraspEnv`. Not thread-safe (it owns one
+    ``MjData``); give each worker process its own.
     """
 
-    def __init__(self, scene: Scene | None = None):
+    def __init__(self, scene: Scene | None = None, clearance: float = 0.0):
+        if not (math.isfinite(clearance) and clearance >= 0.0):
+            raise ValueError(f"clearance={clearance!r} is not accepted: a margin >= 0 in metres")
         self.scene = scene if scene is not None else load_scene()
         self.model = self.scene.model
         self.data = mujoco.MjData(self.model)
+        self.margin = float(clearance)
 
     def _set(self, needle_pos, needle_quat, ee_pos, ee_quat) -> None:
         self.data.qpos[:] = self.scene.qpos(
@@ -84,7 +89,11 @@ class HostChecker:
         mujoco.mj_kinematics(self.model, self.data)
 
     def collides(self, needle_pos, needle_quat, ee_pos, ee_quat) -> bool:
-        """True when a counted pair penetrates (MuJoCo's broad and narrow phase, margin 0)."""
+        """True when a counted pair penetrates (MuJoCo's broad and narrow phase, margin 0) or, with a
+        clearance margin, comes closer than it (``mj_geomDistance`` of every pair)."""
+        if self.margin > 0.0:
+            distmax = 2.0 * self.margin  # farther pairs need no exact distance
+            return bool(np.min(self.distances(needle_pos, needle_quat, ee_pos, ee_quat, distmax)) < self.margin)
         self._set(needle_pos, needle_quat, ee_pos, ee_quat)
         mujoco.mj_collision(self.model, self.data)
         n = self.data.ncon
@@ -100,16 +109,36 @@ class HostChecker:
     def clearance(self, needle_pos, needle_quat, ee_pos, ee_quat) -> float:
         return float(self.distances(needle_pos, needle_quat, ee_pos, ee_quat).min())
 
+    def path_clearance(self, needle, poses, substeps: int = 20) -> float:
+        """Smallest clearance (m) along a path of regrasping end-effector poses ``[K, 7]`` for a
+        needle pose ``[7]``, each segment moved as the environment moves (position linear,
+        orientation along the rotation vector) and checked at ``substeps`` poses per 0.5 mm or 3
+        degrees of motion (at least ``substeps`` per segment): an independent re-check of a plan."""
+        needle, poses = np.asarray(needle, float), np.asarray(poses, float).reshape(-1, 7)
+        best = self.clearance(needle[:3], needle[3:], poses[0, :3], poses[0, 3:])
+        for a, b in zip(poses[:-1], poses[1:]):
+            rotvec = quat_to_rotvec(quat_mul(b[3:], quat_conj(a[3:])))
+            size = max(1.0, np.linalg.norm(b[:3] - a[:3]) / 0.5e-3, np.linalg.norm(rotvec) / math.radians(3.0))
+            n = substeps * math.ceil(size - 1e-9)
+            for k in range(1, n + 1):
+                s = k / n
+                quat = quat_mul(quat_from_rotvec(s * rotvec), a[3:])
+                best = min(best, self.clearance(needle[:3], needle[3:], a[:3] + s * (b[:3] - a[:3]), quat))
+        return best
+
 
 class HostEnv:
     """One regrasping problem stepped on the CPU, as :class:`regrasp_mjx.env.RegraspEnv` steps it."""
 
     def __init__(self, config: EnvConfig = EnvConfig(), scene: Scene | None = None):
         self.config = config
-        self.checker = HostChecker(scene if scene is not None else load_scene(config.scene))
+        clearance = config.clearance_mm * 1e-3
+        self.checker = HostChecker(scene if scene is not None else load_scene(config.scene), clearance)
         self.max_dp = config.max_dp_mm * 1e-3
         self.max_drot = math.radians(config.max_drot_deg)
-        self.substeps = config.collision_substeps or self.checker.scene.required_substeps(self.max_dp, self.max_drot)
+        self.substeps = config.collision_substeps or self.checker.scene.required_substeps(
+            self.max_dp, self.max_drot, clearance
+        )
 
     def reset_from(self, episode) -> np.ndarray:
         """Starts from one problem (an :class:`~regrasp_mjx.sampling.Episode` row); returns the obs."""

@@ -34,6 +34,7 @@ from flax import traverse_util
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
 from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import env_config_from_dict
+from regrasp_mjx.config import replace as config_replace
 from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
 
 POLICY_FORMAT = "regrasp_mjx.policy"
@@ -215,6 +216,9 @@ class Plan:
       poses_camera: the same poses in the camera frame (only from :meth:`Policy.plan_from_camera`).
       nearest_grasp_distance: distance of the needle pose to the nearest of the valid-grasp library
         (``regrasp_mjx.grasps``; mm + deg / 5), when checked.
+      joints: with ``plan_from_camera(..., psm=...)``, the regrasping PSM's
+        :class:`~regrasp_mjx.dvrk.JointTrajectory` of the valid poses (a list of them for a batch).
+      grasping_joints: likewise the grasping PSM's :class:`~regrasp_mjx.dvrk.IKResult` at its pose.
     """
 
     success: np.ndarray
@@ -227,6 +231,8 @@ class Plan:
     actions: np.ndarray
     poses_camera: np.ndarray | None = None
     nearest_grasp_distance: np.ndarray | None = None
+    joints: Any = None
+    grasping_joints: Any = None
 
     def trajectory(self, frame: str = "eg") -> np.ndarray:
         """The valid poses of a single plan (``steps + 1`` rows), in ``eg`` or ``camera`` frame."""
@@ -283,6 +289,16 @@ class Policy:
     @property
     def env_config(self):
         return dataclasses.replace(env_config_from_dict(self.contract["env"]), check_actions=False)
+
+    def with_env(self, **changes: Any) -> Policy:
+        """The same network planning in a changed environment, e.g. ``with_env(clearance_mm=0.1)``
+        (a pose then collides closer than 0.1 mm to the needle or the other tool, and the shield
+        keeps that margin); names as :func:`regrasp_mjx.config.replace` takes them (dotted for
+        nested fields). Raises :class:`~regrasp_mjx.config.ConfigError` for a bad field or value."""
+        env = config_replace(env_config_from_dict(self.contract["env"]), **changes)
+        contract = copy.deepcopy(self.contract)
+        contract["env"] = dataclasses.asdict(env)
+        return dataclasses.replace(self, contract=contract)
 
     def act(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
@@ -458,6 +474,102 @@ class Policy:
             plan = Plan(**{f.name: _first(getattr(plan, f.name)) for f in dataclasses.fields(Plan)})
         return plan
 
+    # ---- closed loop ----------------------------------------------------------------------
+    def _closed_loop(
+        self, kind: str, shield: bool, fused: bool = False, margin_mm: float = 0.0, stop: float = 1.0, warmup: int = 1
+    ):
+        from regrasp_mjx import closed_loop
+        from regrasp_mjx.env import RegraspEnv
+
+        if (kind, shield, fused, margin_mm, stop, warmup) not in self._planners:
+            key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
+            key += (kind, shield, fused, margin_mm, stop, warmup)
+            if key not in _PLANNERS:
+                env = RegraspEnv(self.env_config)
+                guard = RegraspEnv(dataclasses.replace(self.env_config, clearance_mm=margin_mm)) if margin_mm else env
+                apply = _members_apply(tuple(self.contract["network"]["hidden"]))
+                _PLANNERS[key] = (
+                    closed_loop.make_executor(env, apply, shield, fused, guard, stop, warmup)
+                    if kind == "execute"
+                    else closed_loop.make_stepper(guard, apply, shield, stop)
+                )
+            self._planners[(kind, shield, fused, margin_mm, stop, warmup)] = functools.partial(
+                _PLANNERS[key], self._weights
+            )
+        return self._planners[(kind, shield, fused, margin_mm, stop, warmup)]
+
+    def closed_loop_step(
+        self,
+        needle: Any,
+        ee: Any,
+        goal: Any = None,
+        goal_depth_mm: Any = None,
+        t: int = 0,
+        shield: bool = True,
+        shield_margin_mm: float = 0.0,
+        stop_tolerance: float = 0.7,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One closed-loop step from the current estimates (e_g frame, 7-vectors or ``[B, 7]``): the
+        latest (or fused) needle estimate and the regrasping end-effector's current pose. Returns
+        ``(action, next_ee, at_goal)``: the action, the pose to command next, and whether the
+        estimate says the goal is already reached (then stop: the action is zero, ``next_ee`` is
+        ``ee``). ``t`` is the step index (it seeds the shield's alternatives, as in :meth:`plan`);
+        the shield checks the alternatives against the estimated needle, keeping
+        ``shield_margin_mm`` from it (room for the estimate's error). ``at_goal`` holds within
+        ``stop_tolerance`` of the success tolerances, as in :meth:`execute`."""
+        needle, ee = check_poses("needle", needle), check_poses("ee", ee)
+        single = needle.ndim == 1
+        needle, ee = np.atleast_2d(needle), np.atleast_2d(ee)
+        if goal is None:
+            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+        goal = np.atleast_2d(check_poses("goal", goal))
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+        step = self._closed_loop("step", shield, margin_mm=float(shield_margin_mm), stop=float(stop_tolerance))
+        a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t)))
+        a, nxt, done = np.asarray(a, np.float64), np.asarray(nxt, np.float64), np.asarray(done)
+        return (a[0], nxt[0], done[0]) if single else (a, nxt, done)
+
+    def execute(
+        self,
+        needle: Any,
+        start: Any,
+        goal: Any = None,
+        noise: Any = None,
+        fuse: bool = True,
+        shield: bool = True,
+        seed: int = 0,
+        goal_depth_mm: Any = None,
+        shield_margin_mm: float = 0.0,
+        stop_tolerance: float = 0.7,
+        warmup_frames: int = 5,
+    ) -> dict[str, np.ndarray]:
+        """Simulates the closed loop (:mod:`regrasp_mjx.closed_loop`) on true needle, start and goal
+        poses ``[B, 7]`` (e_g frame): each step a new noisy needle estimate (``noise``, a
+        :class:`~regrasp_mjx.closed_loop.NeedleNoise`; default none), fused over the frames so far
+        with ``fuse``, the policy acting on it, stopping when the estimate says the goal is reached;
+        success and collisions judged on the true needle. ``shield_margin_mm``: the shield keeps
+        this clearance from the estimated needle (room for the estimate's error);
+        ``stop_tolerance``: stop when the estimate is within this fraction of the success
+        tolerances (below 1: room for the estimate's error at the goal); ``warmup_frames``: with
+        ``fuse``, frames fused before the first step (the tool holds still meanwhile). The defaults
+        (fused, 5 frames, 0.7) are the ones measured in experiments/RESULTS.md; ``fuse=False,
+        stop_tolerance=1`` with no noise reproduces :meth:`plan` exactly. Returns numpy arrays per row:
+        ``success``, ``collision``, ``time_out``, ``stopped``, ``steps``, ``start_valid``, ``poses``."""
+        from regrasp_mjx.closed_loop import NeedleNoise
+
+        noise = NeedleNoise() if noise is None else noise
+        needle, start = check_poses("needle", needle), check_poses("start", start)
+        needle, start = np.atleast_2d(needle), np.atleast_2d(start)
+        if goal is None:
+            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+        goal = np.atleast_2d(check_poses("goal", goal))
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+        run = self._closed_loop(
+            "execute", shield, bool(fuse), float(shield_margin_mm), float(stop_tolerance), int(warmup_frames)
+        )
+        out = run(f32(needle), f32(start), f32(goal), jax.random.PRNGKey(seed), f32(noise.sigma_mm), f32(noise.bias_mm))
+        return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
+
     def _goal_depth(self, goal_depth_mm, n):
         task = self.env_config.task
         lo, hi = task.goal_depth_mm
@@ -509,10 +621,17 @@ class Policy:
         goal_depth_mm: Any = None,
         check_grasp: bool = True,
         shield: bool = True,
+        psm: dict | None = None,
     ) -> Plan:
         """Plans from three camera-frame poses (7-vectors or ``[B, 7]``), as on a real dVRK
         (SPEC "Deployment"); the plan's poses come in the e_g frame and the camera frame.
-        ``shield`` as in :meth:`plan`."""
+        ``shield`` as in :meth:`plan`.
+
+        ``psm``: ``{"regrasping_base": pose, "grasping_base": pose}`` (camera-frame 7-vectors or 4x4
+        of each PSM's base, i.e. remote-centre-of-motion, frame; ``grasping_base`` optional). The
+        plan then also holds the regrasping arm's joint trajectory with a per-pose joint-limit
+        verdict (``Plan.joints``) and the grasping arm's joints at its pose (``Plan.grasping_joints``)
+        from :mod:`regrasp_mjx.dvrk`; out-of-limit poses are reported, not changed."""
         c_eg = check_poses("grasping_ee", grasping_ee)
         c_er = check_poses("regrasping_ee", regrasping_ee)
         c_n = check_poses("needle", needle)
@@ -530,7 +649,8 @@ class Policy:
             nearest = self._check_grasp(np.concatenate([rel_p, rel_q], axis=1))
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
         out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(depth))
-        return self._finish(out, single, True, nearest)
+        plan = self._finish(out, single, True, nearest)
+        return plan if psm is None else _with_joints(plan, psm, c_eg, single)
 
     def _default_goal(self, needle: np.ndarray, depth: np.ndarray) -> np.ndarray:
         from regrasp_mjx import geometry
@@ -556,6 +676,24 @@ class Policy:
                 stacklevel=3,
             )
         return dist
+
+
+def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
+    from regrasp_mjx import dvrk
+
+    unknown = set(psm) - {"regrasping_base", "grasping_base"}
+    if "regrasping_base" not in psm or unknown:
+        raise PoseError(f"psm={sorted(psm)} is not accepted: a dict with 'regrasping_base' (and 'grasping_base')")
+    steps = np.atleast_1d(plan.steps)
+    cam = plan.poses_camera[None] if single else plan.poses_camera
+    joints = [dvrk.joint_trajectory(psm["regrasping_base"], cam[i][: steps[i] + 1]) for i in range(len(cam))]
+    grasping = None
+    if psm.get("grasping_base") is not None:
+        base_inv = np.linalg.inv(dvrk.as_matrix(psm["grasping_base"]))
+        grasping = [dvrk.inverse_kinematics(base_inv @ dvrk.pose_matrix(e)) for e in c_eg]
+    if single:
+        joints, grasping = joints[0], None if grasping is None else grasping[0]
+    return dataclasses.replace(plan, joints=joints, grasping_joints=grasping)
 
 
 def shipped_policies() -> list[str]:

@@ -81,31 +81,54 @@ class Scene:
         ee = xp.concatenate([ee_pos, ee_quat], -1)
         return xp.concatenate([needle, ee] if self.needle_qpos < self.regrasp_qpos else [ee, needle], -1)
 
-    def required_substeps(self, max_dp: float, max_drot: float) -> int:
-        """Collision checks per step (end pose included) that make tunnelling impossible.
+    def required_substeps(self, max_dp: float, max_drot: float, clearance: float = 0.0) -> int:
+        """Collision checks per step (end pose included) that make tunnelling impossible, and with a
+        clearance margin > 0 also any penetration between the checked poses.
 
         A step moves the regrasping tool along ``p(s) = p0 + s dp``, ``R(s) = exp(s w) R0`` for s in
         [0, 1] with ``|dp| <= sqrt(3) max_dp`` and ``|w| <= sqrt(3) max_drot`` (the action is clipped
         to [-1, 1] per axis). A point at distance L from the end-effector origin then moves at most
         ``D = sqrt(3) (max_dp + L max_drot)`` per unit s, so the distance between the axes of a
-        moving capsule and a fixed one is D-Lipschitz in s. For one capsule to pass through another
-        the axes must meet at some s*; around s* the axes are closer than the sum of the radii r
-        (a collision) for all |s - s*| < r / D, a window of length 2r / D. Checks spaced 1/n apart
-        (s = 0 is the previous, already checked pose) always fall in that window when
-        ``n > D / (2 r)``, i.e. ``n = floor(D / 2r) + 1``. We take the worst pair.
+        moving capsule and a fixed one, and so their surface distance d(s), is D-Lipschitz in s.
+
+        Margin 0 (no tunnelling): for one capsule to pass through another the axes must meet at
+        some s*; around s* the axes are closer than the sum of the radii r (a collision) for all
+        |s - s*| < r / D, a window of length 2r / D (r with the true wire radius, which the
+        conservative chords contain). Checks spaced 1/n apart (s = 0 is the
+        previous, already checked pose) always fall in that window when ``n > D / (2 r)``, i.e.
+        ``n = floor(D / 2r) + 1``.
+
+        Margin m > 0 (no penetration at all): every checked pose has d >= m, and every s lies within
+        1/(2n) of a checked pose, so ``d(s) >= m - D / (2n) >= 0`` when ``n >= D / (2m)``, i.e.
+        ``n = ceil(D / 2m)``. A plan accepted with a margin therefore never touches, between checks
+        included. We take the worst pair, and the larger of the two counts.
 
         Args:
           max_dp: metres per action unit and axis.
           max_drot: radians per action unit and axis.
+          clearance: the margin m in metres (0: penetration only).
         """
         n = 1
-        others = self.needle_capsules + self.grasp_capsules
+        # the true wire's radius, not the chords' grown one: the count guards the true wire
+        wire = self.config.wire_radius_mm * 1e-3
+        others = [min(c.radius, wire) for c in self.needle_capsules] + [c.radius for c in self.grasp_capsules]
         for cap in self.regrasp_capsules:
             lever = max(float(np.linalg.norm(cap.p0)), float(np.linalg.norm(cap.p1)))
             speed = math.sqrt(3.0) * (max_dp + lever * max_drot)
             for other in others:
-                n = max(n, math.floor(speed / (2.0 * (cap.radius + other.radius))) + 1)
+                n = max(n, math.floor(speed / (2.0 * (cap.radius + other))) + 1)
+            if clearance > 0.0:
+                n = max(n, math.ceil(speed / (2.0 * clearance) - 1e-9))
         return n
+
+    @property
+    def needle_sagitta(self) -> float:
+        """The most a point of the needle's true arc lies off its capsule chord [m]: ``R (1 - cos(h))``
+        for a chord of half-angle h. With ``SceneConfig.conservative_needle`` the chords' radius is
+        the wire radius plus this, so they contain the true wire (the model's clearance is at most
+        this much below the true one, never above)."""
+        radius = self.config.needle_radius_mm * 1e-3
+        return max(radius - float(np.linalg.norm((c.p0 + c.p1) / 2.0)) for c in self.needle_capsules)
 
     def distance_fn(self, method: str = "exact") -> DistanceFn:
         """A pure JAX function ``(needle_pos, needle_quat, ee_pos, ee_quat) -> distances[npairs]``.
@@ -205,11 +228,15 @@ def _apply_config(spec: mujoco.MjSpec, config: SceneConfig) -> None:
         visual = spec.geom(name + "_visual")
         # The jaw mesh points along +z; a rotation of -sign*half about x opens it to this jaw.
         visual.quat = [math.cos(-sign * half / 2), math.sin(-sign * half / 2), 0.0, 0.0]
-    scale = config.needle_radius_mm * 1e-3 / _DEFAULT_NEEDLE_RADIUS
+    radius = config.needle_radius_mm * 1e-3
+    scale = radius / _DEFAULT_NEEDLE_RADIUS
     for geom in spec.geoms:
         if geom.name.startswith("needle_seg"):
             geom.fromto = [v * scale for v in geom.fromto]
-            geom.size = [config.wire_radius_mm * 1e-3, 0.0, 0.0]
+            ends = np.reshape(geom.fromto, (2, 3))
+            # the chord's sagitta: how far the arc between its ends bulges past it (ends on the arc)
+            sagitta = radius - float(np.linalg.norm(ends.mean(0))) if config.conservative_needle else 0.0
+            geom.size = [config.wire_radius_mm * 1e-3 + sagitta, 0.0, 0.0]
     spec.mesh("needle_tube").scale = [scale, scale, scale]
     spec.site("needle_tip").pos = [0.0, 0.0, config.needle_radius_mm * 1e-3]
 

@@ -352,3 +352,19 @@ def test_bad_policy_files(tmp_path, easy_env, easy_demos):
     (tmp_path / "policy.npz").write_bytes(b"garbage")
     with pytest.raises(PolicyError, match="not a readable"):
         load_policy(tmp_path)
+
+
+def test_observation_noise_randomises_only_what_the_policy_sees_of_the_needle(easy_env, easy_demos):
+    """With obs_noise_mm the stored observations carry a noisy needle and the true end-effector;
+    off, they are the environment's own."""
+    for noise, differs in ((0.0, False), (1.0, True)):
+        learner = Learner(_tiny_config(obs_noise_mm=noise, obs_bias_mm=noise), easy_env)
+        ts = jax.tree.map(lambda x: x[0], learner.init(easy_demos[1]))
+        first = jax.vmap(easy_env.reset)(jax.random.split(jax.random.PRNGKey(3), 32))
+        _, transitions, _ = jax.jit(learner._rollout)(ts, first, jax.random.PRNGKey(4), jnp.float32(0.0))
+        seen, true = np.asarray(transitions["obs"][0]), np.asarray(first.obs)
+        np.testing.assert_allclose(seen[:, 7:14], true[:, 7:14], atol=1e-6)  # the end-effector pose is known
+        moved = np.linalg.norm(seen[:, :3] - true[:, :3], axis=1)
+        assert (moved.min() > 1e-7) if differs else (moved.max() == 0.0)
+        if differs:
+            assert moved.max() < 6e-3  # at most a 1 mm bias plus a few sigma of 1 mm

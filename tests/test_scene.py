@@ -109,3 +109,15 @@ def test_segment_distance_by_hand():
 def test_missing_mjcf_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="scene MJCF not found"):
         load_scene(SceneConfig(), str(tmp_path / "nope.xml"))
+
+
+def test_importing_the_package_prints_nothing():
+    """mujoco.mjx prints "Failed to import warp" when Warp is absent; the package swallows exactly
+    that, so `evaluate --json` and friends print only their own output."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", "import regrasp_mjx.env, regrasp_mjx.policy"], capture_output=True, text=True, check=True
+    )
+    assert out.stdout == ""

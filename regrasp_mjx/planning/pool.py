@@ -52,7 +52,8 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
     """The default plan function: OMPL from ``problem['start']`` to ``problem['goal']``.
 
     ``options``: ``planner`` (a PlannerConfig as a dict), ``scene`` (a SceneConfig as a dict),
-    ``seed``, and ``method``: ``"ompl"`` (default) or ``"straight_line"`` (the baseline). One
+    ``seed``, ``clearance_mm`` (the collision margin, default 0) and ``method``: ``"ompl"``
+    (default) or ``"straight_line"`` (the baseline). One
     planner per worker and options, built on first use.
     """
     from regrasp_mjx.config import SceneConfig
@@ -65,7 +66,9 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
     if key not in cache:
         scene = load_scene(SceneConfig(**options.get("scene", {})))
         cache[key] = OmplPlanner(
-            PlannerConfig(**options.get("planner", {})), HostChecker(scene), options.get("seed", 0)
+            PlannerConfig(**options.get("planner", {})),
+            HostChecker(scene, options.get("clearance_mm", 0.0) * 1e-3),
+            options.get("seed", 0),
         )
     planner = cache[key]
     if options.get("method", "ompl") == "straight_line":

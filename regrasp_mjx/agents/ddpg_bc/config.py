@@ -72,6 +72,12 @@ class TrainConfig:
         rollouts, clipped to [-1, 1] (HER's ``noise_eps``; ours, 0 = the paper's uniform-only E_R).
         It keeps exploring after E_R reaches 0, so the replay buffer keeps actions around the
         policy's own for the critic to rank (see experiments/RESULTS.md, "Why training decayed").
+      obs_noise_mm, obs_bias_mm: domain randomisation over needle-pose noise (ours; 0 = off): in
+        training rollouts the policy acts on, and the buffer stores, observations of a needle
+        estimate (:mod:`regrasp_mjx.closed_loop`'s model) with per-step noise of sigma drawn per
+        environment and iteration from U[0, obs_noise_mm], after a bias of U[0, obs_bias_mm] mm in
+        a random direction, fixed per environment and iteration (its episodes). Evaluation stays
+        noise-free.
       critics: 1 (the paper) or 2 (ours: TD3's clipped double Q, the target takes the minimum).
       target_noise, target_noise_clip: std and clip of the Gaussian noise on the target policy's
         action in the critic's target (ours: TD3's target policy smoothing; 0 = off).
@@ -118,6 +124,8 @@ class TrainConfig:
     planner_queue: int = 256
     demo_chunk: int = 512
     action_noise: float = 0.2
+    obs_noise_mm: float = 0.0
+    obs_bias_mm: float = 0.0
     critics: int = 2
     target_noise: float = 0.2
     target_noise_clip: float = 0.5
@@ -172,6 +180,10 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number >= 0")
+        for name in ("obs_noise_mm", "obs_bias_mm"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 5):
+                raise ConfigError(f"{name}={v!r} is not accepted: a noise level in [0, 5] mm")
         names = [s[0] for s in self.settings]
         if len(set(names)) != len(names) or not all(isinstance(n, str) and n for n in names):
             raise ConfigError(f"settings={names!r} is not accepted: distinct, non-empty names")

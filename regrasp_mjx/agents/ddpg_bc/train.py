@@ -41,6 +41,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from regrasp_mjx import closed_loop
 from regrasp_mjx.agents.ddpg_bc import losses
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
@@ -247,11 +248,30 @@ class Learner:
         k_steps = jax.random.split(self._device_key(key))[1]
         policy = self._policy(ts)
 
+        noisy = cfg.obs_noise_mm > 0 or cfg.obs_bias_mm > 0
+        if noisy:  # domain randomisation: this iteration's noise level and bias per environment
+            # folded off the rollout's key, so runs without noise keep their random streams
+            k_sigma, k_bias_size, k_bias = jax.random.split(jax.random.fold_in(k_steps, 17), 3)
+            sigma = jax.random.uniform(k_sigma, (n,), maxval=cfg.obs_noise_mm)
+            bias = jax.random.uniform(k_bias_size, (n,), maxval=cfg.obs_bias_mm)
+
+        def observe(state, k):
+            """What the policy sees: the observation of a needle estimate (noise-free when off)."""
+            if not noisy:
+                return state.obs
+            es = state.pipeline_state
+            needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
+            biased = jax.vmap(closed_loop.episode_bias)(jax.random.split(k_bias, n), needle, bias)
+            seen = jax.vmap(closed_loop.frame_estimate)(jax.random.split(k, n), biased, sigma)
+            return jax.vmap(env.observe)(es.replace(needle_pos=seen[:, :3], needle_quat=seen[:, 3:]))
+
         def step(carry, k):
             state, outcome = carry
             k_coin, k_rand, k_noise = jax.random.split(k, 3)
+            k_obs, k_next = jax.random.split(jax.random.fold_in(k, 17))
             explore = jax.random.uniform(k_coin, (n, 1)) < random_eps
-            greedy = policy(state.obs)
+            obs = observe(state, k_obs)
+            greedy = policy(obs)
             if cfg.action_noise > 0:
                 noise = cfg.action_noise * jax.random.normal(k_noise, greedy.shape)
                 greedy = jnp.clip(greedy + noise, -1.0, 1.0)
@@ -263,10 +283,10 @@ class Learner:
             nxt = jax.vmap(env.step)(state, action)
             terminal = nxt.done * (1.0 - nxt.info["truncation"])
             transition = {
-                "obs": state.obs,
+                "obs": obs,
                 "action": action,
                 "reward": nxt.reward,
-                "next_obs": nxt.obs,
+                "next_obs": observe(nxt, k_next),
                 "terminal": terminal,
             }
             # The first episode of each environment decides Algorithm 1's "failed episode".

@@ -1,0 +1,207 @@
+"""From plan to robot: success at a clearance margin, each path's smallest clearance re-checked
+finely, and whether the regrasping PSM can follow the plans (issue: dVRK kinematics and margin).
+
+1. Margin table. For each margin m (mm) the shipped policy plans paper300 through
+   ``Policy.with_env(clearance_mm=m)`` (a pose collides closer than m; the derived sub-step count
+   then also rules out penetration between checks), bare and shielded, and BIT* (R) plans with the
+   host checker at the same margin (10 s budget). Problems whose start or goal is already closer
+   than m are left out (counted in ``valid``).
+2. Clearance distribution. Every successful path is re-checked with CPU MuJoCo's ``mj_geomDistance``
+   at ``--substeps`` poses per policy step (BIT*'s segments at the same spacing: 20 poses per
+   0.5 mm or 3 degrees); per path the smallest clearance; the 1st percentile and median over paths,
+   and the paths that penetrate (clearance < 0; with the conservative needle that is contact with
+   the true wire or an over-estimate of it by at most the chords' 20.6 um sagitta).
+3. Reachability. The shipped policy's shielded plans (margin 0) as dVRK PSM joint trajectories
+   (``regrasp_mjx.dvrk``) for two placements of the regrasping arm's remote centre of motion (RCM):
+   ``start`` puts it 0.12 m behind each problem's start pose on the tool's shaft (the arm starts
+   at its neutral configuration, as when a surgeon has brought the tool there); ``fixed`` puts it
+   where ``start`` would for the average start pose and keeps it for every problem (one port for
+   the whole test set). The grasping arm's RCM is 0.12 m behind e_g (neutral). Reported: the share
+   of plans whose every pose is within the joint limits, the joints that leave them, and the
+   joint-space path length.
+
+    python experiments/clearance.py --margins 0,0.05,0.1,0.2 --out experiments/results/clearance
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from results_io import write_results  # noqa: E402
+
+from regrasp_mjx import dvrk, host  # noqa: E402
+from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402
+from regrasp_mjx.planning.ompl_planner import PlannerConfig  # noqa: E402
+from regrasp_mjx.planning.pool import PlannerPool  # noqa: E402
+from regrasp_mjx.policy import load_policy  # noqa: E402
+from regrasp_mjx.sampling import load_testset  # noqa: E402
+
+
+def clearance_stats(values: list[float]) -> dict:
+    v = np.asarray(values) * 1e3
+    if len(v) == 0:
+        return {"paths": 0}
+    return {
+        "paths": int(len(v)),
+        "p1_mm": float(np.percentile(v, 1)),
+        "median_mm": float(np.median(v)),
+        "min_mm": float(v.min()),
+        "penetrating": int((v < 0).sum()),
+    }
+
+
+def bitstar(episodes, rows: list[int], margin_mm: float, workers: int, budget_s: float) -> dict[int, dict]:
+    options = {"planner": dataclasses.asdict(PlannerConfig(budget_s=budget_s)), "clearance_mm": margin_mm, "seed": 0}
+    needle, start, goal = episode_poses(episodes)
+    with PlannerPool(workers, options=options, timeout_s=3 * budget_s + 60, queue_size=len(rows)) as pool:
+        for i in rows:
+            pool.submit({"needle": needle[i], "start": start[i], "goal": goal[i]}, payload=i)
+        results = pool.wait(24 * 3600)
+    return {r.payload: r.result for r in results if r.ok}
+
+
+def mean_pose(poses: np.ndarray) -> np.ndarray:
+    """The average position and the average orientation (the principal eigenvector of the
+    quaternions' scatter matrix, Markley et al. 2007) of poses ``[N, 7]``."""
+    quats = poses[:, 3:]
+    w, v = np.linalg.eigh(quats.T @ quats)
+    q = v[:, -1] * np.sign(v[0, -1] or 1.0)
+    return np.r_[poses[:, :3].mean(0), q]
+
+
+def reachability(plan, start: np.ndarray) -> dict:
+    fixed = dvrk.base_behind(mean_pose(start))
+    grasp = dvrk.inverse_kinematics(np.linalg.inv(dvrk.base_behind(np.r_[0, 0, 0, 1, 0, 0, 0])) @ np.eye(4))
+    out = {"grasping_arm_reachable": grasp.reachable, "grasping_arm_q": grasp.q.round(4).tolist()}
+    for name in ("start", "fixed"):
+        ok, lengths, bad = [], [], {}
+        for i in np.nonzero(plan.success)[0]:
+            base = dvrk.base_behind(start[i]) if name == "start" else fixed
+            traj = dvrk.joint_trajectory(base, plan.poses[i][: plan.steps[i] + 1])
+            ok.append(traj.all_reachable)
+            lengths.append(traj.joint_path_length)
+            for names in traj.violations:
+                for j in names:
+                    bad[j] = bad.get(j, 0) + 1
+        lengths = np.array(lengths)
+        out[name] = {
+            "plans": len(ok),
+            "all_reachable_share": float(np.mean(ok)),
+            "out_of_limit_poses_by_joint": bad,
+            "joint_path_median": {
+                "outer_yaw_deg": float(np.degrees(np.median(lengths[:, 0]))),
+                "outer_pitch_deg": float(np.degrees(np.median(lengths[:, 1]))),
+                "insertion_mm": float(1e3 * np.median(lengths[:, 2])),
+                "roll_deg": float(np.degrees(np.median(lengths[:, 3]))),
+                "wrist_pitch_deg": float(np.degrees(np.median(lengths[:, 4]))),
+                "wrist_yaw_deg": float(np.degrees(np.median(lengths[:, 5]))),
+            },
+        }
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--margins", default="0,0.05,0.1,0.2")
+    p.add_argument("--policy", default=None)
+    p.add_argument("--testset", default=str(DEFAULT_TESTSET))
+    p.add_argument("--substeps", type=int, default=20)
+    p.add_argument("--budget-s", type=float, default=10.0)
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--limit", type=int, default=None, help="first N problems (a quick look)")
+    p.add_argument("--out", default=None)
+    args = p.parse_args()
+    episodes, _ = load_testset(args.testset)
+    if args.limit:
+        episodes = type(episodes)(
+            **{f.name: getattr(episodes, f.name)[: args.limit] for f in dataclasses.fields(episodes)}
+        )
+    needle, start, goal = episode_poses(episodes)
+    base = load_policy(args.policy)
+    checker = host.HostChecker()  # measures distances; the margin does not enter
+    rows, data = [], {"margins": {}}
+    for m in (float(x) for x in args.margins.split(",")):
+        policy = base.with_env(clearance_mm=m)
+        gate = host.HostChecker(clearance=m * 1e-3)
+        valid = [
+            i
+            for i in range(len(needle))
+            if not (gate.collides(needle[i, :3], needle[i, 3:], start[i, :3], start[i, 3:]))
+            and not gate.collides(needle[i, :3], needle[i, 3:], goal[i, :3], goal[i, 3:])
+        ]
+        entry = {"valid": len(valid), "substeps": policy_substeps(policy)}
+        for shield in (False, True):
+            plan = policy.plan(needle[valid], start[valid], goal[valid], check_grasp=False, shield=shield)
+            name = "shielded" if shield else "bare"
+            clear = [
+                checker.path_clearance(needle[valid][j], plan.poses[j][: plan.steps[j] + 1], args.substeps)
+                for j in np.nonzero(plan.success)[0]
+            ]
+            entry[name] = {"success_rate": float(plan.success.mean()), "clearance": clearance_stats(clear)}
+            if shield and m == 0.0:
+                data["reachability"] = reachability(plan, start[valid])
+        solved = bitstar(episodes, valid, m, args.workers, args.budget_s)
+        ok = [i for i in valid if solved.get(i, {}).get("solved")]
+        clear = [checker.path_clearance(needle[i], np.asarray(solved[i]["poses"]), args.substeps) for i in ok]
+        times = [solved[i]["plan_time_s"] for i in ok]
+        entry["bitstar"] = {
+            "success_rate": len(ok) / max(1, len(valid)),
+            "plan_time_median_s": float(np.median(times)) if times else None,
+            "clearance": clearance_stats(clear),
+        }
+        data["margins"][str(m)] = entry
+        print(json.dumps({"clearance_mm": m, **entry}), flush=True)
+        c = lambda e: e["clearance"]  # noqa: E731
+        rows.append(
+            f"| {m:g} | {entry['substeps']} | {entry['valid']} | {entry['bare']['success_rate']:.3f} | "
+            f"{entry['shielded']['success_rate']:.3f} | {entry['bitstar']['success_rate']:.3f} | "
+            + " | ".join(
+                f"{c(entry[k]).get('p1_mm', float('nan')):.3f} / {c(entry[k]).get('median_mm', float('nan')):.3f}"
+                f" ({c(entry[k]).get('penetrating', 0)})"
+                for k in ("shielded", "bitstar")
+            )
+            + " |"
+        )
+    lines = [
+        f"paper300, shipped policy and BIT* (R); clearance re-checked at {args.substeps} poses per step "
+        "(CPU MuJoCo mj_geomDistance): 1st percentile / median of each path's smallest clearance, mm "
+        "(paths that penetrate).",
+        "",
+        "| margin (mm) | env sub-steps | valid problems | policy bare | policy shielded | BIT* (R) | "
+        "clearance, policy shielded | clearance, BIT* (R) |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | --- | --- |",
+        *rows,
+    ]
+    if "reachability" in data:
+        r = data["reachability"]
+        lines += ["", "Reachability of the shielded plans at margin 0 (dVRK PSM + LND joint limits):", ""]
+        lines += [
+            "| RCM placement | plans | whole path within limits | out-of-limit poses by joint | joint path, median |"
+        ]
+        lines += ["| --- | ---: | ---: | --- | --- |"]
+        for name in ("start", "fixed"):
+            x = r[name]
+            jp = ", ".join(f"{k} {v:.2f}" for k, v in x["joint_path_median"].items())
+            lines.append(
+                f"| {name} | {x['plans']} | {x['all_reachable_share']:.3f} | {x['out_of_limit_poses_by_joint'] or '-'} | {jp} |"
+            )
+    print("\n".join(lines))
+    write_results(args.out, "clearance", lines, data)
+
+
+def policy_substeps(policy) -> int:
+    from regrasp_mjx.env import RegraspEnv
+
+    return RegraspEnv(policy.env_config).substeps
+
+
+if __name__ == "__main__":
+    main()
