@@ -201,9 +201,54 @@ def joint_trajectory(base, poses, q_ref=None) -> JointTrajectory:
     return JointTrajectory(np.stack(qs), np.array(ok), tuple(bad))
 
 
+def average_pose(poses) -> np.ndarray:
+    """The mean position and the average orientation (the principal eigenvector of the quaternions'
+    scatter matrix, Markley et al. 2007) of poses ``[N, 7]``: e.g. where to put one port for a set
+    of tool poses, ``base_behind(average_pose(starts))``."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 7)
+    _, vectors = np.linalg.eigh(poses[:, 3:].T @ poses[:, 3:])
+    quat = vectors[:, -1] * (1.0 if vectors[0, -1] >= 0 else -1.0)
+    return np.r_[poses[:, :3].mean(0), quat]
+
+
 def base_behind(tool_pose, distance: float = 0.12) -> np.ndarray:
     """A PSM base (RCM) frame for which ``tool_pose`` (4x4 or 7-vector) is the neutral configuration:
     outer joints and wrist at zero, the pitch axis ``distance`` from the RCM along the shaft (4x4).
     A way to place a port where a tool already is (the experiments' set-up)."""
     q = np.array([0.0, 0.0, distance - PITCH_FROM_RCM, 0.0, 0.0, 0.0])
     return as_matrix(tool_pose) @ np.linalg.inv(forward_kinematics(q))
+
+
+def within_limits_jax(base_inv, pos, quat):
+    """JAX: whether the PSM whose base frame's inverse is ``base_inv`` (``[4, 4]``, in the poses'
+    frame) reaches tool-tip poses ``pos [3]``, ``quat [4]`` (wxyz) within every joint limit. The
+    same closed form as :func:`inverse_kinematics` (the roll taken nearest zero, where its +-260
+    degree range matters least), for checks inside jitted planners; vmap for batches."""
+    import jax.numpy as jnp
+
+    w, x, y, z = quat[0], quat[1], quat[2], quat[3]
+    rot = jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    r = base_inv[:3, :3] @ rot
+    p = base_inv[:3, :3] @ pos + base_inv[:3, 3]
+    xa = r[:, 0]
+    towards = jnp.dot(p, xa) * xa - p
+    pitch_point = p + WRIST_LINK * towards / jnp.maximum(jnp.linalg.norm(towards), 1e-12)
+    dist = jnp.linalg.norm(pitch_point)
+    shaft = pitch_point / dist
+    q3 = dist - PITCH_FROM_RCM
+    q2 = jnp.arcsin(jnp.clip(-shaft[1], -1.0, 1.0))
+    q1 = jnp.arctan2(shaft[0], -shaft[2])
+    s1, c1, s2, c2 = jnp.sin(q1), jnp.cos(q1), jnp.sin(q2), jnp.cos(q2)
+    r03 = jnp.array([[-s1 * s2, -c1, s1 * c2], [-c2, 0.0, -s2], [s2 * c1, -s1, -c1 * c2]])  # forward_kinematics(upto=3)
+    m = r03.T @ r
+    q5 = jnp.arcsin(jnp.clip(m[2, 0], -1.0, 1.0))
+    q4 = jnp.arctan2(-m[1, 0], -m[0, 0])
+    q6 = jnp.arctan2(-m[2, 1], m[2, 2])
+    q = jnp.stack([q1, q2, q3, q4, q5, q6])
+    return jnp.all((q >= jnp.asarray(Q_MIN)) & (q <= jnp.asarray(Q_MAX)))

@@ -337,7 +337,7 @@ class Policy:
 
     def _make_planner(self, camera: bool, shield: bool):
         """The jitted program of :meth:`_planner`, taking the weights as its first argument."""
-        from regrasp_mjx import geometry
+        from regrasp_mjx import dvrk, geometry
         from regrasp_mjx.env import RegraspEnv
         from regrasp_mjx.sampling import Episode
 
@@ -346,8 +346,17 @@ class Policy:
 
         apply = _members_apply(tuple(self.contract["network"]["hidden"]))
 
-        def rollout(weights, needle, start, goal):
+        def rollout(weights, needle, start, goal, base_inv=None):
+            """``base_inv`` ``[B, 4, 4]`` (optional): the inverse of each query's regrasping PSM base
+            frame in e_g; the shield then also replaces actions that leave the joint limits."""
             b = needle.shape[0]
+
+            def reach(st, rows=None):
+                if base_inv is None:
+                    return jnp.ones(st.pipeline_state.t.shape, bool)
+                es, binv = st.pipeline_state, base_inv if rows is None else base_inv[rows]
+                return jax.vmap(dvrk.within_limits_jax)(binv, es.ee_pos, es.ee_quat)
+
             zeros = jnp.zeros((b, 4))
             episodes = Episode(
                 needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0]
@@ -382,7 +391,7 @@ class Policy:
                     sub = jax.tree.map(lambda x: x[safe_rows], state)
                     cands = shield_candidates([m[safe_rows] for m in members], a[safe_rows], key)
                     tried = jax.vmap(step, in_axes=(None, 0))(sub, cands)  # [K, size, ...]
-                    free = tried.metrics["collision"] == 0
+                    free = (tried.metrics["collision"] == 0) & jax.vmap(lambda s: reach(s, safe_rows))(tried)
                     first, cols = jnp.argmax(free, axis=0), jnp.arange(size)  # the first free candidate
                     found = jnp.any(free, axis=0)
                     put = lambda x, y: x.at[jnp.where(found, rows, b)].set(y[first, cols], mode="drop")  # noqa: E731
@@ -397,7 +406,7 @@ class Policy:
                 a = mean_action(members)
                 nxt = step(state, a)
                 if shield:
-                    live_collides = (nxt.metrics["collision"] > 0) & (result[:, 0] == 0)
+                    live_collides = ((nxt.metrics["collision"] > 0) | ~reach(nxt)) & (result[:, 0] == 0)
                     # only steps where some live query's action collides pay for the alternatives
                     a, nxt = jax.lax.cond(
                         jnp.any(live_collides),
@@ -435,7 +444,7 @@ class Policy:
         task = env.config.task
         radius = env.needle_radius
 
-        def from_camera(weights, c_eg, c_er, c_n, goal_depth):
+        def from_camera(weights, c_eg, c_er, c_n, goal_depth, base_inv=None):
             pose = lambda x: (x[:, :3], x[:, 3:])  # noqa: E731
             join = lambda p: jnp.concatenate([p[0], p[1]], axis=-1)  # noqa: E731
             eg_inv = geometry.inverse(pose(c_eg))
@@ -449,7 +458,7 @@ class Policy:
             needle, start = join(needle), join(start)
             start = start.at[:, 3:].set(geometry.canonical_quat(start[:, 3:]))
             needle = needle.at[:, 3:].set(geometry.canonical_quat(needle[:, 3:]))
-            valid, result, poses, actions = rollout(weights, needle, start, goal)
+            valid, result, poses, actions = rollout(weights, needle, start, goal, base_inv)
             cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
             return valid, result, poses, actions, cam
 
@@ -622,6 +631,7 @@ class Policy:
         check_grasp: bool = True,
         shield: bool = True,
         psm: dict | None = None,
+        respect_limits: bool = True,
     ) -> Plan:
         """Plans from three camera-frame poses (7-vectors or ``[B, 7]``), as on a real dVRK
         (SPEC "Deployment"); the plan's poses come in the e_g frame and the camera frame.
@@ -631,7 +641,9 @@ class Policy:
         of each PSM's base, i.e. remote-centre-of-motion, frame; ``grasping_base`` optional). The
         plan then also holds the regrasping arm's joint trajectory with a per-pose joint-limit
         verdict (``Plan.joints``) and the grasping arm's joints at its pose (``Plan.grasping_joints``)
-        from :mod:`regrasp_mjx.dvrk`; out-of-limit poses are reported, not changed."""
+        from :mod:`regrasp_mjx.dvrk`; out-of-limit poses are reported, not changed. With
+        ``respect_limits`` (and the shield) the shield also replaces an action whose end pose would
+        leave the regrasping arm's joint limits, as it replaces a colliding one."""
         c_eg = check_poses("grasping_ee", grasping_ee)
         c_er = check_poses("regrasping_ee", regrasping_ee)
         c_n = check_poses("needle", needle)
@@ -648,7 +660,17 @@ class Policy:
             rel_p, rel_q = np.stack([r[0] for r in rel]), np.stack([r[1] for r in rel])
             nearest = self._check_grasp(np.concatenate([rel_p, rel_q], axis=1))
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
-        out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(depth))
+        base_inv = None
+        if psm is not None:
+            from regrasp_mjx import dvrk
+
+            unknown = set(psm) - {"regrasping_base", "grasping_base"}
+            if "regrasping_base" not in psm or unknown:
+                raise PoseError(f"psm={sorted(psm)} is not accepted: a dict with 'regrasping_base' (and 'grasping_base')")
+            if respect_limits and shield:  # the base frame's inverse in e_g, per query
+                base = np.linalg.inv(dvrk.as_matrix(psm["regrasping_base"]))
+                base_inv = f32([base @ dvrk.pose_matrix(e) for e in c_eg])
+        out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(depth), base_inv)
         plan = self._finish(out, single, True, nearest)
         return plan if psm is None else _with_joints(plan, psm, c_eg, single)
 
@@ -681,9 +703,6 @@ class Policy:
 def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
     from regrasp_mjx import dvrk
 
-    unknown = set(psm) - {"regrasping_base", "grasping_base"}
-    if "regrasping_base" not in psm or unknown:
-        raise PoseError(f"psm={sorted(psm)} is not accepted: a dict with 'regrasping_base' (and 'grasping_base')")
     steps = np.atleast_1d(plan.steps)
     cam = plan.poses_camera[None] if single else plan.poses_camera
     joints = [dvrk.joint_trajectory(psm["regrasping_base"], cam[i][: steps[i] + 1]) for i in range(len(cam))]

@@ -121,3 +121,27 @@ def _as_pose(t: np.ndarray) -> np.ndarray:
     w = math.sqrt(max(1e-12, 1.0 + np.trace(t[:3, :3]))) / 2.0
     q = np.array([w, (t[2, 1] - t[1, 2]) / (4 * w), (t[0, 2] - t[2, 0]) / (4 * w), (t[1, 0] - t[0, 1]) / (4 * w)])
     return np.r_[t[:3, 3], q / np.linalg.norm(q)]
+
+
+def test_limit_aware_shield_keeps_a_fixed_port_within_the_joint_limits(paper_testset):
+    """One port for all of paper300 (0.12 m behind the average start): the plans of rows 175 and 229
+    swing the wrist yaw past its limit; with the shield also checking the limits they do not."""
+    episodes, _ = paper_testset
+    needle, start, _ = episode_poses(episodes)
+    base = dvrk.base_behind(dvrk.average_pose(start))
+    rows = [175, 229]
+    identity = np.tile([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], (len(rows), 1))
+    depth = np.asarray(episodes.goal_depth)[rows] * 1e3
+    policy = load_policy()
+    for respect, reachable in ((False, False), (True, True)):
+        plan = policy.plan_from_camera(
+            identity,
+            start[rows],
+            needle[rows],
+            goal_depth_mm=depth,
+            check_grasp=False,
+            psm={"regrasping_base": base},
+            respect_limits=respect,
+        )
+        assert plan.success.all()
+        assert all(j.all_reachable == reachable for j in plan.joints)

@@ -25,7 +25,8 @@ def test_needle_capsules_lie_on_the_arc():
     alpha = np.mod(np.arctan2(ends[:, 2], ends[:, 1]), 2 * np.pi)
     alpha = np.unique(np.round(alpha, 6))
     np.testing.assert_allclose(alpha, np.linspace(np.pi / 2, 3 * np.pi / 2, 19), atol=5e-5)  # 0.1 micron in the XML
-    assert all(c.radius == pytest.approx(0.00025) for c in caps)
+    # the wire radius plus the chord's sagitta (conservative_needle): R (1 - cos 5 deg) = 20.56 um
+    assert all(c.radius == pytest.approx(0.00025 + 0.0054 * (1 - math.cos(math.radians(5.0))), abs=1e-7) for c in caps)
     for c0, c1 in zip(caps, caps[1:]):  # a chain without gaps: neighbours share an end point
         gaps = [np.linalg.norm(a - b) for a in (c0.p0, c0.p1) for b in (c1.p0, c1.p1)]
         assert min(gaps) < 1e-9
@@ -36,7 +37,9 @@ def test_scene_config_changes_the_geometry():
     jaw = scene.regrasp_capsules[0]
     tip = jaw.p0 if np.linalg.norm(jaw.p0) > np.linalg.norm(jaw.p1) else jaw.p1
     assert math.degrees(math.atan2(abs(tip[1]), tip[2])) == pytest.approx(20.0, abs=1e-6)
-    assert scene.needle_capsules[0].radius == pytest.approx(0.0003)
+    assert scene.needle_capsules[0].radius == pytest.approx(
+        0.0003 + 0.006 * (1 - math.cos(math.radians(5.0))), abs=1e-7
+    )
     assert np.linalg.norm(scene.needle_capsules[3].p0) == pytest.approx(0.006, abs=1e-8)
 
 
