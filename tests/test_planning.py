@@ -131,7 +131,8 @@ def test_bad_planner_inputs():
 
 # ---- the pool ----------------------------------------------------------------------------------
 def test_pool_survives_a_worker_that_raises_hangs_or_crashes():
-    with PlannerPool(2, plan_fn=faulty_plan, timeout_s=3.0, queue_size=8) as pool:
+    # 8 s: long enough for a fresh worker to import and start a job on a slow, busy 2-core machine
+    with PlannerPool(2, plan_fn=faulty_plan, timeout_s=8.0, queue_size=8) as pool:
         jobs = {
             pool.submit({"kind": k, "value": v}, payload=k + str(v)): k
             for k, v in [("ok", 1), ("raise", 0), ("hang", 0), ("crash", 0), ("ok", 2), ("ok", 3)]
