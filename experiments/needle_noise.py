@@ -11,7 +11,7 @@ about a random axis). Success and collisions are judged on the true needle.
   of the valid-grasp library).
 - ``closed``: ``Policy.execute`` with ``fuse=False, warmup_frames=1, stop_tolerance=1``: each step
   the policy acts on that step's frame and stops when that frame says the goal is reached.
-- ``closed, fused``: ``Policy.execute`` with its defaults: the frames so far averaged, 5 frames
+- ``closed, fused``: ``Policy.execute`` with its defaults: the frames so far averaged, 10 frames
   before the first step, stop when the fused estimate is within 0.7 of the success tolerances.
 
     python experiments/needle_noise.py --sigmas 0,0.1,0.25,0.5,1 --biases 0,0.25,0.5 --out experiments/results
