@@ -490,9 +490,10 @@ class Policy:
         from regrasp_mjx import closed_loop
         from regrasp_mjx.env import RegraspEnv
 
-        if (kind, shield, fused, margin_mm, stop, warmup) not in self._planners:
+        setting = (kind, shield, fused, margin_mm, stop, warmup)
+        if setting not in self._planners:
             key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
-            key += (kind, shield, fused, margin_mm, stop, warmup)
+            key += setting
             if key not in _PLANNERS:
                 env = RegraspEnv(self.env_config)
                 guard = RegraspEnv(dataclasses.replace(self.env_config, clearance_mm=margin_mm)) if margin_mm else env
@@ -502,10 +503,18 @@ class Policy:
                     if kind == "execute"
                     else closed_loop.make_stepper(guard, apply, shield, stop)
                 )
-            self._planners[(kind, shield, fused, margin_mm, stop, warmup)] = functools.partial(
-                _PLANNERS[key], self._weights
-            )
-        return self._planners[(kind, shield, fused, margin_mm, stop, warmup)]
+            self._planners[setting] = functools.partial(_PLANNERS[key], self._weights)
+        return self._planners[setting]
+
+    def _estimate_inputs(self, needle: Any, ee_name: str, ee: Any, goal: Any, goal_depth_mm: Any):
+        """Checked ``[B, 7]`` needle, end-effector and goal poses (the goal grasp on ``needle`` by
+        default) and whether one query was given, for the closed-loop entry points."""
+        needle, ee = check_poses("needle", needle), check_poses(ee_name, ee)
+        single = needle.ndim == 1
+        needle, ee = np.atleast_2d(needle), np.atleast_2d(ee)
+        if goal is None:
+            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+        return needle, ee, np.atleast_2d(check_poses("goal", goal)), single
 
     def closed_loop_step(
         self,
@@ -526,12 +535,7 @@ class Policy:
         the shield checks the alternatives against the estimated needle, keeping
         ``shield_margin_mm`` from it (room for the estimate's error). ``at_goal`` holds within
         ``stop_tolerance`` of the success tolerances, as in :meth:`execute`."""
-        needle, ee = check_poses("needle", needle), check_poses("ee", ee)
-        single = needle.ndim == 1
-        needle, ee = np.atleast_2d(needle), np.atleast_2d(ee)
-        if goal is None:
-            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
-        goal = np.atleast_2d(check_poses("goal", goal))
+        needle, ee, goal, single = self._estimate_inputs(needle, "ee", ee, goal, goal_depth_mm)
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
         step = self._closed_loop("step", shield, margin_mm=float(shield_margin_mm), stop=float(stop_tolerance))
         a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t)))
@@ -568,11 +572,7 @@ class Policy:
         from regrasp_mjx.closed_loop import NeedleNoise
 
         noise = NeedleNoise() if noise is None else noise
-        needle, start = check_poses("needle", needle), check_poses("start", start)
-        needle, start = np.atleast_2d(needle), np.atleast_2d(start)
-        if goal is None:
-            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
-        goal = np.atleast_2d(check_poses("goal", goal))
+        needle, start, goal, _ = self._estimate_inputs(needle, "start", start, goal, goal_depth_mm)
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
         run = self._closed_loop(
             "execute", shield, bool(fuse), float(shield_margin_mm), float(stop_tolerance), int(warmup_frames)
