@@ -142,11 +142,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="PRNG seed (problems, student initialisation)")
     p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="test set .npz reported each iteration")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a DistillConfig field")
+    p.add_argument(
+        "--clearance-mm",
+        type=float,
+        default=None,
+        help="train the student at this clearance margin (the teacher's shield and lookahead keep it; "
+        "default: the teacher's own, usually 0)",
+    )
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     try:
         cfg = replace(DistillConfig(), seed=args.seed, **parse_overrides(args.set))
         teacher = load_policy(args.teacher)
+        if args.clearance_mm is not None:
+            teacher = teacher.with_env(clearance_mm=args.clearance_mm)
         testset, _ = load_testset(args.testset)
         final = distill(teacher, Path(args.out), cfg, testset, teacher_name=args.teacher, quiet=args.quiet)
     except (ConfigError, PolicyError, TestsetError) as err:

@@ -79,6 +79,28 @@ def test_twin_critics_take_the_minimum_target_and_both_regress_on_it():
     )
 
 
+def test_layer_norm_critic_normalises_every_hidden_layer():
+    # A layer norm after each hidden ReLU makes the critic blind to a positive rescaling of the layer
+    # before it (and of its bias): scaling the first layer by 7 changes no estimate. Without layer
+    # norm the ReLU network is positively homogeneous in that layer, so the estimate moves.
+    from regrasp_mjx.agents.ddpg_bc.networks import init_params, make_networks
+
+    for layer_norm in (True, False):
+        nets = make_networks(2, (8, 8), critics=2, critic_layer_norm=layer_norm)
+        _, critic = init_params(nets, jax.random.PRNGKey(0), 3, 2)
+        names = sorted(critic["params"])
+        assert names == (["LayerNorm_0", "LayerNorm_1"] if layer_norm else []) + ["hidden_0", "hidden_1", "hidden_2"]
+        x = jax.random.normal(jax.random.PRNGKey(1), (4, 5))
+        apply = lambda p, nets=nets, x=x: jax.vmap(nets.critic.apply, in_axes=(0, None))(p, x)  # noqa: E731
+        scaled = jax.tree_util.tree_map_with_path(
+            lambda path, v: v * 7.0 if "hidden_0" in jax.tree_util.keystr(path) else v, critic
+        )
+        same = np.allclose(apply(critic), apply(scaled), atol=1e-4)
+        assert same == layer_norm
+    with pytest.raises(ConfigError, match="critic_layer_norm=1 is not accepted"):
+        make_config("smoke", critic_layer_norm=1)
+
+
 def test_target_policy_noise_is_clipped():
     # std 10 with clip 0.1: the target action of row 1 (0.5) moves by exactly +-0.1, so its target is
     # -0.02 + 0.5 * 0.2 * (1 + 0.5 +- 0.1) = 0.13 +- 0.01; row 2 is terminal (1.0).
@@ -244,6 +266,12 @@ def test_actor_ema_and_cosine_learning_rate(easy_env, easy_demos):
     assert float(lr(total // 2)) == pytest.approx(0.55e-3, rel=1e-3)
     with pytest.raises(ValueError, match="needs a key"):
         learner.learn(ts, {k: v[:64] for k, v in easy_demos[1].items()})
+    # BC decay: a cosine from bc_coef to 0 over bc_decay_epochs epochs, then 0; off by default
+    assert float(learner.bc_coef(jnp.int32(10**6))) == pytest.approx(cfg.bc_coef)
+    decay = Learner(dataclasses.replace(cfg, bc_decay_epochs=2, bc_coef=0.01), easy_env)
+    span = 2 * cfg.iterations_per_epoch * cfg.updates_per_iteration
+    got = [float(decay.bc_coef(jnp.int32(u))) for u in (0, span // 2, span, 3 * span)]
+    assert got == pytest.approx([0.01, 0.005, 0.0, 0.0], abs=1e-9)
 
 
 def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):

@@ -79,10 +79,16 @@ class TrainConfig:
         a random direction, fixed per environment and iteration (its episodes). Evaluation stays
         noise-free.
       critics: 1 (the paper) or 2 (ours: TD3's clipped double Q, the target takes the minimum).
+      critic_layer_norm: a layer norm after each hidden layer of the critic (ours; off by default,
+        see experiments/RESULTS.md, "Table I over the paper's full 500 epochs"). The exported
+        actor is unchanged.
       target_noise, target_noise_clip: std and clip of the Gaussian noise on the target policy's
         action in the critic's target (ours: TD3's target policy smoothing; 0 = off).
       actor_ema: per-update decay of an exponential moving average of the actor's weights, which
         evaluation, model selection and export use (ours; 0 = off, the raw actor).
+      bc_decay_epochs: the BC coefficient falls by a cosine from ``bc_coef`` to 0 over this many
+        epochs and stays 0 after them (ours; 0 = constant, the paper). The demonstrations then
+        still fill a share of every batch for the critic.
       lr_decay_to: both learning rates follow a cosine from their value to this fraction of it
         over the configured epochs (ours; 1 = constant, the paper).
       distill: after the last epoch, each seed's exported policy teaches a student by DAgger with
@@ -127,10 +133,12 @@ class TrainConfig:
     obs_noise_mm: float = 0.0
     obs_bias_mm: float = 0.0
     critics: int = 2
+    critic_layer_norm: bool = False
     target_noise: float = 0.2
     target_noise_clip: float = 0.5
     actor_ema: float = 0.9995
     lr_decay_to: float = 0.1
+    bc_decay_epochs: int = 0
     distill: DistillConfig = DistillConfig(iterations=0)
     checkpoint_every: int = 1
     validation_size: int = 1000
@@ -162,6 +170,7 @@ class TrainConfig:
         positive_int("planner_workers", 0)
         positive_int("seed", 0)
         positive_int("devices", 0)
+        positive_int("bc_decay_epochs", 0)
         for name, lo, hi in (("gamma", 0.0, 0.9999), ("polyak", 0.0, 1.0), ("demo_fraction", 0.0, 0.99)):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and lo <= v <= hi):
@@ -172,6 +181,8 @@ class TrainConfig:
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
         if self.critics not in (1, 2):
             raise ConfigError(f"critics={self.critics!r} is not accepted: 1 (the paper) or 2 (clipped double Q)")
+        if not isinstance(self.critic_layer_norm, bool):
+            raise ConfigError(f"critic_layer_norm={self.critic_layer_norm!r} is not accepted: True or False")
         if not (isinstance(self.actor_ema, (int, float)) and 0.0 <= self.actor_ema < 1.0):
             raise ConfigError(f"actor_ema={self.actor_ema!r} is not accepted: a decay in [0, 1) (0 = off)")
         if not (isinstance(self.lr_decay_to, (int, float)) and 0.0 < self.lr_decay_to <= 1.0):

@@ -4,7 +4,9 @@ Observations are normalised by brax's running statistics (``brax.training.acme``
 +-5 standard deviations (as HER's ``clip_obs``). The actor ends in tanh: actions in [-1, 1].
 
 With ``critics=2`` (ours, TD3's clipped double Q) the critic's parameters carry a leading axis of
-two independently initialised critics; ``q`` then returns both estimates, ``[2, ...]``.
+two independently initialised critics; ``q`` then returns both estimates, ``[2, ...]``. With
+``critic_layer_norm`` (ours) each hidden layer of the critic ends in a layer norm (brax's MLP
+``layer_norm``), which bounds the features the critic can extrapolate from at a high replay ratio.
 """
 
 from __future__ import annotations
@@ -45,11 +47,13 @@ def normalize(obs: jax.Array, normalizer: Any) -> jax.Array:
     return running_statistics.normalize(obs, normalizer, max_abs_value=OBS_CLIP)
 
 
-def make_networks(action_size: int, hidden: Sequence[int] = (512, 512, 512), critics: int = 1) -> DDPGNetworks:
+def make_networks(
+    action_size: int, hidden: Sequence[int] = (512, 512, 512), critics: int = 1, critic_layer_norm: bool = False
+) -> DDPGNetworks:
     hidden = tuple(int(h) for h in hidden)
     return DDPGNetworks(
         actor=brax_networks.MLP(layer_sizes=hidden + (action_size,), activation=nn.relu),
-        critic=brax_networks.MLP(layer_sizes=hidden + (1,), activation=nn.relu),
+        critic=brax_networks.MLP(layer_sizes=hidden + (1,), activation=nn.relu, layer_norm=critic_layer_norm),
         critics=critics,
     )
 

@@ -87,7 +87,9 @@ class Learner:
     def __init__(self, config: TrainConfig, env: RegraspEnv | None = None):
         self.config = config
         self.env = env if env is not None else RegraspEnv(config.env)
-        self.nets: DDPGNetworks = make_networks(self.env.action_size, config.hidden, config.critics)
+        self.nets: DDPGNetworks = make_networks(
+            self.env.action_size, config.hidden, config.critics, config.critic_layer_norm
+        )
         self.actor_opt = optax.adam(self._learning_rate(config.lr_actor))
         self.critic_opt = optax.adam(self._learning_rate(config.lr_critic))
         self.devices = self._check_devices(config)
@@ -116,6 +118,15 @@ class Learner:
         if cfg.lr_decay_to >= 1.0:
             return lr
         return optax.cosine_decay_schedule(lr, decay_steps=cfg.total_updates, alpha=cfg.lr_decay_to)
+
+    def bc_coef(self, updates: jax.Array) -> jax.Array:
+        """The BC coefficient after ``updates`` gradient steps: ``bc_coef``, or its cosine decay to 0
+        over ``bc_decay_epochs`` epochs."""
+        cfg = self.config
+        if cfg.bc_decay_epochs == 0:
+            return jnp.asarray(cfg.bc_coef, jnp.float32)
+        span = cfg.bc_decay_epochs * cfg.iterations_per_epoch * cfg.updates_per_iteration
+        return optax.cosine_decay_schedule(cfg.bc_coef, decay_steps=span, alpha=0.0)(updates)
 
     def policy_params(self, ts: TrainingState) -> Any:
         """The actor that is evaluated, selected and exported: the moving average when ``actor_ema``
@@ -350,7 +361,15 @@ class Learner:
         # The BC term is a sum over the batch's demonstrations (the means are means): scaled by the
         # device count, its averaged gradient is the whole batch's sum.
         (_, a_metrics), a_grad = jax.value_and_grad(losses.actor_loss, has_aux=True)(
-            ts.actor, critic, batch, is_demo, policy, q, cfg.prm_coef, cfg.bc_coef * self.devices, cfg.action_l2
+            ts.actor,
+            critic,
+            batch,
+            is_demo,
+            policy,
+            q,
+            cfg.prm_coef,
+            self.bc_coef(ts.updates) * self.devices,
+            cfg.action_l2,
         )
         a_upd, actor_opt = self.actor_opt.update(self._pmean(a_grad), ts.actor_opt, ts.actor)
         actor = optax.apply_updates(ts.actor, a_upd)
