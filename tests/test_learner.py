@@ -266,12 +266,23 @@ def test_actor_ema_and_cosine_learning_rate(easy_env, easy_demos):
     assert float(lr(total // 2)) == pytest.approx(0.55e-3, rel=1e-3)
     with pytest.raises(ValueError, match="needs a key"):
         learner.learn(ts, {k: v[:64] for k, v in easy_demos[1].items()})
-    # BC decay: a cosine from bc_coef to 0 over bc_decay_epochs epochs, then 0; off by default
-    assert float(learner.bc_coef(jnp.int32(10**6))) == pytest.approx(cfg.bc_coef)
-    decay = Learner(dataclasses.replace(cfg, bc_decay_epochs=2, bc_coef=0.01), easy_env)
+    # BC decay: a cosine from bc_coef to bc_coef * bc_decay_to over bc_decay_epochs epochs, then
+    # flat; the action penalty follows it only with action_l2_decay; both constant by default
+    big = jnp.int32(10**6)
+    assert float(learner.bc_coef(big)) == pytest.approx(cfg.bc_coef)
+    assert float(learner.action_l2(big)) == pytest.approx(cfg.action_l2)
     span = 2 * cfg.iterations_per_epoch * cfg.updates_per_iteration
-    got = [float(decay.bc_coef(jnp.int32(u))) for u in (0, span // 2, span, 3 * span)]
-    assert got == pytest.approx([0.01, 0.005, 0.0, 0.0], abs=1e-9)
+    at = (0, span // 2, span, 3 * span)
+    decay = Learner(dataclasses.replace(cfg, bc_decay_epochs=2, bc_coef=0.01), easy_env)
+    assert [float(decay.bc_coef(jnp.int32(u))) for u in at] == pytest.approx([0.01, 0.005, 0.0, 0.0], abs=1e-9)
+    assert float(decay.action_l2(big)) == pytest.approx(cfg.action_l2)
+    floor = Learner(
+        dataclasses.replace(cfg, bc_decay_epochs=2, bc_coef=0.01, bc_decay_to=0.2, action_l2=2.0, action_l2_decay=True),
+        easy_env,
+    )
+    # cosine to 0.2: halfway is (1 + 0.2) / 2 = 0.6 of the start
+    assert [float(floor.bc_coef(jnp.int32(u))) for u in at] == pytest.approx([0.01, 0.006, 0.002, 0.002], abs=1e-9)
+    assert [float(floor.action_l2(jnp.int32(u))) for u in at] == pytest.approx([2.0, 1.2, 0.4, 0.4], abs=1e-6)
 
 
 def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):

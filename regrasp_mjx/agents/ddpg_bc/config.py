@@ -86,9 +86,12 @@ class TrainConfig:
         action in the critic's target (ours: TD3's target policy smoothing; 0 = off).
       actor_ema: per-update decay of an exponential moving average of the actor's weights, which
         evaluation, model selection and export use (ours; 0 = off, the raw actor).
-      bc_decay_epochs: the BC coefficient falls by a cosine from ``bc_coef`` to 0 over this many
-        epochs and stays 0 after them (ours; 0 = constant, the paper). The demonstrations then
-        still fill a share of every batch for the critic.
+      bc_decay_epochs: the BC coefficient falls by a cosine from ``bc_coef`` to ``bc_coef *
+        bc_decay_to`` over this many epochs and stays there (ours; 0 = constant, the paper). The
+        demonstrations still fill a share of every batch for the critic.
+      bc_decay_to: the fraction of ``bc_coef`` that BC decays to (ours; 0 = off at the end).
+      action_l2_decay: the action penalty ``action_l2`` follows the BC coefficient's schedule
+        (ours; off = constant, the paper).
       lr_decay_to: both learning rates follow a cosine from their value to this fraction of it
         over the configured epochs (ours; 1 = constant, the paper).
       distill: after the last epoch, each seed's exported policy teaches a student by DAgger with
@@ -139,6 +142,8 @@ class TrainConfig:
     actor_ema: float = 0.9995
     lr_decay_to: float = 0.1
     bc_decay_epochs: int = 0
+    bc_decay_to: float = 0.0
+    action_l2_decay: bool = False
     distill: DistillConfig = DistillConfig(iterations=0)
     checkpoint_every: int = 1
     validation_size: int = 1000
@@ -181,6 +186,10 @@ class TrainConfig:
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
         if self.critics not in (1, 2):
             raise ConfigError(f"critics={self.critics!r} is not accepted: 1 (the paper) or 2 (clipped double Q)")
+        if not (isinstance(self.bc_decay_to, (int, float)) and 0.0 <= self.bc_decay_to <= 1.0):
+            raise ConfigError(f"bc_decay_to={self.bc_decay_to!r} is not accepted: a fraction in [0, 1]")
+        if not isinstance(self.action_l2_decay, bool):
+            raise ConfigError(f"action_l2_decay={self.action_l2_decay!r} is not accepted: True or False")
         if not isinstance(self.critic_layer_norm, bool):
             raise ConfigError(f"critic_layer_norm={self.critic_layer_norm!r} is not accepted: True or False")
         if not (isinstance(self.actor_ema, (int, float)) and 0.0 <= self.actor_ema < 1.0):

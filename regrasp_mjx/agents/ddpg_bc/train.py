@@ -119,14 +119,22 @@ class Learner:
             return lr
         return optax.cosine_decay_schedule(lr, decay_steps=cfg.total_updates, alpha=cfg.lr_decay_to)
 
-    def bc_coef(self, updates: jax.Array) -> jax.Array:
-        """The BC coefficient after ``updates`` gradient steps: ``bc_coef``, or its cosine decay to 0
-        over ``bc_decay_epochs`` epochs."""
+    def regulariser_scale(self, updates: jax.Array) -> jax.Array:
+        """The factor on the BC coefficient (and, with ``action_l2_decay``, on the action penalty)
+        after ``updates`` gradient steps: 1, or a cosine from 1 to ``bc_decay_to`` over
+        ``bc_decay_epochs`` epochs, then ``bc_decay_to``."""
         cfg = self.config
         if cfg.bc_decay_epochs == 0:
-            return jnp.asarray(cfg.bc_coef, jnp.float32)
+            return jnp.ones((), jnp.float32)
         span = cfg.bc_decay_epochs * cfg.iterations_per_epoch * cfg.updates_per_iteration
-        return optax.cosine_decay_schedule(cfg.bc_coef, decay_steps=span, alpha=0.0)(updates)
+        return optax.cosine_decay_schedule(1.0, decay_steps=span, alpha=cfg.bc_decay_to)(updates)
+
+    def bc_coef(self, updates: jax.Array) -> jax.Array:
+        return self.config.bc_coef * self.regulariser_scale(updates)
+
+    def action_l2(self, updates: jax.Array) -> jax.Array:
+        scale = self.regulariser_scale(updates) if self.config.action_l2_decay else 1.0
+        return self.config.action_l2 * scale
 
     def policy_params(self, ts: TrainingState) -> Any:
         """The actor that is evaluated, selected and exported: the moving average when ``actor_ema``
