@@ -719,8 +719,9 @@ def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
 
 
 def shipped_policies() -> list[str]:
-    """Names of the policies shipped in the package (``default``: one network; ``ensemble3``: the
-    earlier three-network ensemble)."""
+    """Names of the policies shipped in the package (``default``: one network; ``student_v1``: the
+    earlier default, distilled before the conservative needle model; ``ensemble3``: the earlier
+    three-network ensemble)."""
     return sorted(p.name for p in SHIPPED.iterdir() if (p / "policy.json").is_file())
 
 

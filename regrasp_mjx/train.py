@@ -516,7 +516,14 @@ def main(argv: list[str] | None = None) -> int:
         "--devices",
         type=int,
         default=None,
-        help="split the environments over this many local GPUs, data parallel (0 = all; default 1)",
+        help="use this many local GPUs (0 = all; default 1), shared as --shard says",
+    )
+    p.add_argument(
+        "--shard",
+        default=None,
+        choices=("auto", "members", "envs"),
+        help="members: whole seeds/settings per GPU, no communication; envs: data parallel (environments, "
+        "buffer and batches split, gradients averaged); auto (default): members when they divide evenly",
     )
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint")
     p.add_argument("--demos", default=None, help="a demonstration folder (default: build OUT/demos)")
@@ -538,6 +545,8 @@ def main(argv: list[str] | None = None) -> int:
             overrides["num_seeds"] = args.seeds
         if args.devices is not None:
             overrides["devices"] = args.devices
+        if args.shard is not None:
+            overrides["shard"] = args.shard
         cfg = make_config(args.preset, args.exploration, args.learner, **overrides)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)

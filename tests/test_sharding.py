@@ -37,6 +37,7 @@ def _config(devices: int, **kw):
         polyak=0.5,
         num_seeds=2,
         devices=devices,
+        shard="envs",
         # target-policy noise is drawn per device, so the halves of a batch get other draws than the
         # whole: off here; twin critics and the actor EMA are on (the defaults) and must agree
         target_noise=0.0,
@@ -135,6 +136,34 @@ def _child() -> dict:
     except Exception as err:  # noqa: BLE001 - the message is what is checked
         out["indivisible"] = str(err)
 
+    # Whole members per device (shard="members"): each device runs one seed's learner, with no
+    # communication, exactly as one device runs both.
+    mem = Learner(_config(2, shard="members"), env)
+    tso, tsm = one.init(demos), mem.init(demos)
+    for i in range(3):
+        tso, mo, oo, po = one.iteration(tso, jnp.float32(0.3))
+        tsm, mm, om, pm = mem.iteration(tsm, jnp.float32(0.3))
+        if i == 0:  # a planner chunk for seed 1 only, added on the device that holds it
+            tso, tsm = one.add_online(tso, jnp.int32(1), chunk), mem.add_online(tsm, jnp.int32(1), chunk)
+    out["members_params"] = diff((tso.actor, tso.critic, tso.ema_actor), (tsm.actor, tsm.critic, tsm.ema_actor))
+    out["members_normalizer"] = diff(
+        (tso.normalizer.count, tso.normalizer.mean, tso.normalizer.std),
+        (tsm.normalizer.count, tsm.normalizer.mean, tsm.normalizer.std),
+    )
+    out["members_outcome"] = diff((oo, po.t, mo), (om, pm.t, mm))
+    out["members_insert_index"] = [int(i) for i in tsm.online.current_index]
+    out["members_local_shape"] = [
+        list(s.data.shape) for s in jax.tree.leaves(tsm.actor)[0].addressable_shards
+    ]  # one seed per device
+    out["members_moved"] = diff(tsm.actor, mem.init(demos).actor)
+    out["members_auto"] = Learner(_config(2, shard="auto"), env).shard
+    out["members_auto_odd"] = Learner(_config(2, shard="auto", num_seeds=3), env).shard
+    try:
+        Learner(_config(2, shard="members", num_seeds=3), env)
+        out["members_indivisible"] = "accepted"
+    except Exception as err:  # noqa: BLE001 - the message is what is checked
+        out["members_indivisible"] = str(err)
+
     # Whole iterations on two devices: rollouts split, replicas stay identical, one trace.
     for _ in range(2):
         ts2, metrics, outcome, problems = two.iteration(ts2, jnp.float32(0.3))
@@ -185,6 +214,18 @@ def test_sharded_iterations_keep_replicas_identical(child):
     assert child["finite"]
     assert child["trace_count"] == 1
     assert child["insert_index_after"] == 2 * 4 * 12  # two iterations of 4 envs x 12 steps per device
+
+
+def test_members_per_device_compute_what_one_device_computes(child):
+    assert child["members_moved"] > 1e-3  # three iterations did something
+    assert child["members_params"] < 1e-5, child
+    assert child["members_normalizer"] < 1e-5, child
+    assert child["members_outcome"] < 1e-5, child
+    # seed 1's buffer got the 64 planner transitions on top of 3 iterations x 8 envs x 12 steps
+    assert child["members_insert_index"] == [3 * 8 * 12, 3 * 8 * 12 + 64]
+    assert all(shape[0] == 1 for shape in child["members_local_shape"])
+    assert child["members_auto"] == "members" and child["members_auto_odd"] == "envs"
+    assert "does not divide the 3 learners" in child["members_indivisible"]
 
 
 def test_devices_must_exist_and_divide_the_sizes():

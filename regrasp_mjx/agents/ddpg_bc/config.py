@@ -103,9 +103,13 @@ class TrainConfig:
       seed: PRNG seed of everything but the planners' own sampling.
       num_seeds: independent learners with seeds ``seed .. seed + num_seeds - 1`` trained as one
         vmapped program (ours; Table I's three seeds in one run).
-      devices: local devices the environments, buffer and batches are split over, data parallel with
-        replicated networks and averaged gradients (ours; 0 = all that JAX sees). ``num_envs``,
-        ``buffer_size``, ``demo_chunk`` and both parts of the batch must divide by it.
+      devices: local devices the run uses (ours; 0 = all that JAX sees), shared as ``shard`` says.
+      shard: how several devices share the work (ours): ``members`` puts whole learners (seeds x
+        settings) on each device, with no communication, each learner computing what it computes
+        on one device; ``envs`` splits the environments, buffer and batches, data parallel with
+        replicated networks and averaged gradients (``num_envs``, ``buffer_size``, ``demo_chunk``
+        and both parts of the batch must divide by the device count); ``auto`` (default) takes
+        ``members`` when the learners divide evenly over the devices, else ``envs``.
     """
 
     env: EnvConfig = EnvConfig(check_actions=False)
@@ -150,6 +154,7 @@ class TrainConfig:
     seed: int = 0
     num_seeds: int = 1
     devices: int = 1
+    shard: str = "auto"
 
     def __post_init__(self) -> None:
         def positive_int(name: str, lo: int = 1) -> None:
@@ -204,6 +209,8 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 5):
                 raise ConfigError(f"{name}={v!r} is not accepted: a noise level in [0, 5] mm")
+        if self.shard not in ("auto", "members", "envs"):
+            raise ConfigError(f"shard={self.shard!r} is not accepted: one of 'auto', 'members', 'envs'")
         names = [s[0] for s in self.settings]
         if len(set(names)) != len(names) or not all(isinstance(n, str) and n for n in names):
             raise ConfigError(f"settings={names!r} is not accepted: distinct, non-empty names")

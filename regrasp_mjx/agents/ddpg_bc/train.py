@@ -16,7 +16,11 @@ seeds of Table I cost about what one costs on a GPU. Every state leaf has that l
 a single seed); the single-learner functions (``init_one``, ``update``, ``iteration_one``,
 ``evaluate_one``) are the ones vmapped.
 
-Devices are data parallel (``devices`` in the config): the iteration runs under ``shard_map`` on a
+Several devices (``devices`` in the config) share the work in one of two ways (``shard``). With
+``members`` (the default when the members divide evenly over the devices), each device holds whole
+learners: the leading member axis of every state leaf is split over a one-axis mesh, the iteration
+runs under ``shard_map`` with no collectives at all, and each learner computes exactly what it
+computes on one device. With ``envs`` they are data parallel: the iteration runs under ``shard_map`` on a
 one-axis mesh ``"data"``. Each device rolls out ``num_envs / devices`` environments into its own
 slice of the online buffer and samples ``1 / devices`` of every batch from it (and from its copy of
 the demonstrations); networks, optimisers and the normaliser are replicated, gradients are averaged
@@ -92,9 +96,12 @@ class Learner:
         )
         self.actor_opt = optax.adam(self._learning_rate(config.lr_actor))
         self.critic_opt = optax.adam(self._learning_rate(config.lr_critic))
-        self.devices = self._check_devices(config)
+        n, self.shard = self._check_devices(config)
+        # ``devices``: the data-parallel split (1 when whole members are placed per device)
+        self.devices = n if self.shard == "envs" else 1
+        self.member_devices = n if self.shard == "members" else 1
         self.axis = AXIS if self.devices > 1 else None  # collectives only with several devices
-        self.mesh = Mesh(np.array(jax.devices()[: self.devices]), (AXIS,))
+        self.mesh = Mesh(np.array(jax.devices()[:n]), (AXIS,))
         self.local_envs = config.num_envs // self.devices
         # Each device's slice of the online buffer, and its share of every batch.
         self.online_buffer = fbx.make_item_buffer(
@@ -142,7 +149,8 @@ class Learner:
         return ts.ema_actor if self.config.actor_ema > 0 else ts.actor
 
     @staticmethod
-    def _check_devices(cfg: TrainConfig) -> int:
+    def _check_devices(cfg: TrainConfig) -> tuple[int, str]:
+        """``(devices, shard)``: the device count in use and how the work is split over them."""
         available = jax.devices()
         n = cfg.devices or len(available)
         if n > len(available):
@@ -150,6 +158,19 @@ class Learner:
                 f"devices={cfg.devices} is not accepted: JAX sees {len(available)} "
                 f"{jax.default_backend()} device(s); accepted: 0 (all) or 1..{len(available)}"
             )
+        members = cfg.num_members
+        shard = cfg.shard
+        if shard == "auto":
+            shard = "members" if n > 1 and members % n == 0 else "envs"
+        if n == 1:
+            return n, "envs"
+        if shard == "members":
+            if members % n:
+                raise ConfigError(
+                    f"shard='members' with devices={n} does not divide the {members} learners (seeds x "
+                    "settings); accepted: a multiple of the device count, or shard='envs'"
+                )
+            return n, shard
         for name, value in (
             ("num_envs", cfg.num_envs),
             ("buffer_size", cfg.buffer_size),
@@ -161,12 +182,15 @@ class Learner:
                 raise ConfigError(
                     f"devices={n} does not divide {name} ({value}); accepted: sizes that split evenly over the devices"
                 )
-        return n
+        return n, shard
 
     # ---- placement ----------------------------------------------------------------------------
     def state_specs(self, ts: TrainingState) -> TrainingState:
-        """Partition specs of a state: the online buffer's transitions split along the buffer's
-        length (``[seed, 1, length, ...]``), everything else replicated."""
+        """Partition specs of a state: with whole members per device, every leaf split along its
+        leading member axis; data parallel, the online buffer's transitions split along the buffer's
+        length (``[seed, 1, length, ...]``) and everything else replicated."""
+        if self.member_devices > 1:
+            return jax.tree.map(lambda _: P(AXIS), ts)
         specs = jax.tree.map(lambda _: P(), ts)
         experience = jax.tree.map(lambda _: P(None, None, AXIS), ts.online.experience)
         return specs.replace(online=specs.online.replace(experience=experience))
@@ -427,12 +451,16 @@ class Learner:
         program, and compiles the same loop auto-partitioned."""
         self.trace_count += 1
         random_eps = jnp.broadcast_to(random_eps, ts.iteration.shape)  # one for all, or one per member
-        split_envs = NamedSharding(self.mesh, P(None, AXIS))
-        keys = jax.lax.with_sharding_constraint(jax.vmap(self._reset_keys)(ts.key), split_envs)
-        first = jax.lax.with_sharding_constraint(jax.vmap(jax.vmap(self.env.reset))(keys), split_envs)
+        by_member = self.member_devices > 1
+        split = P(AXIS) if by_member else P(None, AXIS)  # members, or each member's environments
+        keys = jax.lax.with_sharding_constraint(jax.vmap(self._reset_keys)(ts.key), NamedSharding(self.mesh, split))
+        first = jax.lax.with_sharding_constraint(
+            jax.vmap(jax.vmap(self.env.reset))(keys), NamedSharding(self.mesh, split)
+        )
         specs = self.state_specs(ts)
         body = jax.vmap(self.iteration_one, in_axes=(0, 0, 0))
-        ts, metrics, outcome = self._shard_map(body, (specs, P(None, AXIS), P()), (specs, P(), P(None, AXIS)))(
+        per_member = P(AXIS) if by_member else P()
+        ts, metrics, outcome = self._shard_map(body, (specs, split, per_member), (specs, per_member, split))(
             ts, first, random_eps
         )
         return ts, metrics, outcome, first.pipeline_state
@@ -441,7 +469,7 @@ class Learner:
         """Adds a chunk of planner demonstrations to one seed's online buffer (and normaliser); with
         several devices each adds its share of the chunk to its slice."""
 
-        def body(ts, member, chunk):
+        def add(ts, member, chunk):
             pick = lambda tree: jax.tree.map(lambda x: x[member], tree)  # noqa: E731
             put = lambda tree, one: jax.tree.map(lambda x, y: x.at[member].set(y), tree, one)  # noqa: E731
             online = self.online_buffer.add(pick(ts.online), chunk)
@@ -449,7 +477,16 @@ class Learner:
             return ts.replace(online=put(ts.online, online), normalizer=put(ts.normalizer, normalizer))
 
         specs = self.state_specs(ts)
-        return self._shard_map(body, (specs, P(), P(AXIS)), specs)(ts, member, chunk)
+        if self.member_devices == 1:
+            return self._shard_map(add, (specs, P(), P(AXIS)), specs)(ts, member, chunk)
+
+        def own(ts, member, chunk):
+            # whole members per device: only the device holding ``member`` adds the whole chunk
+            local = member - jax.lax.axis_index(AXIS) * ts.iteration.shape[0]
+            mine = (local >= 0) & (local < ts.iteration.shape[0])
+            return jax.lax.cond(mine, add, lambda ts, *_: ts, ts, jnp.clip(local, 0, ts.iteration.shape[0] - 1), chunk)
+
+        return self._shard_map(own, (specs, P(), P()), specs)(ts, member, chunk)
 
     # ---- evaluation ---------------------------------------------------------------------------
     def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode, critic: Any = None) -> dict[str, jax.Array]:
