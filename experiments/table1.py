@@ -28,7 +28,6 @@ import shutil
 import sys
 from pathlib import Path
 
-import numpy as np
 
 from regrasp_mjx import analysis
 
@@ -57,47 +56,6 @@ def train(args: argparse.Namespace) -> None:
     Run(cfg, out, Path(args.demos), Path(args.testset or DEFAULT_TESTSET), quiet=args.quiet).train(resume=resume)
 
 
-def _mean_std(xs) -> str:
-    xs = [x for x in xs if x is not None and np.isfinite(x)]
-    if not xs:
-        return "-"
-    return f"{np.mean(xs):.3f} ± {np.std(xs):.3f}" if len(xs) > 1 else f"{xs[0]:.3f}"
-
-
-def summarize(log: dict[int, dict[str, np.ndarray]], exported: list[dict]) -> dict:
-    """Per-seed numbers of one setting from its log rows and its exported policies' final evaluation.
-
-    Without the final evaluation (a run stopped after its last epoch), the exported policy's bare
-    success is read off the log: the test row of the epoch it was exported at (the last epoch of
-    best validation success), the same network and rollout."""
-    epochs, test = analysis.seed_band(log, "test.success_rate")
-    if not exported:
-        _, val = analysis.seed_band(log, "validation.success_rate")
-        at = [len(v) - 1 - int(np.argmax(v[::-1])) for v in val]  # the last epoch of the best
-        exported = [
-            {
-                "test": {"bare": {"success_rate": float(t[i])}, "shielded": {"success_rate": None}},
-                "best_epoch": int(epochs[i]),
-            }
-            for t, i in zip(test, at)
-        ]
-    _, coll = analysis.seed_band(log, "test.collision_rate")
-    _, path = analysis.seed_band(log, "test.path_length_mm")
-    return {
-        "seeds": sorted(log),
-        "epochs": int(next(iter(log.values()))["epoch"][-1]),
-        "last": test[:, -1].tolist(),
-        "last10": test[:, -10:].mean(1).tolist(),
-        "best": test.max(1).tolist(),
-        "collision_last": coll[:, -1].tolist(),
-        "path_last": path[:, -1].tolist(),
-        "exported": [m["test"]["bare"]["success_rate"] for m in exported],
-        "exported_shielded": [m["test"]["shielded"]["success_rate"] for m in exported],
-        "best_epoch": [m["best_epoch"] for m in exported],
-        "wall_s": float(max(cols["wall_s"].max() for cols in log.values())),
-    }
-
-
 def report(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -116,7 +74,7 @@ def report(args: argparse.Namespace) -> None:
     rows = {}
     for setting in [s for s in SETTINGS if s in where]:
         log = analysis.read_log(where[setting] / "log.jsonl", setting)
-        rows[setting] = summarize(log, [m for m in finals if m["setting"] == setting])
+        rows[setting] = analysis.summarize_setting(log, [m for m in finals if m["setting"] == setting])
     lines = [
         f"Bare policy (no shield) on paper300; {len(next(iter(rows.values()))['seeds'])} seeds per setting; "
         f"{next(iter(rows.values()))['epochs']} epochs; mean ± std over seeds.",
@@ -127,9 +85,9 @@ def report(args: argparse.Namespace) -> None:
     ]
     for setting, r in rows.items():
         lines.append(
-            f"| {LABEL[setting]} | {_mean_std(r['last'])} | {_mean_std(r['last10'])} | {_mean_std(r['best'])} | "
-            f"{_mean_std(r['exported'])} | {_mean_std(r['exported_shielded'])} | {_mean_std(r['collision_last'])} | "
-            f"{_mean_std(r['path_last'])} | {PAPER[setting][0]} |"
+            f"| {LABEL[setting]} | {analysis.mean_std(r['last'])} | {analysis.mean_std(r['last10'])} | {analysis.mean_std(r['best'])} | "
+            f"{analysis.mean_std(r['exported'])} | {analysis.mean_std(r['exported_shielded'])} | {analysis.mean_std(r['collision_last'])} | "
+            f"{analysis.mean_std(r['path_last'])} | {PAPER[setting][0]} |"
         )
     lines += ["", "Per seed (last epoch / exported, bare):", ""]
     for setting, r in rows.items():

@@ -127,6 +127,48 @@ def seed_band(log: dict[int, dict[str, np.ndarray]], column: str) -> tuple[np.nd
     return epochs, np.stack([cols[column][:n] for cols in log.values()])
 
 
+def mean_std(xs) -> str:
+    """``mean ± std`` of the finite values to three decimals (``-`` for none, the value for one)."""
+    xs = [x for x in xs if x is not None and np.isfinite(x)]
+    if not xs:
+        return "-"
+    return f"{np.mean(xs):.3f} ± {np.std(xs):.3f}" if len(xs) > 1 else f"{xs[0]:.3f}"
+
+
+def summarize_setting(log: dict[int, dict[str, np.ndarray]], exported: list[dict]) -> dict:
+    """Per-seed numbers of one setting from its log rows and its exported policies' final evaluation.
+
+    Without the final evaluation (a run stopped after its last epoch), the exported policy's bare
+    success is read off the log: the test row of the epoch it was exported at (the last epoch of
+    best validation success), the same network and rollout."""
+    epochs, test = seed_band(log, "test.success_rate")
+    if not exported:
+        _, val = seed_band(log, "validation.success_rate")
+        at = [len(v) - 1 - int(np.argmax(v[::-1])) for v in val]  # the last epoch of the best
+        exported = [
+            {
+                "test": {"bare": {"success_rate": float(t[i])}, "shielded": {"success_rate": None}},
+                "best_epoch": int(epochs[i]),
+            }
+            for t, i in zip(test, at)
+        ]
+    _, coll = seed_band(log, "test.collision_rate")
+    _, path = seed_band(log, "test.path_length_mm")
+    return {
+        "seeds": sorted(log),
+        "epochs": int(next(iter(log.values()))["epoch"][-1]),
+        "last": test[:, -1].tolist(),
+        "last10": test[:, -10:].mean(1).tolist(),
+        "best": test.max(1).tolist(),
+        "collision_last": coll[:, -1].tolist(),
+        "path_last": path[:, -1].tolist(),
+        "exported": [m["test"]["bare"]["success_rate"] for m in exported],
+        "exported_shielded": [m["test"]["shielded"]["success_rate"] for m in exported],
+        "best_epoch": [m["best_epoch"] for m in exported],
+        "wall_s": float(max(cols["wall_s"].max() for cols in log.values())),
+    }
+
+
 def in_needle_frame_mm(needle: Any, points: Any) -> np.ndarray:
     """Points ``[N, 3]`` (m, in e_g) in the needle frame n, in mm; ``needle`` is one pose ``[7]``
     for all of them or one per point ``[N, 7]``."""
