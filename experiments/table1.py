@@ -28,7 +28,6 @@ import shutil
 import sys
 from pathlib import Path
 
-
 from regrasp_mjx import analysis
 
 SETTINGS = ("ddpg_bc", "targeted", "mixed")
