@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from regrasp_mjx import gpu_memory
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.train import TRANSITION, Learner, TrainingState
 from regrasp_mjx.atomic import atomic_write, write_json, write_text
@@ -525,6 +526,13 @@ def main(argv: list[str] | None = None) -> int:
         help="members: whole seeds/settings per GPU, no communication; envs: data parallel (environments, "
         "buffer and batches split, gradients averaged); auto (default): members when they divide evenly",
     )
+    p.add_argument(
+        "--gpu-memory",
+        default=None,
+        metavar="FRACTION|grow",
+        help="share of the GPU to pre-allocate (e.g. 0.45 for each of two runs on one GPU) or 'grow' "
+        "(allocate as needed); default: JAX's 75 %%, or 'grow' when another process runs on the GPU",
+    )
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint")
     p.add_argument("--demos", default=None, help="a demonstration folder (default: build OUT/demos)")
     p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="evaluation test set (.npz)")
@@ -548,6 +556,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.shard is not None:
             overrides["shard"] = args.shard
         cfg = make_config(args.preset, args.exploration, args.learner, **overrides)
+        gpu_memory.configure(gpu_memory.parse_setting(args.gpu_memory))  # before JAX starts a GPU client
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         if jax.default_backend() == "cpu" and args.preset != "smoke":
@@ -559,6 +568,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, DemosError, TestsetError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except jax.errors.JaxRuntimeError as err:
+        if not gpu_memory.is_out_of_memory(err):
+            raise
+        print(f"error: {gpu_memory.out_of_memory_message(cfg)}\n({str(err).splitlines()[0]})", file=sys.stderr)
+        return 3
 
     def summary(g: dict[str, Any]) -> dict[str, Any]:
         out = {"policy": g["policy"], "test": g["test"]}
