@@ -11,6 +11,8 @@ Compile time excluded; ``--iterations`` timed after one warm-up.
 
     python experiments/bench_train.py --envs 128,512,2048,8192 --seeds 1,3,8 --out experiments/results
     python experiments/bench_train.py --envs 512,8192,32768 --seeds 1 --devices 1,2 --out results/x2
+    python experiments/bench_train.py --envs 512 --seeds 4,8 --devices 1 --out results/x2_members1   # then
+    python experiments/bench_train.py --envs 512 --seeds 4,8 --devices 2 --out results/x2_members2   # seeds split
     python experiments/bench_train.py --time-to-success experiments/results/table1
 """
 
@@ -30,11 +32,17 @@ from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.agents.ddpg_bc.train import Learner
 
 
-def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int = 1) -> dict:
+def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int = 1, shard: str = "auto") -> dict:
     # The buffer holds at least two iterations of transitions (flashbax refuses a bigger insert).
     buffer = max(1_000_000, 2 * num_envs * 100)
     cfg = make_config(
-        "fast", num_envs=num_envs, num_seeds=seeds, updates_per_iteration=updates, devices=devices, buffer_size=buffer
+        "fast",
+        num_envs=num_envs,
+        num_seeds=seeds,
+        updates_per_iteration=updates,
+        devices=devices,
+        buffer_size=buffer,
+        shard=shard,
     )
     learner = Learner(cfg)
     rng = np.random.default_rng(0)
@@ -59,6 +67,7 @@ def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int
     peak = max((d.memory_stats() or {}).get("peak_bytes_in_use", float("nan")) for d in jax.devices()[:devices])
     return {
         "devices": devices,
+        "shard": learner.shard,
         "num_envs": num_envs,
         "seeds": seeds,
         "updates_per_iteration": updates,
@@ -103,7 +112,14 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--envs", default="128,512,2048,8192", help="environments per seed (all devices together)")
     p.add_argument("--seeds", default="1,3,8", help="seed counts (more than one: at 512 envs only)")
-    p.add_argument("--devices", default="1", help="device counts, e.g. 1,2 (data parallel)")
+    p.add_argument("--devices", default="1", help="device counts, e.g. 1,2")
+    p.add_argument(
+        "--shard",
+        default="auto",
+        choices=("auto", "members", "envs"),
+        help="how several devices share the work (TrainConfig.shard): auto = whole seeds per device when "
+        "they divide evenly, else data parallel",
+    )
     p.add_argument("--updates", type=int, default=200)
     p.add_argument("--iterations", type=int, default=10)
     p.add_argument("--time-to-success", default=None, metavar="FOLDER", help="only read run logs under FOLDER")
@@ -123,7 +139,7 @@ def main() -> None:
             if seeds > 1 and envs != 512:
                 continue  # seeds are compared at the fast preset's 512 envs
             for devices in (int(d) for d in args.devices.split(",")):
-                r = bench(envs, seeds, args.updates, args.iterations, devices)
+                r = bench(envs, seeds, args.updates, args.iterations, devices, args.shard)
                 rows.append(r)
                 print(json.dumps(r), flush=True)
     device = jax.devices()[0].device_kind
@@ -131,9 +147,9 @@ def main() -> None:
         f"Device: {device} ({jax.device_count()} visible), jax {jax.__version__}; updates per iteration "
         f"{args.updates}, batch 256, horizon 100.",
         "",
-        "| devices | seeds | envs per seed | iteration (ms) | env-steps/s | updates/s | peak memory per device (GB) "
+        "| devices | shard | seeds | envs per seed | iteration (ms) | env-steps/s | updates/s | peak memory per device (GB) "
         "| compile (s) | vs 1 device |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
         base = next(
@@ -141,7 +157,7 @@ def main() -> None:
         )
         ratio = f"{base['iteration_ms'] / r['iteration_ms']:.2f}x" if base and r["devices"] > 1 else "-"
         lines.append(
-            f"| {r['devices']} | {r['seeds']} | {r['num_envs']} | {r['iteration_ms']:.1f} | {r['env_steps_per_s']:,.0f} | "
+            f"| {r['devices']} | {r['shard']} | {r['seeds']} | {r['num_envs']} | {r['iteration_ms']:.1f} | {r['env_steps_per_s']:,.0f} | "
             f"{r['updates_per_s']:,.0f} | {r['peak_memory_gb']:.2f} | {r['compile_s']:.1f} | {ratio} |"
         )
     print("\n".join(lines))

@@ -4,6 +4,7 @@ MJX programs on a 2-core CPU takes seconds; doing it once keeps the suite fast).
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -14,6 +15,11 @@ import pytest  # noqa: E402
 from regrasp_mjx.config import EnvConfig  # noqa: E402
 from regrasp_mjx.env import RegraspEnv  # noqa: E402
 from regrasp_mjx.sampling import load_testset  # noqa: E402
+
+# One persistent compilation cache per test session: tests that build the same programs anew (a
+# run and its resumed copy, a learner per test) load them instead of compiling them again.
+jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="regrasp_mjx_test_jax_cache_"))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER_TESTSET = ROOT / "experiments" / "testsets" / "paper300.npz"
