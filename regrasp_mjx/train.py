@@ -47,6 +47,17 @@ def _config_json(cfg: TrainConfig) -> dict[str, Any]:
     return json.loads(json.dumps(dataclasses.asdict(cfg)))
 
 
+# Learner fields added after checkpoints were first written; each default reproduces what those
+# checkpoints ran, so a checkpoint without them resumes as if they had been saved.
+_ADDED_FIELDS = ("critic_layer_norm", "bc_decay_epochs", "bc_decay_to", "action_l2_decay", "shard")
+
+
+def with_added_defaults(saved: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's config with the learner fields added since filled in at their defaults."""
+    defaults = _config_json(TrainConfig())
+    return {**{k: defaults[k] for k in _ADDED_FIELDS if k not in saved}, **saved}
+
+
 def _to_episode(problems: Any, rows: np.ndarray) -> Episode:
     take = lambda x: np.asarray(x)[rows]  # noqa: E731
     n = len(rows)
@@ -142,7 +153,7 @@ class Run:
         if not (meta_path.is_file() and state_path.is_file()):
             raise ConfigError(f"--resume: no checkpoint in {self.ckpt}")
         meta = json.loads(meta_path.read_text())
-        saved, now = meta["config"], _config_json(self.cfg)
+        saved, now = with_added_defaults(meta["config"]), _config_json(self.cfg)
         saved.pop("epochs", None)
         now.pop("epochs", None)
         if saved != now:

@@ -140,6 +140,16 @@ def test_set_overrides_parse_as_literals():
         parse_overrides(["horizon"])
 
 
+def test_checkpoints_from_before_the_new_learner_fields_still_compare_equal():
+    from regrasp_mjx.train import _ADDED_FIELDS, _config_json, with_added_defaults
+
+    now = _config_json(make_config("smoke"))
+    old = {k: v for k, v in now.items() if k not in _ADDED_FIELDS}  # as written before those fields
+    assert with_added_defaults(old) == now
+    # a checkpoint that saved another value keeps it (and so is refused when it differs)
+    assert with_added_defaults({**old, "bc_decay_epochs": 100})["bc_decay_epochs"] == 100
+
+
 def test_train_config_errors():
     with pytest.raises(ConfigError, match="preset='huge' is not accepted"):
         make_config("huge")
