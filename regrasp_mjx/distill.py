@@ -33,10 +33,10 @@ from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.evaluate import outcomes
 from regrasp_mjx.policy import Policy, PolicyError, load_policy, save_policy
 from regrasp_mjx.rollout import evaluate_actor, summarize
-from regrasp_mjx.sampling import Episode, TestsetError, load_testset
+from regrasp_mjx.sampling import PAPER300, Episode, TestsetError, load_testset
 
 VALIDATION_SEED = 2_000_003  # + the distillation seed; the learner's validation problems use 1_000_003 + seed
-DEFAULT_TESTSET = Path(__file__).resolve().parent.parent / "experiments" / "testsets" / "paper300.npz"
+DEFAULT_TESTSET = PAPER300
 
 
 def distill(

@@ -18,7 +18,6 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -26,9 +25,9 @@ import numpy as np
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError, load_policy, shipped_policies
 from regrasp_mjx.rollout import summarize
-from regrasp_mjx.sampling import TestsetError, load_testset
+from regrasp_mjx.sampling import PAPER300, TestsetError, load_testset
 
-DEFAULT_TESTSET = Path(__file__).resolve().parent.parent / "experiments" / "testsets" / "paper300.npz"
+DEFAULT_TESTSET = PAPER300
 
 
 def episode_poses(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -25,6 +25,10 @@ from flax import struct
 from regrasp_mjx import geometry
 from regrasp_mjx.config import TaskConfig
 
+# The paper300 test set (SPEC seed 2021), shipped inside the package so that an installed copy finds it
+# (experiments/testsets/paper300.npz is a link to this file).
+PAPER300 = Path(__file__).resolve().parent / "data" / "paper300.npz"
+
 TESTSET_FORMAT = "regrasp_mjx.testset"
 TESTSET_VERSION = 1
 QUAT_TOLERANCE = 1e-3  # |norm - 1| up to this is normalised; beyond it a quaternion is refused

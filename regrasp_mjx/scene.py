@@ -23,7 +23,7 @@ from mujoco import mjx
 
 from regrasp_mjx.config import SceneConfig
 
-MJCF_PATH = Path(__file__).resolve().parent.parent / "models" / "mjcf" / "regrasp_scene.xml"
+MJCF_PATH = Path(__file__).resolve().parent / "models" / "regrasp_scene.xml"  # package data
 
 NEEDLE_JOINT = "needle_pose"
 REGRASP_JOINT = "regrasp_pose"

@@ -37,10 +37,10 @@ from regrasp_mjx.config import ConfigError, parse_overrides
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, replay_paths
 from regrasp_mjx.policy import save_policy
 from regrasp_mjx.rollout import summarize
-from regrasp_mjx.sampling import Episode, TestsetError, load_testset
+from regrasp_mjx.sampling import PAPER300, Episode, TestsetError, load_testset
 
 VALIDATION_SEED = 1_000_003
-DEFAULT_TESTSET = Path(__file__).resolve().parent.parent / "experiments" / "testsets" / "paper300.npz"
+DEFAULT_TESTSET = PAPER300
 
 
 def _config_json(cfg: TrainConfig) -> dict[str, Any]:

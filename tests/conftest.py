@@ -22,7 +22,7 @@ jax.config.update("jax_compilation_cache_dir", tempfile.mkdtemp(prefix="regrasp_
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 ROOT = Path(__file__).resolve().parent.parent
-PAPER_TESTSET = ROOT / "experiments" / "testsets" / "paper300.npz"
+PAPER_TESTSET = ROOT / "regrasp_mjx" / "data" / "paper300.npz"
 
 
 @pytest.fixture(scope="session")

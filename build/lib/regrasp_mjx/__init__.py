@@ -1,0 +1,33 @@
+"""regrasp_mjx: learned rapid motion planning for bimanual suture-needle regrasping in MuJoCo MJX.
+
+Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no path),
+:class:`regrasp_mjx.env.RegraspEnv`, :func:`regrasp_mjx.geometry.grasp_pose`,
+:func:`regrasp_mjx.scene.load_scene`, :func:`regrasp_mjx.sampling.load_testset`, and the CLIs
+``python -m regrasp_mjx.{train,evaluate,demos,testset,grasps,export_onnx}``.
+"""
+
+import contextlib as _contextlib
+import io as _io
+
+# mujoco.mjx prints "Failed to import warp" (twice) to stdout when the optional NVIDIA Warp backend
+# is absent, which we never use; importing it once here with stdout captured keeps every command's
+# output (e.g. `evaluate --json`) to this project's own. Anything else it prints is passed on.
+with _contextlib.redirect_stdout(_io.StringIO()) as _captured:
+    import mujoco.mjx  # noqa: F401
+for _line in _captured.getvalue().splitlines():
+    if not _line.startswith(("Failed to import warp", "Failed to import mujoco_warp")):
+        print(_line)
+
+from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig, TaskConfig  # noqa: E402
+from regrasp_mjx.geometry import grasp_pose  # noqa: E402
+
+__version__ = "0.1.0"
+__all__ = ["ConfigError", "EnvConfig", "SceneConfig", "TaskConfig", "grasp_pose", "load_policy", "__version__"]
+
+
+def __getattr__(name: str):
+    if name == "load_policy":  # lazy: the policy module imports the learner's networks
+        from regrasp_mjx.policy import load_policy
+
+        return load_policy
+    raise AttributeError(f"module 'regrasp_mjx' has no attribute {name!r}")

@@ -1,0 +1,233 @@
+"""DAgger distillation (ours): one network learns a stronger planner's actions on the states it visits.
+
+The **teacher** is a trained policy (one network or an ensemble) improved by lookahead. At a state
+it takes the policy's own action if rolling the policy out from there (bare, ``lookahead`` steps)
+reaches the goal; otherwise the first of the collision shield's alternatives
+(:mod:`regrasp_mjx.shield`, closest to the policy first) after which the policy's rollout reaches
+it; if none does, the first collision-free alternative (what the shield would take); if none is
+free, the policy's action. So the teacher does at least what the shielded policy does, and it also
+steers away from the states where the policy times out or collides a few steps later.
+
+The **student** is a fresh MLP of any size (smaller is faster to plan with). DAgger (Ross et al.,
+"A Reduction of Imitation Learning and Structured Prediction to No-Regret Online Learning", 2011):
+each iteration rolls the student out on fresh problems (the teacher's policy in the first
+iteration), labels the states it visited with the teacher's actions, adds them to a buffer of
+labelled states (flashbax), and fits the student to the buffer by (weighted) mean squared error.
+The student's observation normaliser is fixed from the first iteration's states. Iterations are one
+jitted program each; the host picks the iteration best on validation problems of their own seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import flashbax as fbx
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training.acme import running_statistics, specs
+from flax import struct
+
+from regrasp_mjx.agents.ddpg_bc.networks import make_networks
+from regrasp_mjx.config import ConfigError
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.shield import shield_candidates
+
+MembersFn = Callable[[jax.Array], list]  # obs [B, 21] -> each teacher member's actions [B, 6]
+
+
+@dataclasses.dataclass(frozen=True)
+class DistillConfig:
+    """A distillation run. All ours.
+
+    Attributes:
+      hidden: the student's hidden layers.
+      iterations: DAgger iterations (the first rolls the teacher's policy out); in a training config
+        (``TrainConfig.distill``) 0 means no distillation stage.
+      problems: fresh problems rolled out per iteration (one episode each).
+      label_states: visited states labelled per iteration (``problems * horizon`` at most; when fewer
+        were visited the rest of the slots carry zero weight).
+      updates, batch_size, lr, lr_decay_to: SGD steps per iteration, their batch, Adam's learning
+        rate and the fraction of it a cosine reaches at the last update.
+      buffer_size: labelled states kept (oldest dropped first).
+      lookahead: steps of the teacher's rollouts that judge an action.
+      correction_weight: loss weight of states where the teacher overrides its policy (1 = plain MSE).
+      seed: PRNG seed; validation_size: problems (of their own seed) that pick the exported iteration.
+    """
+
+    hidden: tuple[int, ...] = (256, 256, 256)
+    iterations: int = 30
+    problems: int = 1024
+    label_states: int = 16384
+    updates: int = 500
+    batch_size: int = 1024
+    lr: float = 1e-3
+    lr_decay_to: float = 0.02
+    buffer_size: int = 1_000_000
+    lookahead: int = 40
+    correction_weight: float = 1.0
+    seed: int = 0
+    validation_size: int = 1000
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.iterations, int) and self.iterations >= 0):
+            raise ConfigError(f"distill.iterations={self.iterations!r} is not accepted: an integer >= 0")
+        for name in ("problems", "label_states", "updates", "batch_size", "buffer_size", "lookahead"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ConfigError(f"distill.{name}={v!r} is not accepted: an integer >= 1")
+        if not (isinstance(self.seed, int) and self.seed >= 0):
+            raise ConfigError(f"distill.seed={self.seed!r} is not accepted: an integer >= 0")
+        if not (isinstance(self.validation_size, int) and self.validation_size >= 1):
+            raise ConfigError(f"distill.validation_size={self.validation_size!r} is not accepted: an integer >= 1")
+        if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
+            raise ConfigError(f"distill.hidden={self.hidden!r} is not accepted: a tuple of positive layer sizes")
+        for name in ("lr", "correction_weight"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"distill.{name}={v!r} is not accepted: a finite number > 0")
+        if not (isinstance(self.lr_decay_to, (int, float)) and 0.0 < self.lr_decay_to <= 1.0):
+            raise ConfigError(f"distill.lr_decay_to={self.lr_decay_to!r} is not accepted: a fraction in (0, 1]")
+        if self.buffer_size < self.batch_size:
+            raise ConfigError(f"distill.buffer_size={self.buffer_size} is not accepted: at least one batch")
+
+
+@struct.dataclass
+class DistillState:
+    params: Any
+    opt: Any
+    normalizer: Any
+    buffer: Any
+    key: jax.Array
+
+
+def teacher_actions(env: RegraspEnv, members: MembersFn, state: Any, key: jax.Array, lookahead: int):
+    """The teacher's actions at a batch of environment states (see the module docstring).
+
+    Returns ``(action [B, 6], overridden [B], reaches [B])``: whether the teacher's action differs
+    from its policy's, and whether some candidate's rollout reached the goal."""
+    step = jax.vmap(env.step)
+    own = members(state.obs)
+    policy_action = sum(own) / len(own)
+    cands = jnp.concatenate([policy_action[None], shield_candidates(own, policy_action, key)])  # [K, B, 6]
+    k, b = cands.shape[:2]
+    tile = lambda x: jnp.broadcast_to(x[None], (k,) + x.shape).reshape((k * b,) + x.shape[1:])  # noqa: E731
+    first = step(jax.tree.map(tile, state), cands.reshape(k * b, -1))
+    free = first.metrics["collision"] == 0
+
+    def cond(c):
+        i, _, live, _ = c
+        return (i < lookahead) & jnp.any(live)
+
+    def body(c):
+        i, st, live, ok = c
+        acts = members(st.obs)
+        nxt = step(st, sum(acts) / len(acts))
+        ok = ok | (live & (nxt.metrics["success"] > 0))
+        return i + 1, nxt, live & (nxt.done == 0), ok
+
+    live0 = first.done == 0
+    _, _, _, ok = jax.lax.while_loop(cond, body, (jnp.int32(0), first, live0, first.metrics["success"] > 0))
+    ok, free = ok.reshape(k, b), free.reshape(k, b)
+    pick = jnp.where(ok.any(0), jnp.argmax(ok, 0), jnp.where(free.any(0), jnp.argmax(free, 0), 0))
+    return cands[pick, jnp.arange(b)], pick != 0, ok.any(0)
+
+
+class Distiller:
+    """The jitted DAgger iteration for one teacher and one :class:`DistillConfig`."""
+
+    def __init__(self, env: RegraspEnv, members: MembersFn, config: DistillConfig):
+        if config.iterations < 1:
+            raise ConfigError(f"distill.iterations={config.iterations} is not accepted here: at least 1")
+        self.env, self.members, self.config = env, members, config
+        self.nets = make_networks(env.action_size, config.hidden)
+        total = config.iterations * config.updates
+        lr = optax.cosine_decay_schedule(config.lr, decay_steps=total, alpha=config.lr_decay_to)
+        self.opt = optax.adam(lr)
+        self.buffer = fbx.make_item_buffer(
+            max_length=config.buffer_size,
+            min_length=1,
+            sample_batch_size=config.batch_size,
+            add_batches=True,
+        )
+        self.iteration = jax.jit(self._iteration, static_argnums=(1,), donate_argnums=(0,))
+
+    def init(self) -> DistillState:
+        cfg, obs_size, act_size = self.config, self.env.observation_size, self.env.action_size
+        k_init, k_run = jax.random.split(jax.random.PRNGKey(cfg.seed))
+        params = self.nets.actor.init(k_init, jnp.zeros((1, obs_size)))
+        spec = {"obs": jnp.zeros(obs_size), "action": jnp.zeros(act_size), "weight": jnp.zeros(())}
+        return DistillState(
+            params=params,
+            opt=self.opt.init(params),
+            normalizer=running_statistics.init_state(specs.Array((obs_size,), jnp.float32)),
+            buffer=self.buffer.init(spec),
+            key=k_run,
+        )
+
+    def act(self, ds: DistillState, obs: jax.Array) -> jax.Array:
+        """The student's action."""
+        return self.nets.policy(ds.params, ds.normalizer, obs)
+
+    def _iteration(self, ds: DistillState, teacher_rollout: bool):
+        cfg, env = self.config, self.env
+        key, k_reset, k_order, k_label, k_upd = jax.random.split(ds.key, 5)
+        horizon = env.config.horizon
+        first = jax.vmap(env.reset)(jax.random.split(k_reset, cfg.problems))
+
+        def policy(obs):
+            if teacher_rollout:
+                own = self.members(obs)
+                return sum(own) / len(own)
+            return self.act(ds, obs)
+
+        def roll(state, _):
+            nxt = jax.vmap(env.step)(state, policy(state.obs))
+            live = state.done == 0
+            keep = lambda a, b: jnp.where(live.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+            return jax.tree.map(keep, nxt, state), (state, live)
+
+        last, (visited, live) = jax.lax.scan(roll, first, None, length=horizon)
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), visited)
+        live = live.reshape(-1)
+        # label_states slots: the visited states first (in random order), then unvisited ones, weight 0
+        order = jax.random.permutation(k_order, live.shape[0])
+        order = order[jnp.argsort(~live[order], stable=True)][: cfg.label_states]
+        states = jax.tree.map(lambda x: x[order], flat)
+        valid = live[order].astype(jnp.float32)
+        labels, overridden, reaches = teacher_actions(env, self.members, states, k_label, cfg.lookahead)
+        weight = valid * jnp.where(overridden, cfg.correction_weight, 1.0)
+        normalizer = ds.normalizer
+        if teacher_rollout:  # the first iteration fixes the student's normaliser
+            normalizer = running_statistics.update(normalizer, states.obs, weights=valid)
+        buffer = self.buffer.add(ds.buffer, {"obs": states.obs, "action": labels, "weight": weight})
+        ds = ds.replace(normalizer=normalizer, buffer=buffer, key=key)
+
+        def update(ds, k):
+            batch = self.buffer.sample(ds.buffer, k).experience
+
+            def loss_fn(params):
+                pred = self.nets.policy(params, ds.normalizer, batch["obs"])
+                se = jnp.sum(jnp.square(pred - batch["action"]), axis=-1)
+                return jnp.sum(batch["weight"] * se) / jnp.maximum(jnp.sum(batch["weight"]), 1.0)
+
+            loss, grad = jax.value_and_grad(loss_fn)(ds.params)
+            upd, opt = self.opt.update(grad, ds.opt, ds.params)
+            return ds.replace(params=optax.apply_updates(ds.params, upd), opt=opt), loss
+
+        ds, loss = jax.lax.scan(update, ds, jax.random.split(k_upd, cfg.updates))
+        n_valid = jnp.maximum(jnp.sum(valid), 1.0)
+        metrics = {
+            "loss": jnp.mean(loss),
+            "loss_last": loss[-1],
+            "rollout_success": jnp.mean(last.metrics["success"]),
+            "rollout_collision": jnp.mean(last.metrics["collision"]),
+            "states_visited": jnp.sum(live.astype(jnp.float32)),
+            "states_labelled": jnp.sum(valid),
+            "overridden": jnp.sum(valid * overridden) / n_valid,
+            "teacher_reaches": jnp.sum(valid * reaches) / n_valid,
+        }
+        return ds, metrics

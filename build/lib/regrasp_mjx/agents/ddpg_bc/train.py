@@ -1,0 +1,506 @@
+"""One jitted program per iteration: vmapped rollouts, buffer inserts, the updates in a scan.
+
+An iteration resets ``num_envs`` environments to fresh problems and runs ``horizon`` steps with
+exploration (an action is uniformly random with probability E_R, else the policy's); an
+environment that ends restarts its problem (brax's auto-reset), so every one of the
+``num_envs * horizon`` transitions is valid and goes into the online buffer. Then
+``updates_per_iteration`` DDPG+BC updates, each on ``online_batch`` online and ``demo_batch``
+demonstration samples (flashbax item buffers); the target networks move by polyak averaging every
+``target_every`` updates. The first episode of each environment is the one that counts for
+Algorithm 1: the host sends failed ones to the planner pool with probability E_T.
+
+Members are a batch axis: ``num_members`` independent learners (seeds ``seed, seed + 1, ...``, for
+each of the config's ``settings``; E_R comes per member), each with
+its own networks, optimisers, normaliser, buffers and key, run as one vmapped program, so several
+seeds of Table I cost about what one costs on a GPU. Every state leaf has that leading axis (1 for
+a single seed); the single-learner functions (``init_one``, ``update``, ``iteration_one``,
+``evaluate_one``) are the ones vmapped.
+
+Several devices (``devices`` in the config) share the work in one of two ways (``shard``). With
+``members`` (the default when the members divide evenly over the devices), each device holds whole
+learners: the leading member axis of every state leaf is split over a one-axis mesh, the iteration
+runs under ``shard_map`` with no collectives at all, and each learner computes exactly what it
+computes on one device. With ``envs`` they are data parallel: the iteration runs under ``shard_map`` on a
+one-axis mesh ``"data"``. Each device rolls out ``num_envs / devices`` environments into its own
+slice of the online buffer and samples ``1 / devices`` of every batch from it (and from its copy of
+the demonstrations); networks, optimisers and the normaliser are replicated, gradients are averaged
+(``pmean``) and normaliser statistics summed (``psum``) across devices, so every replica takes the
+same step: the gradient of the whole batch. The buffer's slices are one array sharded along its
+length (each device's insert index is the same, as every device adds as many transitions), so a
+state's shapes do not depend on the device count. With one device the program has no collectives.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import flashbax as fbx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from brax.training.acme import running_statistics, specs
+from flax import struct
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from regrasp_mjx import closed_loop
+from regrasp_mjx.agents.ddpg_bc import losses
+from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
+from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
+from regrasp_mjx.config import ConfigError
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.rollout import evaluate_actor
+from regrasp_mjx.sampling import Episode
+
+TRANSITION = ("obs", "action", "reward", "next_obs", "terminal")
+AXIS = "data"  # the mesh axis the environments and batches are split over
+
+
+@struct.dataclass
+class TrainingState:
+    actor: Any
+    critic: Any
+    ema_actor: Any  # moving average of the actor (what is evaluated and exported when actor_ema > 0)
+    target_actor: Any
+    target_critic: Any
+    actor_opt: Any
+    critic_opt: Any
+    normalizer: Any
+    online: Any
+    demos: Any
+    key: jax.Array
+    updates: jax.Array  # gradient steps so far
+    iteration: jax.Array
+
+
+def _transition_spec(obs_size: int, action_size: int) -> dict[str, jax.Array]:
+    return {
+        "obs": jnp.zeros(obs_size),
+        "action": jnp.zeros(action_size),
+        "reward": jnp.zeros(()),
+        "next_obs": jnp.zeros(obs_size),
+        "terminal": jnp.zeros(()),
+    }
+
+
+class Learner:
+    """Builds the networks, buffers and jitted programs for one :class:`TrainConfig`."""
+
+    def __init__(self, config: TrainConfig, env: RegraspEnv | None = None):
+        self.config = config
+        self.env = env if env is not None else RegraspEnv(config.env)
+        self.nets: DDPGNetworks = make_networks(
+            self.env.action_size, config.hidden, config.critics, config.critic_layer_norm
+        )
+        self.actor_opt = optax.adam(self._learning_rate(config.lr_actor))
+        self.critic_opt = optax.adam(self._learning_rate(config.lr_critic))
+        n, self.shard = self._check_devices(config)
+        # ``devices``: the data-parallel split (1 when whole members are placed per device)
+        self.devices = n if self.shard == "envs" else 1
+        self.member_devices = n if self.shard == "members" else 1
+        self.axis = AXIS if self.devices > 1 else None  # collectives only with several devices
+        self.mesh = Mesh(np.array(jax.devices()[:n]), (AXIS,))
+        self.local_envs = config.num_envs // self.devices
+        # Each device's slice of the online buffer, and its share of every batch.
+        self.online_buffer = fbx.make_item_buffer(
+            max_length=config.buffer_size // self.devices,
+            min_length=config.online_batch // self.devices,
+            sample_batch_size=config.online_batch // self.devices,
+            add_batches=True,
+        )
+        self.trace_count = 0  # how often the iteration program was traced (tests assert one)
+        self.iteration = jax.jit(self._iteration, donate_argnums=(0,))
+        # actor and normaliser carry the seed axis; the problems are shared
+        self.evaluate = jax.jit(jax.vmap(self.evaluate_one, in_axes=(0, 0, None)))
+        # ... and with the critic: its estimate at the start against the return the rollout got
+        self.evaluate_q = jax.jit(jax.vmap(self.evaluate_one, in_axes=(0, 0, None, 0)))
+        self.add_online = jax.jit(self._add_online, donate_argnums=(0,))
+        self.demo_buffer = None
+
+    def _learning_rate(self, lr: float):
+        """A constant, or a cosine from ``lr`` to ``lr * lr_decay_to`` over the configured updates."""
+        cfg = self.config
+        if cfg.lr_decay_to >= 1.0:
+            return lr
+        return optax.cosine_decay_schedule(lr, decay_steps=cfg.total_updates, alpha=cfg.lr_decay_to)
+
+    def regulariser_scale(self, updates: jax.Array) -> jax.Array:
+        """The factor on the BC coefficient (and, with ``action_l2_decay``, on the action penalty)
+        after ``updates`` gradient steps: 1, or a cosine from 1 to ``bc_decay_to`` over
+        ``bc_decay_epochs`` epochs, then ``bc_decay_to``."""
+        cfg = self.config
+        if cfg.bc_decay_epochs == 0:
+            return jnp.ones((), jnp.float32)
+        span = cfg.bc_decay_epochs * cfg.iterations_per_epoch * cfg.updates_per_iteration
+        return optax.cosine_decay_schedule(1.0, decay_steps=span, alpha=cfg.bc_decay_to)(updates)
+
+    def bc_coef(self, updates: jax.Array) -> jax.Array:
+        return self.config.bc_coef * self.regulariser_scale(updates)
+
+    def action_l2(self, updates: jax.Array) -> jax.Array:
+        scale = self.regulariser_scale(updates) if self.config.action_l2_decay else 1.0
+        return self.config.action_l2 * scale
+
+    def policy_params(self, ts: TrainingState) -> Any:
+        """The actor that is evaluated, selected and exported: the moving average when ``actor_ema``
+        > 0, else the actor itself. (Rollouts explore with the actor itself.)"""
+        return ts.ema_actor if self.config.actor_ema > 0 else ts.actor
+
+    @staticmethod
+    def _check_devices(cfg: TrainConfig) -> tuple[int, str]:
+        """``(devices, shard)``: the device count in use and how the work is split over them."""
+        available = jax.devices()
+        n = cfg.devices or len(available)
+        if n > len(available):
+            raise ConfigError(
+                f"devices={cfg.devices} is not accepted: JAX sees {len(available)} "
+                f"{jax.default_backend()} device(s); accepted: 0 (all) or 1..{len(available)}"
+            )
+        members = cfg.num_members
+        shard = cfg.shard
+        if shard == "auto":
+            shard = "members" if n > 1 and members % n == 0 else "envs"
+        if n == 1:
+            return n, "envs"
+        if shard == "members":
+            if members % n:
+                raise ConfigError(
+                    f"shard='members' with devices={n} does not divide the {members} learners (seeds x "
+                    "settings); accepted: a multiple of the device count, or shard='envs'"
+                )
+            return n, shard
+        for name, value in (
+            ("num_envs", cfg.num_envs),
+            ("buffer_size", cfg.buffer_size),
+            ("demo_chunk", cfg.demo_chunk),
+            ("the online part of batch_size", cfg.online_batch),
+            ("the demonstration part of batch_size", cfg.demo_batch),
+        ):
+            if value % n:
+                raise ConfigError(
+                    f"devices={n} does not divide {name} ({value}); accepted: sizes that split evenly over the devices"
+                )
+        return n, shard
+
+    # ---- placement ----------------------------------------------------------------------------
+    def state_specs(self, ts: TrainingState) -> TrainingState:
+        """Partition specs of a state: with whole members per device, every leaf split along its
+        leading member axis; data parallel, the online buffer's transitions split along the buffer's
+        length (``[seed, 1, length, ...]``) and everything else replicated."""
+        if self.member_devices > 1:
+            return jax.tree.map(lambda _: P(AXIS), ts)
+        specs = jax.tree.map(lambda _: P(), ts)
+        experience = jax.tree.map(lambda _: P(None, None, AXIS), ts.online.experience)
+        return specs.replace(online=specs.online.replace(experience=experience))
+
+    def state_shardings(self, ts: TrainingState) -> TrainingState:
+        return jax.tree.map(lambda spec: NamedSharding(self.mesh, spec), self.state_specs(ts))
+
+    def place(self, ts: TrainingState) -> TrainingState:
+        """Puts a state (fresh or restored from a checkpoint) on the mesh."""
+        return jax.device_put(ts, self.state_shardings(ts))
+
+    def _shard_map(self, fn, in_specs, out_specs):
+        # Replication of the outputs given P() is by construction (averaged gradients, summed
+        # statistics, keys split before any device index is folded in) and tested, not type-checked.
+        return jax.shard_map(fn, mesh=self.mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)
+
+    def _pmean(self, tree):
+        return jax.lax.pmean(tree, self.axis) if self.axis else tree
+
+    def _device_key(self, key: jax.Array) -> jax.Array:
+        """A key of this device's own (unchanged with one device, so runs reproduce across versions)."""
+        return jax.random.fold_in(key, jax.lax.axis_index(self.axis)) if self.axis else key
+
+    # ---- state --------------------------------------------------------------------------------
+    def init(self, demos: dict[str, jax.Array]) -> TrainingState:
+        """Fresh learners, one per member (``TrainConfig.member_seed``), stacked on a leading axis."""
+        cfg = self.config
+        keys = jnp.stack([jax.random.PRNGKey(cfg.member_seed(m)) for m in range(cfg.num_members)])
+
+        def make(keys, demos):
+            ts = jax.vmap(self.init_one, in_axes=(0, None))(keys, demos)
+            # The online buffer spans all devices' slices: [seed, 1, buffer_size, ...].
+            full = lambda x: jnp.zeros(x.shape[:2] + (cfg.buffer_size,) + x.shape[3:], x.dtype)  # noqa: E731
+            ts = ts.replace(online=ts.online.replace(experience=jax.tree.map(full, ts.online.experience)))
+            # No weakly typed leaves: a state restored from a checkpoint then traces like a fresh one.
+            return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), ts)
+
+        shardings = self.state_shardings(jax.eval_shape(make, keys, demos))
+        return jax.jit(make, out_shardings=shardings)(keys, demos)
+
+    def init_one(self, key: jax.Array, demos: dict[str, jax.Array]) -> TrainingState:
+        """One learner: fresh networks and optimisers, the demonstrations loaded, the normaliser
+        seeded with them."""
+        cfg = self.config
+        obs_size, action_size = self.env.observation_size, self.env.action_size
+        k_init, k_run = jax.random.split(key)
+        actor, critic = init_params(self.nets, k_init, obs_size, action_size)
+        spec = _transition_spec(obs_size, action_size)
+        n_demo = int(demos["obs"].shape[0])
+        if n_demo < cfg.demo_batch:
+            raise ValueError(
+                f"{n_demo} demonstration transitions are fewer than one demonstration batch "
+                f"({cfg.demo_batch}); add demonstrations or lower batch_size/demo_fraction"
+            )
+        self.attach_demo_buffer(n_demo)
+        demo_state = self.demo_buffer.add(
+            self.demo_buffer.init(spec), {k: jnp.asarray(demos[k], jnp.float32) for k in TRANSITION}
+        )
+        normalizer = running_statistics.init_state(specs.Array((obs_size,), jnp.float32))
+        normalizer = running_statistics.update(normalizer, jnp.asarray(demos["obs"], jnp.float32))
+        return TrainingState(
+            actor=actor,
+            critic=critic,  # targets start equal, in buffers of their own (donation)
+            ema_actor=jax.tree.map(jnp.copy, actor),
+            target_actor=jax.tree.map(jnp.copy, actor),
+            target_critic=jax.tree.map(jnp.copy, critic),
+            actor_opt=self.actor_opt.init(actor),
+            critic_opt=self.critic_opt.init(critic),
+            normalizer=normalizer,
+            online=self.online_buffer.init(spec),
+            demos=demo_state,
+            key=k_run,
+            updates=jnp.int32(0),
+            iteration=jnp.int32(0),
+        )
+
+    def attach_demo_buffer(self, num_demo_transitions: int) -> None:
+        """Rebuilds the demonstration buffer's functions (for a state loaded from a checkpoint)."""
+        self.demo_buffer = fbx.make_item_buffer(
+            max_length=num_demo_transitions,
+            min_length=1,
+            sample_batch_size=self.config.demo_batch // self.devices,
+            add_batches=True,
+        )
+
+    # ---- the jitted iteration --------------------------------------------------------------------
+    def _policy(self, ts: TrainingState):
+        return functools.partial(self.nets.policy, ts.actor, ts.normalizer)
+
+    def _reset_keys(self, key: jax.Array) -> jax.Array:
+        """One learner's reset keys for the iteration, all devices' in device order: ``[num_envs, 2]``."""
+        k_roll = jax.random.split(key, 3)[1]  # as iteration_one splits the learner's key
+        per_device = [jax.random.fold_in(k_roll, d) if self.axis else k_roll for d in range(self.devices)]
+        return jnp.concatenate([jax.random.split(jax.random.split(k)[0], self.local_envs) for k in per_device])
+
+    def _rollout(self, ts: TrainingState, first, key: jax.Array, random_eps: jax.Array):
+        env, cfg, n = self.env, self.config, self.local_envs
+        k_steps = jax.random.split(self._device_key(key))[1]
+        policy = self._policy(ts)
+
+        noisy = cfg.obs_noise_mm > 0 or cfg.obs_bias_mm > 0
+        if noisy:  # domain randomisation: this iteration's noise level and bias per environment
+            # folded off the rollout's key, so runs without noise keep their random streams
+            k_sigma, k_bias_size, k_bias = jax.random.split(jax.random.fold_in(k_steps, 17), 3)
+            sigma = jax.random.uniform(k_sigma, (n,), maxval=cfg.obs_noise_mm)
+            bias = jax.random.uniform(k_bias_size, (n,), maxval=cfg.obs_bias_mm)
+
+        def observe(state, k):
+            """What the policy sees: the observation of a needle estimate (noise-free when off)."""
+            if not noisy:
+                return state.obs
+            es = state.pipeline_state
+            needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
+            biased = jax.vmap(closed_loop.episode_bias)(jax.random.split(k_bias, n), needle, bias)
+            seen = jax.vmap(closed_loop.frame_estimate)(jax.random.split(k, n), biased, sigma)
+            return jax.vmap(env.observe)(es.replace(needle_pos=seen[:, :3], needle_quat=seen[:, 3:]))
+
+        def step(carry, k):
+            state, outcome = carry
+            k_coin, k_rand, k_noise = jax.random.split(k, 3)
+            k_obs, k_next = jax.random.split(jax.random.fold_in(k, 17))
+            explore = jax.random.uniform(k_coin, (n, 1)) < random_eps
+            obs = observe(state, k_obs)
+            greedy = policy(obs)
+            if cfg.action_noise > 0:
+                noise = cfg.action_noise * jax.random.normal(k_noise, greedy.shape)
+                greedy = jnp.clip(greedy + noise, -1.0, 1.0)
+            action = jnp.where(
+                explore,
+                jax.random.uniform(k_rand, (n, env.action_size), minval=-1.0, maxval=1.0),
+                greedy,
+            )
+            nxt = jax.vmap(env.step)(state, action)
+            terminal = nxt.done * (1.0 - nxt.info["truncation"])
+            transition = {
+                "obs": obs,
+                "action": action,
+                "reward": nxt.reward,
+                "next_obs": observe(nxt, k_next),
+                "terminal": terminal,
+            }
+            # The first episode of each environment decides Algorithm 1's "failed episode".
+            ended = (outcome[:, 0] == 0) & (nxt.done > 0)
+            new = jnp.stack(
+                [
+                    jnp.ones_like(nxt.done),
+                    nxt.metrics["success"],
+                    nxt.metrics["collision"],
+                    nxt.metrics["path_length_mm"],
+                    nxt.pipeline_state.t.astype(jnp.float32),
+                ],
+                axis=1,
+            )
+            outcome = jnp.where(ended[:, None], new, outcome)
+            reset = nxt.done > 0
+            state = jax.tree.map(lambda f, x: jnp.where(reset.reshape((-1,) + (1,) * (x.ndim - 1)), f, x), first, nxt)
+            return (state, outcome), (transition, nxt.reward)
+
+        outcome0 = jnp.zeros((n, 5))
+        (_, outcome), (transitions, rewards) = jax.lax.scan(
+            step, (first, outcome0), jax.random.split(k_steps, cfg.env.horizon)
+        )
+        return outcome, transitions, rewards
+
+    def update(self, ts: TrainingState, key: jax.Array):
+        """One DDPG+BC gradient step of one learner: this device's share of a batch, then :meth:`learn`."""
+        k_online, k_demo = jax.random.split(self._device_key(key))
+        online = self.online_buffer.sample(ts.online, k_online).experience
+        demo = self.demo_buffer.sample(ts.demos, k_demo).experience
+        # folded, not split: the batches stay those of runs without target noise
+        k_noise = jax.random.fold_in(self._device_key(key), 1)
+        return self.learn(ts, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), online, demo), k_noise)
+
+    def learn(self, ts: TrainingState, batch: dict[str, jax.Array], key: jax.Array | None = None):
+        """The gradient step on a batch (online samples first, then demonstrations); under several
+        devices ``batch`` is this device's share and the gradients are averaged across devices.
+        ``key`` draws the target-policy noise (needed when ``target_noise`` > 0)."""
+        cfg, nets = self.config, self.nets
+        if cfg.target_noise > 0 and key is None:
+            raise ValueError("learn() needs a key when target_noise > 0 (it draws the target-policy noise)")
+        n_online = cfg.online_batch // self.devices
+        is_demo = jnp.arange(batch["reward"].shape[0]) >= n_online
+        policy = lambda p, o: nets.policy(p, ts.normalizer, o)  # noqa: E731
+        q = lambda p, o, a: nets.q(p, ts.normalizer, o, a)  # noqa: E731
+
+        (_, c_metrics), c_grad = jax.value_and_grad(losses.critic_loss, has_aux=True)(
+            ts.critic,
+            ts.target_actor,
+            ts.target_critic,
+            batch,
+            policy,
+            q,
+            cfg.gamma,
+            key,
+            cfg.target_noise,
+            cfg.target_noise_clip,
+        )
+        c_upd, critic_opt = self.critic_opt.update(self._pmean(c_grad), ts.critic_opt, ts.critic)
+        critic = optax.apply_updates(ts.critic, c_upd)
+        # The BC term is a sum over the batch's demonstrations (the means are means): scaled by the
+        # device count, its averaged gradient is the whole batch's sum.
+        (_, a_metrics), a_grad = jax.value_and_grad(losses.actor_loss, has_aux=True)(
+            ts.actor,
+            critic,
+            batch,
+            is_demo,
+            policy,
+            q,
+            cfg.prm_coef,
+            self.bc_coef(ts.updates) * self.devices,
+            cfg.action_l2,
+        )
+        a_upd, actor_opt = self.actor_opt.update(self._pmean(a_grad), ts.actor_opt, ts.actor)
+        actor = optax.apply_updates(ts.actor, a_upd)
+
+        if cfg.actor_ema > 0:
+            ema_actor = jax.tree.map(lambda e, a: cfg.actor_ema * e + (1.0 - cfg.actor_ema) * a, ts.ema_actor, actor)
+        else:
+            ema_actor = ts.ema_actor
+        updates = ts.updates + 1
+        sync = (updates % cfg.target_every) == 0
+        blend = lambda t, p: jnp.where(sync, cfg.polyak * t + (1.0 - cfg.polyak) * p, t)  # noqa: E731
+        ts = ts.replace(
+            actor=actor,
+            critic=critic,
+            ema_actor=ema_actor,
+            actor_opt=actor_opt,
+            critic_opt=critic_opt,
+            updates=updates,
+            target_actor=jax.tree.map(blend, ts.target_actor, actor),
+            target_critic=jax.tree.map(blend, ts.target_critic, critic),
+        )
+        return ts, {**c_metrics, **a_metrics}
+
+    def iteration_one(self, ts: TrainingState, first, random_eps: jax.Array):
+        """One learner's iteration from its environments' first states: rollouts, inserts,
+        ``updates_per_iteration`` updates."""
+        key, k_roll, k_upd = jax.random.split(ts.key, 3)
+        outcome, transitions, rewards = self._rollout(ts, first, k_roll, random_eps)
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), transitions)
+        online = self.online_buffer.add(ts.online, flat)
+        normalizer = running_statistics.update(ts.normalizer, flat["obs"], pmap_axis_name=self.axis)
+        ts = ts.replace(online=online, normalizer=normalizer, key=key)
+        ts, metrics = jax.lax.scan(self.update, ts, jax.random.split(k_upd, self.config.updates_per_iteration))
+        metrics = jax.tree.map(jnp.mean, metrics)
+        metrics["rollout_reward"] = jnp.sum(rewards) / self.local_envs
+        ts = ts.replace(iteration=ts.iteration + 1)
+        return ts, self._pmean(metrics), outcome
+
+    def _iteration(self, ts: TrainingState, random_eps: jax.Array):
+        """All members' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``,
+        environments (outcomes and problems: axis 1) split over the devices; ``random_eps`` is each
+        member's E_R, ``[S]`` (or one for all).
+
+        The resets are drawn outside the ``shard_map``, partitioned by XLA from a sharding
+        constraint: on two H200s (jax 0.11.2) XLA's GPU compiler crashes (segfault) on the reset's
+        rejection-sampling while loop (collision distances in its body) inside a manually sharded
+        program, and compiles the same loop auto-partitioned."""
+        self.trace_count += 1
+        random_eps = jnp.broadcast_to(random_eps, ts.iteration.shape)  # one for all, or one per member
+        by_member = self.member_devices > 1
+        split = P(AXIS) if by_member else P(None, AXIS)  # members, or each member's environments
+        keys = jax.lax.with_sharding_constraint(jax.vmap(self._reset_keys)(ts.key), NamedSharding(self.mesh, split))
+        first = jax.lax.with_sharding_constraint(
+            jax.vmap(jax.vmap(self.env.reset))(keys), NamedSharding(self.mesh, split)
+        )
+        specs = self.state_specs(ts)
+        body = jax.vmap(self.iteration_one, in_axes=(0, 0, 0))
+        per_member = P(AXIS) if by_member else P()
+        ts, metrics, outcome = self._shard_map(body, (specs, split, per_member), (specs, per_member, split))(
+            ts, first, random_eps
+        )
+        return ts, metrics, outcome, first.pipeline_state
+
+    def _add_online(self, ts: TrainingState, member: jax.Array, chunk: dict[str, jax.Array]) -> TrainingState:
+        """Adds a chunk of planner demonstrations to one seed's online buffer (and normaliser); with
+        several devices each adds its share of the chunk to its slice."""
+
+        def add(ts, member, chunk):
+            pick = lambda tree: jax.tree.map(lambda x: x[member], tree)  # noqa: E731
+            put = lambda tree, one: jax.tree.map(lambda x, y: x.at[member].set(y), tree, one)  # noqa: E731
+            online = self.online_buffer.add(pick(ts.online), chunk)
+            normalizer = running_statistics.update(pick(ts.normalizer), chunk["obs"], pmap_axis_name=self.axis)
+            return ts.replace(online=put(ts.online, online), normalizer=put(ts.normalizer, normalizer))
+
+        specs = self.state_specs(ts)
+        if self.member_devices == 1:
+            return self._shard_map(add, (specs, P(), P(AXIS)), specs)(ts, member, chunk)
+
+        def own(ts, member, chunk):
+            # whole members per device: only the device holding ``member`` adds the whole chunk
+            local = member - jax.lax.axis_index(AXIS) * ts.iteration.shape[0]
+            mine = (local >= 0) & (local < ts.iteration.shape[0])
+            return jax.lax.cond(mine, add, lambda ts, *_: ts, ts, jnp.clip(local, 0, ts.iteration.shape[0] - 1), chunk)
+
+        return self._shard_map(own, (specs, P(), P()), specs)(ts, member, chunk)
+
+    # ---- evaluation ---------------------------------------------------------------------------
+    def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode, critic: Any = None) -> dict[str, jax.Array]:
+        """Deterministic policy on given problems, one pass: success, collision, time-out, path.
+
+        With ``critic``, also the critic's estimate at each start, ``Q(s_0, pi(s_0))`` (the first
+        critic), and the discounted return the rollout actually got: their difference is the
+        critic's over-estimation on the policy's own starts (time-outs bootstrap in training, so
+        theirs reads low by at most ``gamma^horizon``)."""
+        policy = functools.partial(self.nets.policy, actor, normalizer)
+        out = evaluate_actor(self.env, policy, episodes, self.config.gamma)
+        obs0, ret = out.pop("obs0"), out.pop("return")
+        if critic is not None:
+            q0 = self.nets.q(critic, normalizer, obs0, policy(obs0))
+            out["q_start"] = q0 if q0.ndim == 1 else q0[0]
+            out["return_start"] = ret
+        return out

@@ -1,0 +1,274 @@
+"""Typed, frozen configs of the scene and the task, validated when built.
+
+Field names carry their unit (``_mm``, ``_deg``; grasp coordinates are radians and say so) because
+these are the numbers a user types; the code converts to metres and radians once, when an
+environment is built. Defaults are SPEC's; the README lists which of them are our choices.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import math
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A config value out of its accepted range; the message names the field and the range."""
+
+
+def _check(ok: bool, field: str, value: Any, accepted: str) -> None:
+    if not ok:
+        raise ConfigError(f"{field}={value!r} is not accepted: {accepted}")
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _check_range(field: str, rng: tuple[float, float], lo: float, hi: float, unit: str) -> None:
+    _check(
+        isinstance(rng, tuple) and len(rng) == 2 and all(_finite(v) for v in rng),
+        field,
+        rng,
+        f"a pair (low, high) of finite numbers in {unit}",
+    )
+    _check(lo <= rng[0] <= rng[1] <= hi, field, rng, f"low <= high within [{lo:g}, {hi:g}] {unit}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneConfig:
+    """Geometry that varies from the MJCF defaults (``models/mjcf/regrasp_scene.xml``).
+
+    Attributes:
+      jaw_angle_deg: angle between the two open jaws of the regrasping tool (SPEC: 20, ours).
+      needle_radius_mm: needle radius R (paper: 5.4).
+      wire_radius_mm: needle wire radius (SPEC: 0.25, ours).
+      conservative_needle: the needle's straight capsule chords get the wire radius plus their
+        sagitta (the most an arc point lies off its chord, 20.5 um for R = 5.4 mm and 18 chords), so
+        the collision model contains the true wire and never reports more clearance than there is
+        (ours; False = the wire radius alone, which under-reports contact by up to the sagitta).
+    """
+
+    jaw_angle_deg: float = 20.0
+    needle_radius_mm: float = 5.4
+    wire_radius_mm: float = 0.25
+    conservative_needle: bool = True
+
+    def __post_init__(self) -> None:
+        _check(
+            _finite(self.jaw_angle_deg) and 0.0 < self.jaw_angle_deg < 90.0,
+            "jaw_angle_deg",
+            self.jaw_angle_deg,
+            "a number of degrees in (0, 90)",
+        )
+        _check(
+            _finite(self.needle_radius_mm) and 1.0 <= self.needle_radius_mm <= 20.0,
+            "needle_radius_mm",
+            self.needle_radius_mm,
+            "a number of millimetres in [1, 20]",
+        )
+        _check(
+            _finite(self.wire_radius_mm) and 0.05 <= self.wire_radius_mm <= 1.0,
+            "wire_radius_mm",
+            self.wire_radius_mm,
+            "a number of millimetres in [0.05, 1]",
+        )
+        _check(
+            isinstance(self.conservative_needle, bool), "conservative_needle", self.conservative_needle, "True or False"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskConfig:
+    """The paper's goal and start distributions (§IV; SPEC "Distributions").
+
+    Grasp coordinates (alpha, theta, phi) are radians, depths millimetres.
+    """
+
+    goal_alpha_rad: float = 4.0 * math.pi / 3.0
+    goal_theta_rad: float = 0.0
+    goal_phi_rad: float = math.pi
+    goal_depth_mm: tuple[float, float] = (6.5, 8.0)
+    init_alpha_rad: tuple[float, float] = (11.0 * math.pi / 18.0, 13.0 * math.pi / 18.0)
+    init_depth_mm: tuple[float, float] = (6.5, 8.0)
+    init_theta_rad: tuple[float, float] = (0.0, 2.0 * math.pi)
+    init_phi_rad: tuple[float, float] = (0.0, 0.4 * math.pi)
+    start_distance_mm: float = 13.0
+    start_pos_noise_mm: float = 1.0
+    start_rot_noise_deg: float = 5.0
+    max_sample_tries: int = 64
+
+    def __post_init__(self) -> None:
+        for name in ("goal_alpha_rad", "goal_theta_rad", "goal_phi_rad"):
+            _check(_finite(getattr(self, name)), name, getattr(self, name), "a finite number of radians")
+        _check(
+            math.pi / 2 <= self.goal_alpha_rad <= 3 * math.pi / 2,
+            "goal_alpha_rad",
+            self.goal_alpha_rad,
+            "an angle on the needle in [pi/2, 3pi/2]",
+        )
+        _check_range("goal_depth_mm", self.goal_depth_mm, 0.5, 20.0, "mm")
+        _check_range("init_alpha_rad", self.init_alpha_rad, math.pi / 2, 3 * math.pi / 2, "rad")
+        _check_range("init_depth_mm", self.init_depth_mm, 0.5, 20.0, "mm")
+        _check_range("init_theta_rad", self.init_theta_rad, -2 * math.pi, 4 * math.pi, "rad")
+        _check_range("init_phi_rad", self.init_phi_rad, 0.0, math.pi, "rad")
+        _check(
+            _finite(self.start_distance_mm) and 0.0 < self.start_distance_mm <= 100.0,
+            "start_distance_mm",
+            self.start_distance_mm,
+            "a distance in (0, 100] mm",
+        )
+        _check(
+            _finite(self.start_pos_noise_mm) and 0.0 <= self.start_pos_noise_mm <= 10.0,
+            "start_pos_noise_mm",
+            self.start_pos_noise_mm,
+            "a half-width in [0, 10] mm",
+        )
+        _check(
+            _finite(self.start_rot_noise_deg) and 0.0 <= self.start_rot_noise_deg <= 180.0,
+            "start_rot_noise_deg",
+            self.start_rot_noise_deg,
+            "a half-width in [0, 180] degrees",
+        )
+        _check(
+            isinstance(self.max_sample_tries, int) and 1 <= self.max_sample_tries <= 4096,
+            "max_sample_tries",
+            self.max_sample_tries,
+            "an integer in [1, 4096]",
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """The MDP (paper §III-B/C, §IV; SPEC "MDP").
+
+    Attributes:
+      scene: geometry.
+      task: start and goal distributions.
+      max_dp_mm: translation per action unit and axis (SPEC: 0.5, ours).
+      max_drot_deg: rotation-vector component per action unit (SPEC: 3, ours).
+      horizon: steps before a time-out (truncation, not a terminal state).
+      step_reward: beta, the reward of a step that neither collides nor succeeds.
+      collision_reward, success_reward: terminal rewards.
+      success_pos_mm, success_rot_deg: the success tolerances of eqs. (8) and (9).
+      clearance_mm: a pose collides when any counted pair is closer than this (ours; 0 = only
+        penetration, SPEC). With a margin > 0 the derived sub-step count also guarantees that no
+        pose between two checked ones penetrates (:meth:`regrasp_mjx.scene.Scene.required_substeps`).
+      collision_substeps: poses checked per step, the end pose included. ``None`` derives the
+        smallest count that makes tunnelling impossible from the geometry
+        (:meth:`regrasp_mjx.scene.Scene.required_substeps`); a smaller count is refused.
+      check_actions: raise a runtime error on a non-finite action (costs a little speed; the
+        learner, whose actions are tanh outputs, turns it off).
+    """
+
+    scene: SceneConfig = SceneConfig()
+    task: TaskConfig = TaskConfig()
+    max_dp_mm: float = 0.5
+    max_drot_deg: float = 3.0
+    horizon: int = 100
+    step_reward: float = -0.02
+    collision_reward: float = -1.0
+    success_reward: float = 1.0
+    success_pos_mm: float = 1.0
+    success_rot_deg: float = 5.0
+    clearance_mm: float = 0.0
+    collision_substeps: int | None = None
+    check_actions: bool = True
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.scene, SceneConfig), "scene", self.scene, "a SceneConfig")
+        _check(isinstance(self.task, TaskConfig), "task", self.task, "a TaskConfig")
+        _check(
+            _finite(self.max_dp_mm) and 0.0 < self.max_dp_mm <= 5.0, "max_dp_mm", self.max_dp_mm, "a step in (0, 5] mm"
+        )
+        _check(
+            _finite(self.max_drot_deg) and 0.0 < self.max_drot_deg <= 30.0,
+            "max_drot_deg",
+            self.max_drot_deg,
+            "a step in (0, 30] degrees",
+        )
+        _check(
+            isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 100_000,
+            "horizon",
+            self.horizon,
+            "an integer number of steps in [1, 100000]",
+        )
+        _check(
+            _finite(self.step_reward) and self.step_reward <= 0.0,
+            "step_reward",
+            self.step_reward,
+            "a finite number <= 0 (beta < 0 in the paper)",
+        )
+        for name in ("collision_reward", "success_reward"):
+            _check(_finite(getattr(self, name)), name, getattr(self, name), "a finite number")
+        _check(
+            _finite(self.success_pos_mm) and self.success_pos_mm > 0.0,
+            "success_pos_mm",
+            self.success_pos_mm,
+            "a tolerance > 0 mm",
+        )
+        _check(
+            _finite(self.success_rot_deg) and 0.0 < self.success_rot_deg <= 180.0,
+            "success_rot_deg",
+            self.success_rot_deg,
+            "a tolerance in (0, 180] degrees",
+        )
+        _check(
+            _finite(self.clearance_mm) and 0.0 <= self.clearance_mm <= 1.0,
+            "clearance_mm",
+            self.clearance_mm,
+            "a margin in [0, 1] mm",
+        )
+        _check(
+            self.collision_substeps is None
+            or (isinstance(self.collision_substeps, int) and 1 <= self.collision_substeps <= 64),
+            "collision_substeps",
+            self.collision_substeps,
+            "None (derived) or an integer in [1, 64]",
+        )
+        _check(isinstance(self.check_actions, bool), "check_actions", self.check_actions, "True or False")
+
+
+def replace(config: Any, **changes: Any) -> Any:
+    """``dataclasses.replace`` that accepts dotted names for nested configs: ``scene.jaw_angle_deg``."""
+    nested: dict[str, dict[str, Any]] = {}
+    flat: dict[str, Any] = {}
+    for key, value in changes.items():
+        head, _, rest = key.partition(".")
+        if not any(f.name == head for f in dataclasses.fields(config)):
+            names = ", ".join(f.name for f in dataclasses.fields(config))
+            raise ConfigError(f"{type(config).__name__} has no field {head!r}; fields: {names}")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        else:
+            flat[head] = value
+    for head, sub in nested.items():
+        flat[head] = replace(getattr(config, head), **sub)
+    return dataclasses.replace(config, **flat)
+
+
+def env_config_from_dict(d: dict[str, Any]) -> EnvConfig:
+    """The inverse of ``dataclasses.asdict(EnvConfig)`` (JSON lists back to tuples)."""
+    try:
+        task = {k: tuple(v) if isinstance(v, list) else v for k, v in d["task"].items()}
+        rest = {k: v for k, v in d.items() if k not in ("scene", "task")}
+        return EnvConfig(scene=SceneConfig(**d["scene"]), task=TaskConfig(**task), **rest)
+    except (KeyError, TypeError) as err:
+        raise ConfigError(f"not an EnvConfig description: {err}") from err
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``--set KEY=VALUE`` items as ``{KEY: value}``, values read as Python literals where they parse
+    (``3``, ``0.2``, ``(256, 256)``, ``False``) and as strings otherwise; for :func:`replace`."""
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {item!r} is not accepted: KEY=VALUE, e.g. --set env.horizon=80")
+        try:
+            out[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            out[key.strip()] = value.strip()
+    return out

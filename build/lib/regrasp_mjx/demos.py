@@ -1,0 +1,216 @@
+"""``python -m regrasp_mjx.demos``: a demonstration set from an OMPL planner, on all cores.
+
+Problem i is the one ``RegraspEnv.reset`` draws from ``fold_in(PRNGKey(seed), i)``. Planner
+processes (:class:`~regrasp_mjx.planning.pool.PlannerPool`) plan problems 0, 1, 2, ...; each plan
+is written at once to ``DIR/plans/p{i:07d}.npz`` (atomically), so an interrupted run loses no
+finished plan and a restart with the same arguments plans only what is missing. Solved paths are
+replayed in the environment in batches and only those that succeed there count. The run ends when
+``n`` have; ``DIR/demos.npz`` then holds the first ``n`` successful problems by index (format in
+:mod:`regrasp_mjx.planning.episodes`) and ``DIR/meta.json`` the settings and versions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from regrasp_mjx.atomic import atomic_write, write_json
+from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
+from regrasp_mjx.planning.ompl_planner import PLANNERS, PlannerConfig
+from regrasp_mjx.planning.pool import PlannerPool
+from regrasp_mjx.sampling import Episode, sample_episode
+from regrasp_mjx.testset import versions
+
+
+def problem_sampler(env: RegraspEnv, seed: int, batch: int = 1024):
+    """``sample(indices) -> Episode`` (numpy): problem i from ``fold_in(PRNGKey(seed), i)``."""
+    radius = env.config.scene.needle_radius_mm * 1e-3
+    base = jax.random.PRNGKey(seed)
+
+    @jax.jit
+    def draw(idx):
+        keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
+        return jax.vmap(lambda k: sample_episode(k, env.config.task, radius, env.distances))(keys)
+
+    def sample(indices: np.ndarray) -> Episode:
+        indices = np.asarray(indices, np.int32)
+        padded = np.concatenate([indices, np.zeros(batch - len(indices) % batch, np.int32)])[: max(batch, len(indices))]
+        out = []
+        for lo in range(0, len(padded), batch):
+            ep, _ = draw(padded[lo : lo + batch])
+            out.append(jax.tree.map(np.asarray, ep))
+        cat = jax.tree.map(lambda *x: np.concatenate(x), *out)
+        return jax.tree.map(lambda x: x[: len(indices)], cat)
+
+    return sample
+
+
+def _problem(ep: Episode, i: int) -> dict[str, np.ndarray]:
+    return {
+        "needle": np.r_[ep.needle_pos[i], ep.needle_quat[i]],
+        "start": np.r_[ep.start_pos[i], ep.start_quat[i]],
+        "goal": np.r_[ep.goal_pos[i], ep.goal_quat[i]],
+    }
+
+
+def _plan_path(plans: Path, i: int) -> Path:
+    return plans / f"p{i:07d}.npz"
+
+
+def _write_plan(plans: Path, i: int, result: dict | None, error: str) -> None:
+    poses = np.zeros((0, 7)) if not result or result.get("poses") is None else np.asarray(result["poses"])
+    solved = bool(result and result["solved"])
+    arrays = {
+        "solved": np.array(solved),
+        "poses": poses,
+        "plan_time_s": np.array(result["plan_time_s"] if result else np.nan),
+        "error": np.array(error or (result or {}).get("error", "")),
+    }
+    atomic_write(_plan_path(plans, i), lambda f: np.savez(f, **arrays))
+
+
+def _read_plan(path: Path) -> dict:
+    with np.load(path, allow_pickle=False) as f:
+        return {"solved": bool(f["solved"]), "poses": f["poses"], "plan_time_s": float(f["plan_time_s"])}
+
+
+def build(args: argparse.Namespace) -> Path:
+    config = EnvConfig(scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg))
+    planner = PlannerConfig(planner=args.planner, direction=args.direction, budget_s=args.budget_s)
+    out = Path(args.out)
+    plans = out / "plans"
+    plans.mkdir(parents=True, exist_ok=True)
+    settings = {"seed": args.seed, "planner": dataclasses.asdict(planner), "env": dataclasses.asdict(config)}
+    meta_path = out / "meta.json"
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if old.get("settings") != json.loads(json.dumps(settings)):
+            raise DemosError(
+                f"{out} holds plans made with other settings ({old.get('settings')}); "
+                f"use another --out or the same arguments to resume"
+            )
+    else:
+        meta = {
+            "format": "regrasp_mjx.demos",
+            "settings": settings,
+            "versions": versions(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        }
+        write_json(meta_path, meta)
+
+    env = RegraspEnv(dataclasses.replace(config, check_actions=False))
+    replay = make_replay(env)
+    sample = problem_sampler(env, args.seed)
+    verified: dict[int, dict] = {}
+    stats = {"planned": 0, "failed": 0, "replay_failed": 0, "resumed": 0}
+
+    def verify(items: list[tuple[int, dict]]) -> None:
+        if not items:
+            return
+        idx = np.array([i for i, _ in items])
+        ok, rows = replay_paths(env, replay, sample(idx), [p["poses"] for _, p in items], batch=args.replay_batch)
+        for (i, plan), good, row in zip(items, ok, rows):
+            if good:
+                verified[i] = {**row, "problem_index": i, "plan_time_s": plan["plan_time_s"]}
+            else:
+                stats["replay_failed"] += 1
+
+    existing = sorted(int(p.name[1:8]) for p in plans.glob("p*.npz"))
+    done = set(existing)
+    stats["resumed"] = len(existing)
+    verify([(i, plan) for i in existing if (plan := _read_plan(_plan_path(plans, i)))["solved"]])
+
+    next_index, batch_cache = 0, {}
+    pending: list[tuple[int, dict]] = []
+    options = {"planner": dataclasses.asdict(planner), "scene": dataclasses.asdict(config.scene), "seed": args.seed}
+    timeout = args.timeout_s or 3 * args.budget_s + 30
+    t0 = time.perf_counter()
+    with (
+        PlannerPool(args.workers, options=options, timeout_s=timeout) as pool,
+        tqdm(
+            total=args.n,
+            initial=min(len(verified), args.n),
+            desc="demonstrations",
+            unit="demo",
+            file=sys.stdout,
+            disable=args.quiet,
+        ) as bar,
+    ):
+        while len(verified) < args.n:
+            while pool.in_flight < 4 * args.workers:
+                while next_index in done:
+                    next_index += 1
+                block = next_index // 1024
+                if block not in batch_cache:
+                    batch_cache = {block: sample(np.arange(block * 1024, block * 1024 + 1024))}
+                pool.submit(_problem(batch_cache[block], next_index % 1024), payload=next_index)
+                done.add(next_index)
+            for r in pool.collect():
+                result = r.result if r.ok else None
+                _write_plan(plans, r.payload, result, r.error)
+                stats["planned"] += 1
+                if result and result["solved"]:
+                    pending.append((r.payload, result))
+                else:
+                    stats["failed"] += 1
+            if len(pending) >= args.replay_batch or (pending and len(verified) + len(pending) >= args.n):
+                before = len(verified)
+                verify(pending)
+                pending = []
+                bar.update(min(len(verified), args.n) - min(before, args.n))
+                bar.set_postfix(
+                    planned=stats["planned"], plan_failed=stats["failed"], replay_failed=stats["replay_failed"]
+                )
+            else:
+                time.sleep(0.005)
+    chosen = sorted(verified)[: args.n]
+    meta = {
+        "settings": settings,
+        "versions": versions(),
+        "n": args.n,
+        "wall_s": round(time.perf_counter() - t0, 2),
+        "problems_planned": len(done),
+        "stats": stats,
+    }
+    path = save_demos(out / "demos.npz", [verified[i] for i in chosen], meta)
+    print(json.dumps({"out": str(path), "demos": len(chosen), **stats, "wall_s": meta["wall_s"]}))
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m regrasp_mjx.demos", description=__doc__.splitlines()[0])
+    p.add_argument("--n", type=int, default=9900, help="demonstrations wanted (default 9900, the paper's)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="planner processes (default: all cores)")
+    p.add_argument("--out", required=True, help="output folder (resumed when it exists)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--planner", default="BITstar", choices=PLANNERS)
+    p.add_argument("--direction", default="reverse", choices=("forward", "reverse"))
+    p.add_argument("--budget-s", type=float, default=10.0, help="planning time limit per problem")
+    p.add_argument("--timeout-s", type=float, default=None, help="kill a plan after this long (default 3x budget + 30)")
+    p.add_argument("--jaw-angle-deg", type=float, default=20.0)
+    p.add_argument("--replay-batch", type=int, default=256)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    if args.n < 1 or args.workers < 1:
+        p.error("--n and --workers must be >= 1")
+    try:
+        build(args)
+    except (ConfigError, DemosError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,169 @@
+"""``python -m regrasp_mjx.distill``: DAgger-distil a trained policy (improved by lookahead) into one network.
+
+    python -m regrasp_mjx.distill --teacher runs/fast/policy --out runs/fast/student
+    python -m regrasp_mjx.distill --teacher regrasp_mjx/policies/ensemble3 --out runs/student --set hidden=(256,256)
+
+The teacher is any policy folder (one network or an ensemble); see
+:mod:`regrasp_mjx.agents.dagger` for what the teacher does and how the student learns. Each
+iteration prints a line (student's bare success on the validation and test problems, the share of
+visited states where the teacher overrode its policy, the loss, the ETA) and appends a row to
+``OUT/distill_log.jsonl``. ``OUT/policy`` is the student of the iteration best on validation (its own
+seed, never the test set), ``OUT/policy_last`` the last; ``OUT/distill_eval.json`` holds the
+teacher's and the exported student's test-set numbers, bare and shielded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from regrasp_mjx.agents.dagger import DistillConfig, Distiller
+from regrasp_mjx.atomic import write_json
+from regrasp_mjx.config import ConfigError, parse_overrides, replace
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.evaluate import outcomes
+from regrasp_mjx.policy import Policy, PolicyError, load_policy, save_policy
+from regrasp_mjx.rollout import evaluate_actor, summarize
+from regrasp_mjx.sampling import PAPER300, Episode, TestsetError, load_testset
+
+VALIDATION_SEED = 2_000_003  # + the distillation seed; the learner's validation problems use 1_000_003 + seed
+DEFAULT_TESTSET = PAPER300
+
+
+def distill(
+    teacher: Policy,
+    out: Path,
+    cfg: DistillConfig,
+    testset: Episode,
+    teacher_name: str = "",
+    quiet: bool = False,
+) -> dict[str, Any]:
+    """Distils ``teacher`` into a student in ``out`` (see the module docstring); returns the
+    contents of ``distill_eval.json``."""
+    from regrasp_mjx.testset import make_testset
+
+    log = (lambda msg: None) if quiet else (lambda msg: print(msg, flush=True))
+    env_cfg = teacher.env_config
+    env = RegraspEnv(env_cfg)
+    distiller = Distiller(env, teacher.members_fn(), cfg)
+    valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, env_cfg)
+    f32 = lambda tree: jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), tree)  # noqa: E731
+    val, test = f32(valset), f32(testset)
+
+    @jax.jit
+    def student_eval(params, normalizer, episodes):
+        return evaluate_actor(env, functools.partial(distiller.nets.policy, params, normalizer), episodes)
+
+    teacher_eval = jax.jit(lambda episodes: evaluate_actor(env, teacher.actor_fn(), episodes))
+    t0 = time.perf_counter()
+    teacher_val = summarize(jax.device_get(teacher_eval(val)), "bare")
+    log(
+        f"teacher {teacher_name or '(given)'}: {teacher.members} network(s), bare success on "
+        f"{cfg.validation_size} validation problems {teacher_val['success_rate']:.3f}"
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "distill_log.jsonl"
+    log_path.unlink(missing_ok=True)
+    ds = distiller.init()
+    best, best_it, compile_s = -1.0, 0, None
+    training = {
+        "teacher": teacher_name,
+        "teacher_training": teacher.contract.get("training"),
+        "distill": dataclasses.asdict(cfg),
+    }
+    save = lambda folder, ds, extra: save_policy(  # noqa: E731
+        folder, ds.params, ds.normalizer, cfg.hidden, env_cfg, extra={"training": {**training, **extra}}
+    )
+    for it in range(cfg.iterations):
+        t_it = time.perf_counter()
+        ds, metrics = distiller.iteration(ds, it == 0)
+        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        if compile_s is None and it == 1:  # iteration 0 and 1 are two programs; count both compiles
+            compile_s = time.perf_counter() - t0
+        va = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, val)), "bare")
+        te = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, test)), "bare")
+        if va["success_rate"] >= best:
+            best, best_it = va["success_rate"], it + 1
+            save(out / "policy", ds, {"iteration": it + 1, "validation_success": va["success_rate"]})
+        row = {
+            "stage": "distill",
+            "iteration": it + 1,
+            "validation": va,
+            "test": te,
+            **metrics,
+            "iteration_s": time.perf_counter() - t_it,
+            "wall_s": time.perf_counter() - t0,
+        }
+        with open(log_path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        per_it = row["wall_s"] / (it + 1)
+        log(
+            f"distill {it + 1}/{cfg.iterations}  val success {va['success_rate']:.3f}  test success "
+            f"{te['success_rate']:.3f} (collision {te['collision_rate']:.3f})  rollouts {metrics['rollout_success']:.3f}  "
+            f"overridden {metrics['overridden']:.3f}  teacher reaches {metrics['teacher_reaches']:.3f}  "
+            f"loss {metrics['loss']:.5f}  {row['iteration_s']:.1f} s/it  ETA {per_it * (cfg.iterations - it - 1) / 60:.1f} min"
+        )
+    save(out / "policy_last", ds, {"iteration": cfg.iterations})
+    final = {
+        "teacher": teacher_name,
+        "teacher_validation": teacher_val,
+        "teacher_test": outcomes(teacher, testset),
+        "student": str(out / "policy"),
+        "best_iteration": best_it,
+        "best_validation_success": best,
+        "test": outcomes(load_policy(out / "policy"), testset),
+        "hidden": list(cfg.hidden),
+        "compile_s": compile_s,
+        "wall_s": time.perf_counter() - t0,
+    }
+    write_json(out / "distill_eval.json", final)
+    st, tt = final["test"], final["teacher_test"]
+    log(
+        f"student (iteration {best_it}, best on validation) on the test set: bare {st['bare']['success_rate']:.3f}, "
+        f"shielded {st['shielded']['success_rate']:.3f}; teacher bare {tt['bare']['success_rate']:.3f}, "
+        f"shielded {tt['shielded']['success_rate']:.3f}"
+    )
+    return final
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m regrasp_mjx.distill", description=__doc__.splitlines()[0])
+    p.add_argument("--teacher", required=True, help="policy folder of the teacher (one network or an ensemble)")
+    p.add_argument("--out", required=True, help="output folder (policy, policy_last, distill_log.jsonl, ...)")
+    p.add_argument("--seed", type=int, default=0, help="PRNG seed (problems, student initialisation)")
+    p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="test set .npz reported each iteration")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a DistillConfig field")
+    p.add_argument(
+        "--clearance-mm",
+        type=float,
+        default=None,
+        help="train the student at this clearance margin (the teacher's shield and lookahead keep it; "
+        "default: the teacher's own, usually 0)",
+    )
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args(argv)
+    try:
+        cfg = replace(DistillConfig(), seed=args.seed, **parse_overrides(args.set))
+        teacher = load_policy(args.teacher)
+        if args.clearance_mm is not None:
+            teacher = teacher.with_env(clearance_mm=args.clearance_mm)
+        testset, _ = load_testset(args.testset)
+        final = distill(teacher, Path(args.out), cfg, testset, teacher_name=args.teacher, quiet=args.quiet)
+    except (ConfigError, PolicyError, TestsetError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps({"out": args.out, "test": final["test"]}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,223 @@
+"""OMPL planners in SE(3) over the host collision checker (paper §III-C.1, Table II).
+
+The state is the regrasping end-effector pose in the grasping end-effector frame. A state is valid
+when it lies in the planning box and the scene has no counted collision (CPU MuJoCo, the same MJCF
+and filtering as the MJX environment). Motions are checked at a resolution that no tool point moves
+more than ``check_step_mm`` between checks (see :func:`make_setup`), well under the 1.7 mm window in
+which a jaw passing through the wire would show as a penetration.
+
+OMPL 2.x (nanobind) Python API: states come from ``space.allocState()``; validity checkers are plain
+callables; ``ou.RNG.setSeed`` must be called before any space or planner is built.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from regrasp_mjx.host import HostChecker
+
+PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar")
+DIRECTIONS = ("forward", "reverse")
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerConfig:
+    """How a plan is made.
+
+    Attributes:
+      planner: one of PRMstar, RRTstar, BFMTstar, BITstar.
+      direction: ``forward`` (start -> goal) or ``reverse`` (goal -> start, path reversed after).
+      budget_s: planning time limit; planning stops at the first exact solution or the limit.
+      simplify_s: shortcutting of the found path (counted in the planning time); 0 turns it off.
+      margin_mm: the planning box is the start/goal bounding box grown by this much.
+      rotation_weight_mm: metres of translation one radian of rotation counts as in OMPL's SE(3)
+        distance; the jaw length, so that a distance bounds the motion of any jaw point.
+      check_step_mm: largest motion of any tool point between two checked states.
+      rrt_range_mm: RRT*'s longest extension (OMPL's "range"), in the weighted SE(3) distance.
+    """
+
+    planner: str = "BITstar"
+    direction: str = "reverse"
+    budget_s: float = 10.0
+    simplify_s: float = 0.2
+    margin_mm: float = 8.0
+    rotation_weight_mm: float = 10.2
+    check_step_mm: float = 0.25
+    rrt_range_mm: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.planner not in PLANNERS:
+            raise ValueError(f"planner={self.planner!r} is not accepted: one of {PLANNERS}")
+        if self.direction not in DIRECTIONS:
+            raise ValueError(f"direction={self.direction!r} is not accepted: one of {DIRECTIONS}")
+        for name in ("budget_s", "margin_mm", "rotation_weight_mm", "check_step_mm", "rrt_range_mm"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}={v!r} is not accepted: a finite number > 0")
+        if not (math.isfinite(self.simplify_s) and self.simplify_s >= 0):
+            raise ValueError(f"simplify_s={self.simplify_s!r} is not accepted: a finite number >= 0")
+
+
+@dataclasses.dataclass
+class PlanResult:
+    """A planning outcome. ``poses`` is (K, 7) ``[x, y, z, qw, qx, qy, qz]`` from start to goal."""
+
+    solved: bool
+    plan_time_s: float
+    poses: np.ndarray | None = None
+    path_length_mm: float = float("nan")
+    error: str = ""
+
+
+def _import_ompl():
+    from ompl import base as ob
+    from ompl import geometric as og
+    from ompl import util as ou
+
+    return ob, og, ou
+
+
+def _set_state(state: Any, pose: np.ndarray) -> None:
+    state.setXYZ(float(pose[0]), float(pose[1]), float(pose[2]))
+    rot = state.rotation()
+    rot.w, rot.x, rot.y, rot.z = (float(v) for v in pose[3:7])
+
+
+def _get_pose(state: Any) -> np.ndarray:
+    rot = state.rotation()
+    return np.array([state.getX(), state.getY(), state.getZ(), rot.w, rot.x, rot.y, rot.z])
+
+
+def _unit_pose(name: str, pose: np.ndarray) -> np.ndarray:
+    pose = np.array(pose, np.float64).reshape(-1)
+    if pose.shape != (7,) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"{name} pose must be 7 finite numbers [x, y, z, qw, qx, qy, qz], got {pose}")
+    norm = np.linalg.norm(pose[3:])
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(f"{name} quaternion has norm {norm:.6g}; accepted: unit within 1e-3")
+    pose[3:] /= norm
+    return pose
+
+
+def translation_length_mm(poses: np.ndarray) -> float:
+    """Sum of the translations along a path, mm (the paper's path length)."""
+    return float(np.linalg.norm(np.diff(poses[:, :3], axis=0), axis=1).sum() * 1e3)
+
+
+class OmplPlanner:
+    """Plans one problem at a time; owns a :class:`HostChecker`. Not thread-safe."""
+
+    def __init__(self, config: PlannerConfig = PlannerConfig(), checker: HostChecker | None = None, seed: int = 0):
+        self.config = config
+        self.checker = checker if checker is not None else HostChecker()
+        self.ob, self.og, self.ou = _import_ompl()
+        self.ou.RNG.setSeed(int(seed) % (2**31 - 1) + 1)  # before any space or planner is built
+        self.ou.setLogLevel(self.ou.LogLevel.LOG_ERROR)
+
+    def plan(self, needle: np.ndarray, start: np.ndarray, goal: np.ndarray) -> PlanResult:
+        """Plans from ``start`` to ``goal`` (7-vectors, e_g frame) around ``needle`` (7-vector).
+
+        Returns a :class:`PlanResult`; ``poses`` always run from start to goal, whatever the
+        direction the planner searched in.
+        """
+        ob, og = self.ob, self.og
+        cfg = self.config
+        t0 = time.perf_counter()
+        # float64 unit quaternions: OMPL's SE(3) distance takes acos of a dot product, which a
+        # float32 quaternion (|q| = 1 +- 1e-7) pushes past 1 into NaN, and then no goal is reached.
+        needle, start, goal = (
+            _unit_pose(name, v) for name, v in (("needle", needle), ("start", start), ("goal", goal))
+        )
+        needle_pos, needle_quat = needle[:3], needle[3:]
+        if self.checker.collides(needle_pos, needle_quat, start[:3], start[3:]):
+            return PlanResult(False, time.perf_counter() - t0, error="start in collision")
+        if self.checker.collides(needle_pos, needle_quat, goal[:3], goal[3:]):
+            return PlanResult(False, time.perf_counter() - t0, error="goal in collision")
+
+        space = ob.SE3StateSpace()
+        bounds = ob.RealVectorBounds(3)
+        lo = np.minimum(start[:3], goal[:3]) - cfg.margin_mm * 1e-3
+        hi = np.maximum(start[:3], goal[:3]) + cfg.margin_mm * 1e-3
+        for i in range(3):
+            bounds.setLow(i, float(lo[i]))
+            bounds.setHigh(i, float(hi[i]))
+        space.setBounds(bounds)
+        space.setSubspaceWeight(1, cfg.rotation_weight_mm * 1e-3)
+        setup = og.SimpleSetup(space)
+        checker = self.checker
+
+        def is_valid(state) -> bool:
+            if not space.satisfiesBounds(state):
+                return False
+            p = _get_pose(state)
+            return not checker.collides(needle_pos, needle_quat, p[:3], p[3:])
+
+        setup.setStateValidityChecker(is_valid)
+        si = setup.getSpaceInformation()
+        # OMPL checks a motion every `resolution * maximum extent` of distance; with the rotation
+        # weighted by the jaw length, a distance bounds how far any jaw point moves.
+        si.setStateValidityCheckingResolution(cfg.check_step_mm * 1e-3 / space.getMaximumExtent())
+        a, b = (goal, start) if cfg.direction == "reverse" else (start, goal)
+        s_a, s_b = space.allocState(), space.allocState()
+        _set_state(s_a, a)
+        _set_state(s_b, b)
+        setup.setStartAndGoalStates(s_a, s_b)
+        # Any path satisfies the objective, so the optimising planners return their first solution
+        # (the paper's planning time is time to a solution, not time spent optimising).
+        objective = ob.PathLengthOptimizationObjective(si)
+        objective.setCostThreshold(ob.Cost(math.inf))
+        setup.setOptimizationObjective(objective)
+        planner = getattr(og, "BFMT" if cfg.planner == "BFMTstar" else cfg.planner)(si)
+        if cfg.planner == "RRTstar":
+            # OMPL's default range (a fifth of the space's extent, ~10 mm here) makes almost every
+            # extension near the needle collide; a few millimetres lets the tree into the funnel.
+            planner.setRange(cfg.rrt_range_mm * 1e-3)
+        setup.setPlanner(planner)
+        setup.setup()
+        pdef = setup.getProblemDefinition()
+        stop = ob.plannerOrTerminationCondition(
+            ob.timedPlannerTerminationCondition(cfg.budget_s), ob.exactSolnPlannerTerminationCondition(pdef)
+        )
+        setup.solve(stop)
+        if not setup.haveExactSolutionPath():
+            return PlanResult(False, time.perf_counter() - t0, error="no exact solution within the budget")
+        if cfg.simplify_s > 0:
+            setup.simplifySolution(cfg.simplify_s)
+        path = setup.getSolutionPath()
+        poses = np.array([_get_pose(path.getState(i)) for i in range(path.getStateCount())])
+        if cfg.direction == "reverse":
+            poses = poses[::-1].copy()
+        poses[:, 3:] *= np.sign(poses[:, 3:4] + 1e-300)  # w >= 0
+        elapsed = time.perf_counter() - t0
+        return PlanResult(True, elapsed, poses, translation_length_mm(poses))
+
+
+def straight_line(
+    checker: HostChecker,
+    needle: np.ndarray,
+    start: np.ndarray,
+    goal: np.ndarray,
+    config: PlannerConfig = PlannerConfig(),
+) -> PlanResult:
+    """The straight-line baseline (SPEC): position interpolated, orientation slerped, checked at the
+    planners' motion resolution (no tool point moves more than ``check_step_mm`` between checks)."""
+    from regrasp_mjx.host import quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
+
+    t0 = time.perf_counter()
+    needle, start, goal = (_unit_pose(name, v) for name, v in (("needle", needle), ("start", start), ("goal", goal)))
+    rotvec = quat_to_rotvec(quat_mul(goal[3:], quat_conj(start[3:])))
+    dist = np.linalg.norm(goal[:3] - start[:3]) + config.rotation_weight_mm * 1e-3 * np.linalg.norm(rotvec)
+    n = max(1, math.ceil(dist / (config.check_step_mm * 1e-3)))
+    for k in range(n + 1):
+        s = k / n
+        pos = start[:3] + s * (goal[:3] - start[:3])
+        quat = quat_mul(quat_from_rotvec(s * rotvec), start[3:])
+        if checker.collides(needle[:3], needle[3:], pos, quat):
+            return PlanResult(False, time.perf_counter() - t0, error=f"collision at s={s:.3f}")
+    poses = np.stack([start, goal])
+    return PlanResult(True, time.perf_counter() - t0, poses, translation_length_mm(poses))

@@ -1,0 +1,787 @@
+"""Exported policies: plain arrays (``policy.npz``) plus a JSON contract (``policy.json``).
+
+The npz holds the actor's parameters under their flax paths (``actor/params/hidden_0/kernel``) and
+the observation normaliser (``normalizer/mean``, ``normalizer/std``), each with a leading member
+axis of size ``network.ensemble`` (1 for one network; K for the mean-action ensemble of K
+independently trained actors, ours). The JSON holds what a robot integrator needs: the network
+(hidden sizes, activation, tanh output, ensemble size), the observation and action layouts with
+units and frames, the action scales, the environment, the versions. No pickle anywhere: a policy
+file is loaded with ``allow_pickle=False`` and checked against its contract.
+
+Planning (``Policy.plan``, ``Policy.plan_from_camera``) rolls the deterministic policy out in the
+same environment it was trained in (kinematics and exact collision checks, on whatever device JAX
+uses) until success, collision or the horizon, and returns the trajectory.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import json
+import os
+import types
+import warnings
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.training.acme import running_statistics
+from flax import traverse_util
+
+from regrasp_mjx.agents.ddpg_bc.networks import make_networks
+from regrasp_mjx.atomic import atomic_write, write_json
+from regrasp_mjx.config import env_config_from_dict
+from regrasp_mjx.config import replace as config_replace
+from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
+
+POLICY_FORMAT = "regrasp_mjx.policy"
+POLICY_VERSION = 2
+SHIPPED = Path(__file__).resolve().parent / "policies"
+DEFAULT_POLICY = SHIPPED / "default"
+OBS_LAYOUT = [
+    "p_eg_n (3, m)",
+    "q_eg_n (4, wxyz, w>=0)",
+    "p_eg_er (3, m)",
+    "q_eg_er (4, wxyz, w>=0)",
+    "p_er_n (3, m)",
+    "q_er_n (4, wxyz, w>=0)",
+]
+ACTION_LAYOUT = [
+    "dp_x, dp_y, dp_z in the e_g frame, times max_dp_mm",
+    "rotation vector x, y, z in the e_g frame, times max_drot_deg, applied as q_t = exp(w) q_{t-1}",
+]
+
+
+class PolicyError(ValueError):
+    """A policy file that is missing, corrupt, or from an incompatible version."""
+
+
+class PoseError(ValueError):
+    """A pose that is not a finite 7-vector ``[x, y, z, qw, qx, qy, qz]`` with a unit quaternion."""
+
+
+WEIGHT_DTYPES = ("float32", "float16")
+QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the pose is refused
+OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
+
+
+_PLANNERS: dict[tuple, Any] = {}  # jitted planners by (hidden, members, env, camera, shield)
+
+
+def _members_apply(hidden: tuple[int, ...]):
+    """``apply(weights, obs) -> [each member's action]``, ``weights`` one ``(params, mean, std)``
+    per member. Members are unrolled (not vmapped): K is small, and exporters (jax2onnx) see plain
+    dense layers."""
+    nets = make_networks(6, hidden)
+
+    def apply(weights, obs):
+        return [nets.policy(p, types.SimpleNamespace(mean=m, std=s), obs) for p, m, s in weights]
+
+    return apply
+
+
+def mean_action(actions: list[jax.Array]) -> jax.Array:
+    """An ensemble's action: the mean of its members' actions."""
+    return sum(actions) / len(actions)
+
+
+def check_poses(name: str, poses: Any) -> np.ndarray:
+    """``poses[..., 7]`` as float64 with unit quaternions, or a :class:`PoseError` saying why not."""
+    arr = np.asarray(poses, np.float64)
+    if arr.ndim == 0 or arr.shape[-1] != 7:
+        raise PoseError(f"{name} has shape {arr.shape}; accepted: (..., 7) = [x, y, z, qw, qx, qy, qz] in metres")
+    if not np.all(np.isfinite(arr)):
+        raise PoseError(f"{name} has NaN or inf; accepted: finite values")
+    norm = np.linalg.norm(arr[..., 3:], axis=-1, keepdims=True)
+    bad = np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE
+    if np.any(bad):
+        raise PoseError(
+            f"{name} has a quaternion of norm {float(norm[bad][0]):.4g}; accepted: |norm - 1| <= "
+            f"{QUAT_NORM_TOLERANCE:g} (normalised), wxyz order"
+        )
+    return np.concatenate([arr[..., :3], arr[..., 3:] / norm], axis=-1)
+
+
+def save_policy(
+    out_dir: str | os.PathLike,
+    actor_params: Any,
+    normalizer: Any,
+    hidden: tuple[int, ...],
+    env_config: Any,
+    extra: dict[str, Any] | None = None,
+    ensemble: int | None = None,
+    weights_dtype: str = "float32",
+) -> Path:
+    """Writes ``policy.npz`` and ``policy.json`` into ``out_dir`` atomically.
+
+    ``actor_params`` and ``normalizer`` are one learner's, or, with ``ensemble=K``, K learners'
+    stacked on a leading axis. ``weights_dtype="float16"`` stores the actor's weights at half the
+    size (they are computed in float32 after loading); the normaliser stays float32."""
+    if weights_dtype not in WEIGHT_DTYPES:
+        raise PolicyError(f"weights_dtype={weights_dtype!r} is not accepted: one of {WEIGHT_DTYPES}")
+    out = Path(out_dir)
+    lead = (lambda x: np.asarray(x, np.float32)) if ensemble else (lambda x: np.asarray(x, np.float32)[None])
+    flat = {
+        "actor/" + "/".join(k): lead(v).astype(weights_dtype)
+        for k, v in traverse_util.flatten_dict(jax.device_get(actor_params)).items()
+    }
+    flat["normalizer/mean"] = lead(normalizer.mean)
+    flat["normalizer/std"] = lead(normalizer.std)
+    from regrasp_mjx.testset import versions
+
+    contract = {
+        "format": POLICY_FORMAT,
+        "version": POLICY_VERSION,
+        "network": {
+            "hidden": list(hidden),
+            "activation": "relu",
+            "output": "tanh",
+            "obs_clip_std": 5.0,
+            "ensemble": int(ensemble or 1),
+            "weights_dtype": weights_dtype,
+            "combine": "mean of the members' actions",
+        },
+        "observation": {
+            "size": 21,
+            "layout": OBS_LAYOUT,
+            "frames": "e_g: grasping end-effector; er: regrasping; n: needle",
+        },
+        "action": {
+            "size": 6,
+            "range": [-1.0, 1.0],
+            "layout": ACTION_LAYOUT,
+            "max_dp_mm": env_config.max_dp_mm,
+            "max_drot_deg": env_config.max_drot_deg,
+        },
+        "env": dataclasses.asdict(env_config),
+        "arrays": sorted(flat),
+        "versions": versions(),
+        **(extra or {}),
+    }
+    atomic_write(out / "policy.npz", lambda f: np.savez(f, **flat))
+    write_json(out / "policy.json", contract)
+    return out
+
+
+def ensemble_policies(
+    paths: list[str | os.PathLike],
+    out_dir: str | os.PathLike,
+    extra: dict | None = None,
+    weights_dtype: str = "float32",
+) -> Path:
+    """Stacks single policies of one network and environment into one mean-action ensemble."""
+    policies = [load_policy(p) for p in paths]
+    first = policies[0].contract
+    for p, pol in zip(paths, policies):
+        if pol.contract["network"]["hidden"] != first["network"]["hidden"] or pol.contract["env"] != first["env"]:
+            raise PolicyError(f"{p}: another network or environment than {paths[0]}; an ensemble needs one")
+    stack = lambda *xs: jnp.concatenate(xs)  # noqa: E731  (each member already has its axis)
+    actor = jax.tree.map(stack, *[p.actor_params for p in policies])
+    norm = types.SimpleNamespace(
+        mean=stack(*[p.normalizer.mean for p in policies]), std=stack(*[p.normalizer.std for p in policies])
+    )
+    members = sum(p.members for p in policies)
+    return save_policy(
+        out_dir,
+        actor,
+        norm,
+        tuple(first["network"]["hidden"]),
+        env_config_from_dict(first["env"]),
+        extra={"ensemble_of": {"members": [str(p) for p in paths], **(extra or {})}},
+        ensemble=members,
+        weights_dtype=weights_dtype,
+    )
+
+
+def _first(x):
+    return None if x is None else x[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """A planned regrasp, numpy. Batched plans have a leading query axis on every field.
+
+    Attributes:
+      success, collision, time_out: how the rollout ended (one is true; ``start_valid`` false means
+        the start pose already collides and nothing was planned).
+      steps: actions taken (the trajectory's valid length is ``steps + 1`` poses).
+      path_length_mm: sum of the translation steps.
+      poses: regrasping end-effector poses ``[x, y, z, qw, qx, qy, qz]`` in the grasping
+        end-effector frame e_g, the start first; ``horizon + 1`` rows, rows after ``steps`` repeat
+        the last pose.
+      actions: ``horizon`` rows in [-1, 1]; rows from ``steps`` on are zero.
+      poses_camera: the same poses in the camera frame (only from :meth:`Policy.plan_from_camera`).
+      nearest_grasp_distance: distance of the needle pose to the nearest of the valid-grasp library
+        (``regrasp_mjx.grasps``; mm + deg / 5), when checked.
+      joints: with ``plan_from_camera(..., psm=...)``, the regrasping PSM's
+        :class:`~regrasp_mjx.dvrk.JointTrajectory` of the valid poses (a list of them for a batch).
+      grasping_joints: likewise the grasping PSM's :class:`~regrasp_mjx.dvrk.IKResult` at its pose.
+    """
+
+    success: np.ndarray
+    collision: np.ndarray
+    time_out: np.ndarray
+    start_valid: np.ndarray
+    steps: np.ndarray
+    path_length_mm: np.ndarray
+    poses: np.ndarray
+    actions: np.ndarray
+    poses_camera: np.ndarray | None = None
+    nearest_grasp_distance: np.ndarray | None = None
+    joints: Any = None
+    grasping_joints: Any = None
+
+    def trajectory(self, frame: str = "eg") -> np.ndarray:
+        """The valid poses of a single plan (``steps + 1`` rows), in ``eg`` or ``camera`` frame."""
+        poses = self.poses if frame == "eg" else self.poses_camera
+        if poses is None or poses.ndim != 2:
+            raise ValueError(f"trajectory() takes one plan with {frame} poses; index a batch first")
+        return poses[: int(self.steps) + 1]
+
+
+@dataclasses.dataclass(frozen=True)
+class Policy:
+    """A loaded policy: ``act(obs[..., 21]) -> action[..., 6]`` and ``plan`` (jitted, deterministic)."""
+
+    contract: dict[str, Any]
+    actor_params: Any  # leaves with a leading member axis
+    normalizer: Any
+
+    def __post_init__(self) -> None:
+        apply = _members_apply(tuple(self.contract["network"]["hidden"]))
+        # the weights as one pytree of device arrays: the planners take them as an argument, so
+        # policies of one network shape share their compiled programs
+        pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
+        norm = self.normalizer
+        weights = jax.device_put(
+            tuple((pick(self.actor_params, i), norm.mean[i], norm.std[i]) for i in range(self.members))
+        )
+
+        def member_actions(obs):
+            return apply(weights, obs)
+
+        def act(obs):
+            return mean_action(member_actions(obs))
+
+        object.__setattr__(self, "_weights", weights)
+        object.__setattr__(self, "_member_actions", member_actions)
+        object.__setattr__(self, "_actor", act)
+        object.__setattr__(self, "_act", jax.jit(act))
+        object.__setattr__(self, "_planners", {})  # (camera, shield) -> the shared program, weights bound
+
+    @property
+    def members(self) -> int:
+        return int(self.contract["network"].get("ensemble", 1))
+
+    def member(self, i: int) -> Policy:
+        """Network ``i`` of an ensemble as a policy of its own."""
+        if not 0 <= i < self.members:
+            raise ValueError(f"member {i} is not accepted: this policy has {self.members} (0..{self.members - 1})")
+        contract = copy.deepcopy(self.contract)
+        contract["network"]["ensemble"] = 1
+        norm = types.SimpleNamespace(mean=self.normalizer.mean[i : i + 1], std=self.normalizer.std[i : i + 1])
+        params = jax.tree.map(lambda x: x[i : i + 1], self.actor_params)
+        return dataclasses.replace(self, contract=contract, actor_params=params, normalizer=norm)
+
+    @property
+    def env_config(self):
+        return dataclasses.replace(env_config_from_dict(self.contract["env"]), check_actions=False)
+
+    def with_env(self, **changes: Any) -> Policy:
+        """The same network planning in a changed environment, e.g. ``with_env(clearance_mm=0.1)``
+        (a pose then collides closer than 0.1 mm to the needle or the other tool, and the shield
+        keeps that margin); names as :func:`regrasp_mjx.config.replace` takes them (dotted for
+        nested fields). Raises :class:`~regrasp_mjx.config.ConfigError` for a bad field or value."""
+        env = config_replace(env_config_from_dict(self.contract["env"]), **changes)
+        contract = copy.deepcopy(self.contract)
+        contract["env"] = dataclasses.asdict(env)
+        return dataclasses.replace(self, contract=contract)
+
+    def act(self, obs: Any) -> np.ndarray:
+        obs = np.asarray(obs, np.float32)
+        if obs.shape[-1:] != (21,):
+            raise ValueError(f"observation has shape {obs.shape}; accepted: (..., 21)")
+        if not np.all(np.isfinite(obs)):
+            raise ValueError("observation has NaN or inf; accepted: finite values")
+        return np.asarray(self._act(jnp.asarray(obs)))
+
+    def actor_fn(self):
+        """The pure function ``obs[..., 21] -> action[..., 6]`` with the parameters closed over (for
+        jitting into other programs or exporting)."""
+        return self._actor
+
+    def members_fn(self):
+        """The pure function ``obs[..., 21] -> [action[..., 6] of each member]`` (one entry for one
+        network); :meth:`actor_fn` is their mean."""
+        return self._member_actions
+
+    # ---- planning ---------------------------------------------------------------------------
+    def _planner(self, camera: bool, shield: bool = True):
+        """One jitted program: poses in, rollout until every query ended, trajectory out.
+
+        With ``shield`` a step whose policy action would collide takes instead the first
+        collision-free one of a fixed list of alternatives (see :func:`shield_candidates`),
+        checked with the same collision model the plan is judged by; a plan then only collides
+        when none of them is free. The alternatives are only computed at steps where some query's
+        policy action collides."""
+        if (camera, shield) not in self._planners:  # looked up once per policy, not per plan
+            key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
+            key += (camera, shield)
+            if key not in _PLANNERS:
+                _PLANNERS[key] = self._make_planner(camera, shield)
+            self._planners[(camera, shield)] = functools.partial(_PLANNERS[key], self._weights)
+        return self._planners[(camera, shield)]
+
+    def _make_planner(self, camera: bool, shield: bool):
+        """The jitted program of :meth:`_planner`, taking the weights as its first argument."""
+        from regrasp_mjx import dvrk, geometry
+        from regrasp_mjx.env import RegraspEnv
+        from regrasp_mjx.sampling import Episode
+
+        env = RegraspEnv(self.env_config)
+        horizon = env.config.horizon
+
+        apply = _members_apply(tuple(self.contract["network"]["hidden"]))
+
+        def rollout(weights, needle, start, goal, base_inv=None):
+            """``base_inv`` ``[B, 4, 4]`` (optional): the inverse of each query's regrasping PSM base
+            frame in e_g; the shield then also replaces actions that leave the joint limits."""
+            b = needle.shape[0]
+
+            def reach(st, rows=None):
+                if base_inv is None:
+                    return jnp.ones(st.pipeline_state.t.shape, bool)
+                es, binv = st.pipeline_state, base_inv if rows is None else base_inv[rows]
+                return jax.vmap(dvrk.within_limits_jax)(binv, es.ee_pos, es.ee_quat)
+
+            zeros = jnp.zeros((b, 4))
+            episodes = Episode(
+                needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0]
+            )
+            state = jax.vmap(env.reset_from)(episodes)
+            valid = state.metrics["reset_valid"] > 0
+            pose0 = jnp.concatenate([start[:, :3], start[:, 3:]], axis=1)
+            poses = jnp.repeat(pose0[:, None], horizon + 1, axis=1)
+            actions = jnp.zeros((b, horizon, 6))
+            # [ended, success, collision, time_out, steps, path_mm]
+            result = jnp.zeros((b, 6)).at[:, 0].set(~valid).at[:, 2].set(~valid)
+
+            def cond(c):
+                t, _, result, _, _ = c
+                return (t < horizon) & jnp.any(result[:, 0] == 0)
+
+            step = jax.vmap(env.step)
+
+            def safer(state, t, members, a, nxt, need):
+                """Replaces the actions of the rows in ``need`` (their policy action collides), a
+                chunk of at most SHIELD_CHUNK rows at a time, so the work follows the colliding
+                rows, not the batch; each row's alternatives depend only on its own state and t.
+                ``members``: each network's actions for the whole batch (``a`` is their mean)."""
+                b = a.shape[0]
+                size = min(b, SHIELD_CHUNK)
+                key = step_key(t)
+
+                def chunk(c):
+                    a, nxt, need = c
+                    rows = jnp.nonzero(need, size=size, fill_value=b)[0]  # b: no row (dropped below)
+                    safe_rows = jnp.minimum(rows, b - 1)
+                    sub = jax.tree.map(lambda x: x[safe_rows], state)
+                    cands = shield_candidates([m[safe_rows] for m in members], a[safe_rows], key)
+                    tried = jax.vmap(step, in_axes=(None, 0))(sub, cands)  # [K, size, ...]
+                    free = (tried.metrics["collision"] == 0) & jax.vmap(lambda s: reach(s, safe_rows))(tried)
+                    first, cols = jnp.argmax(free, axis=0), jnp.arange(size)  # the first free candidate
+                    found = jnp.any(free, axis=0)
+                    put = lambda x, y: x.at[jnp.where(found, rows, b)].set(y[first, cols], mode="drop")  # noqa: E731
+                    return put(a, cands), jax.tree.map(put, nxt, tried), need.at[rows].set(False, mode="drop")
+
+                a, nxt, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), chunk, (a, nxt, need))
+                return a, nxt
+
+            def body(c):
+                t, state, result, poses, actions = c
+                members = apply(weights, state.obs)
+                a = mean_action(members)
+                nxt = step(state, a)
+                if shield:
+                    live_collides = ((nxt.metrics["collision"] > 0) | ~reach(nxt)) & (result[:, 0] == 0)
+                    # only steps where some live query's action collides pay for the alternatives
+                    a, nxt = jax.lax.cond(
+                        jnp.any(live_collides),
+                        lambda: safer(state, t, members, a, nxt, live_collides),
+                        lambda: (a, nxt),
+                    )
+                live = result[:, 0] == 0
+                es = nxt.pipeline_state
+                pose = jnp.concatenate([es.ee_pos, es.ee_quat], axis=1)
+                # rows after the end repeat the last pose
+                poses = jnp.where(
+                    live[:, None, None] & (jnp.arange(horizon + 1) > t)[None, :, None], pose[:, None], poses
+                )
+                actions = actions.at[:, t].set(jnp.where(live[:, None], jnp.clip(a, -1, 1), 0.0))
+                new = jnp.stack(
+                    [
+                        nxt.done,
+                        nxt.metrics["success"],
+                        nxt.metrics["collision"],
+                        nxt.metrics["time_out"],
+                        es.t.astype(jnp.float32),
+                        nxt.metrics["path_length_mm"],
+                    ],
+                    axis=1,
+                )
+                result = jnp.where((live & (nxt.done > 0))[:, None], new, result)
+                state = jax.tree.map(
+                    lambda x, y: jnp.where(live.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), nxt, state
+                )
+                return t + 1, state, result, poses, actions
+
+            _, _, result, poses, actions = jax.lax.while_loop(cond, body, (jnp.int32(0), state, result, poses, actions))
+            return valid, result, poses, actions
+
+        task = env.config.task
+        radius = env.needle_radius
+
+        def from_camera(weights, c_eg, c_er, c_n, goal_depth, base_inv=None):
+            pose = lambda x: (x[:, :3], x[:, 3:])  # noqa: E731
+            join = lambda p: jnp.concatenate([p[0], p[1]], axis=-1)  # noqa: E731
+            eg_inv = geometry.inverse(pose(c_eg))
+            needle = geometry.compose(eg_inv, pose(c_n))
+            start = geometry.compose(eg_inv, pose(c_er))
+            from regrasp_mjx.sampling import goal_in_needle
+
+            goal = jax.vmap(lambda n_p, n_q, d: join(geometry.compose((n_p, n_q), goal_in_needle(task, d, radius))))(
+                needle[0], needle[1], goal_depth
+            )
+            needle, start = join(needle), join(start)
+            start = start.at[:, 3:].set(geometry.canonical_quat(start[:, 3:]))
+            needle = needle.at[:, 3:].set(geometry.canonical_quat(needle[:, 3:]))
+            valid, result, poses, actions = rollout(weights, needle, start, goal, base_inv)
+            cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
+            return valid, result, poses, actions, cam
+
+        return jax.jit(from_camera if camera else rollout)
+
+    def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
+        out = jax.device_get(out)
+        valid, result, poses, actions = out[:4]
+        plan = Plan(
+            success=result[:, 1] > 0,
+            collision=result[:, 2] > 0,
+            time_out=result[:, 3] > 0,
+            start_valid=np.asarray(valid),
+            steps=result[:, 4].astype(np.int64),
+            path_length_mm=result[:, 5],
+            poses=np.asarray(poses, np.float64),
+            actions=np.asarray(actions, np.float64),
+            poses_camera=np.asarray(out[4], np.float64) if camera else None,
+            nearest_grasp_distance=nearest,
+        )
+        if single:
+            plan = Plan(**{f.name: _first(getattr(plan, f.name)) for f in dataclasses.fields(Plan)})
+        return plan
+
+    # ---- closed loop ----------------------------------------------------------------------
+    def _closed_loop(
+        self, kind: str, shield: bool, fused: bool = False, margin_mm: float = 0.0, stop: float = 1.0, warmup: int = 1
+    ):
+        from regrasp_mjx import closed_loop
+        from regrasp_mjx.env import RegraspEnv
+
+        setting = (kind, shield, fused, margin_mm, stop, warmup)
+        if setting not in self._planners:
+            key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
+            key += setting
+            if key not in _PLANNERS:
+                env = RegraspEnv(self.env_config)
+                guard = RegraspEnv(dataclasses.replace(self.env_config, clearance_mm=margin_mm)) if margin_mm else env
+                apply = _members_apply(tuple(self.contract["network"]["hidden"]))
+                _PLANNERS[key] = (
+                    closed_loop.make_executor(env, apply, shield, fused, guard, stop, warmup)
+                    if kind == "execute"
+                    else closed_loop.make_stepper(guard, apply, shield, stop)
+                )
+            self._planners[setting] = functools.partial(_PLANNERS[key], self._weights)
+        return self._planners[setting]
+
+    def _estimate_inputs(self, needle: Any, ee_name: str, ee: Any, goal: Any, goal_depth_mm: Any):
+        """Checked ``[B, 7]`` needle, end-effector and goal poses (the goal grasp on ``needle`` by
+        default) and whether one query was given, for the closed-loop entry points."""
+        needle, ee = check_poses("needle", needle), check_poses(ee_name, ee)
+        single = needle.ndim == 1
+        needle, ee = np.atleast_2d(needle), np.atleast_2d(ee)
+        if goal is None:
+            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+        return needle, ee, np.atleast_2d(check_poses("goal", goal)), single
+
+    def closed_loop_step(
+        self,
+        needle: Any,
+        ee: Any,
+        goal: Any = None,
+        goal_depth_mm: Any = None,
+        t: int = 0,
+        shield: bool = True,
+        shield_margin_mm: float = 0.0,
+        stop_tolerance: float = 0.7,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One closed-loop step from the current estimates (e_g frame, 7-vectors or ``[B, 7]``): the
+        latest (or fused) needle estimate and the regrasping end-effector's current pose. Returns
+        ``(action, next_ee, at_goal)``: the action, the pose to command next, and whether the
+        estimate says the goal is already reached (then stop: the action is zero, ``next_ee`` is
+        ``ee``). ``t`` is the step index (it seeds the shield's alternatives, as in :meth:`plan`);
+        the shield checks the alternatives against the estimated needle, keeping
+        ``shield_margin_mm`` from it (room for the estimate's error). ``at_goal`` holds within
+        ``stop_tolerance`` of the success tolerances, as in :meth:`execute`."""
+        needle, ee, goal, single = self._estimate_inputs(needle, "ee", ee, goal, goal_depth_mm)
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+        step = self._closed_loop("step", shield, margin_mm=float(shield_margin_mm), stop=float(stop_tolerance))
+        a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t)))
+        a, nxt, done = np.asarray(a, np.float64), np.asarray(nxt, np.float64), np.asarray(done)
+        return (a[0], nxt[0], done[0]) if single else (a, nxt, done)
+
+    def execute(
+        self,
+        needle: Any,
+        start: Any,
+        goal: Any = None,
+        noise: Any = None,
+        fuse: bool = True,
+        shield: bool = True,
+        seed: int = 0,
+        goal_depth_mm: Any = None,
+        shield_margin_mm: float = 0.0,
+        stop_tolerance: float = 0.7,
+        warmup_frames: int = 10,
+    ) -> dict[str, np.ndarray]:
+        """Simulates the closed loop (:mod:`regrasp_mjx.closed_loop`) on true needle, start and goal
+        poses ``[B, 7]`` (e_g frame): each step a new noisy needle estimate (``noise``, a
+        :class:`~regrasp_mjx.closed_loop.NeedleNoise`; default none), fused over the frames so far
+        with ``fuse``, the policy acting on it, stopping when the estimate says the goal is reached;
+        success and collisions judged on the true needle. ``shield_margin_mm``: the shield keeps
+        this clearance from the estimated needle (room for the estimate's error);
+        ``stop_tolerance``: stop when the estimate is within this fraction of the success
+        tolerances (below 1: room for the estimate's error at the goal); ``warmup_frames``: with
+        ``fuse``, frames fused before the first step (the tool holds still meanwhile). The defaults
+        (fused, 10 frames, 0.7) were chosen on validation problems of their own seed
+        (experiments/closed_loop_select.py); ``fuse=False, stop_tolerance=1`` with no noise
+        reproduces :meth:`plan` exactly. Returns numpy arrays per row:
+        ``success``, ``collision``, ``time_out``, ``stopped``, ``steps``, ``start_valid``, ``poses``."""
+        from regrasp_mjx.closed_loop import NeedleNoise
+
+        noise = NeedleNoise() if noise is None else noise
+        needle, start, goal, _ = self._estimate_inputs(needle, "start", start, goal, goal_depth_mm)
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+        run = self._closed_loop(
+            "execute", shield, bool(fuse), float(shield_margin_mm), float(stop_tolerance), int(warmup_frames)
+        )
+        out = run(f32(needle), f32(start), f32(goal), jax.random.PRNGKey(seed), f32(noise.sigma_mm), f32(noise.bias_mm))
+        return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
+
+    def _goal_depth(self, goal_depth_mm, n):
+        task = self.env_config.task
+        lo, hi = task.goal_depth_mm
+        d = np.broadcast_to(np.asarray((lo + hi) / 2 if goal_depth_mm is None else goal_depth_mm, np.float64), (n,))
+        if not np.all(np.isfinite(d)) or np.any((d < lo - 1e-9) | (d > hi + 1e-9)):
+            raise PoseError(
+                f"goal_depth_mm={goal_depth_mm!r} is not accepted: within the trained range [{lo}, {hi}] mm"
+            )
+        return d * 1e-3
+
+    def plan(
+        self,
+        needle: Any,
+        start: Any,
+        goal: Any = None,
+        goal_depth_mm: Any = None,
+        check_grasp: bool = True,
+        shield: bool = True,
+    ) -> Plan:
+        """Plans from poses in the grasping end-effector frame e_g (7-vectors, or batches ``[B, 7]``).
+
+        ``goal`` defaults to the task's goal grasp on this needle (depth ``goal_depth_mm``, default
+        the middle of the trained range). ``shield`` replaces a policy action that would collide by
+        the first collision-free alternative (:func:`shield_candidates`); ``shield=False`` rolls the
+        policy out as trained. Raises :class:`PoseError` on bad input; warns when the needle pose is
+        far from every valid grasp of the library.
+        """
+        needle = check_poses("needle", needle)
+        start = check_poses("start", start)
+        single = needle.ndim == 1
+        needle, start = np.atleast_2d(needle), np.atleast_2d(start)
+        if needle.shape != start.shape:
+            raise PoseError(f"needle {needle.shape} and start {start.shape} poses differ in batch size")
+        if goal is None:
+            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+        goal = np.atleast_2d(check_poses("goal", goal))
+        if goal.shape != needle.shape:
+            raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
+        nearest = self._check_grasp(needle) if check_grasp else None
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
+        out = self._planner(False, shield)(f32(needle), f32(start), f32(goal))
+        return self._finish(out, single, False, nearest)
+
+    def plan_from_camera(
+        self,
+        grasping_ee: Any,
+        regrasping_ee: Any,
+        needle: Any,
+        goal_depth_mm: Any = None,
+        check_grasp: bool = True,
+        shield: bool = True,
+        psm: dict | None = None,
+        respect_limits: bool = True,
+    ) -> Plan:
+        """Plans from three camera-frame poses (7-vectors or ``[B, 7]``), as on a real dVRK
+        (SPEC "Deployment"); the plan's poses come in the e_g frame and the camera frame.
+        ``shield`` as in :meth:`plan`.
+
+        ``psm``: ``{"regrasping_base": pose, "grasping_base": pose}`` (camera-frame 7-vectors or 4x4
+        of each PSM's base, i.e. remote-centre-of-motion, frame; ``grasping_base`` optional). The
+        plan then also holds the regrasping arm's joint trajectory with a per-pose joint-limit
+        verdict (``Plan.joints``) and the grasping arm's joints at its pose (``Plan.grasping_joints``)
+        from :mod:`regrasp_mjx.dvrk`; out-of-limit poses are reported, not changed. With
+        ``respect_limits`` (and the shield) the shield also replaces an action whose end pose would
+        leave the regrasping arm's joint limits, as it replaces a colliding one."""
+        c_eg = check_poses("grasping_ee", grasping_ee)
+        c_er = check_poses("regrasping_ee", regrasping_ee)
+        c_n = check_poses("needle", needle)
+        single = c_eg.ndim == 1
+        c_eg, c_er, c_n = (np.atleast_2d(x) for x in (c_eg, c_er, c_n))
+        if not (c_eg.shape == c_er.shape == c_n.shape):
+            raise PoseError(f"camera poses differ in batch size: {c_eg.shape}, {c_er.shape}, {c_n.shape}")
+        depth = self._goal_depth(goal_depth_mm, len(c_eg))
+        nearest = None
+        if check_grasp:
+            from regrasp_mjx import host
+
+            rel = [host.relative(e[:3], e[3:], n[:3], n[3:]) for e, n in zip(c_eg, c_n)]
+            rel_p, rel_q = np.stack([r[0] for r in rel]), np.stack([r[1] for r in rel])
+            nearest = self._check_grasp(np.concatenate([rel_p, rel_q], axis=1))
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
+        base_inv = None
+        if psm is not None:
+            from regrasp_mjx import dvrk
+
+            unknown = set(psm) - {"regrasping_base", "grasping_base"}
+            if "regrasping_base" not in psm or unknown:
+                raise PoseError(
+                    f"psm={sorted(psm)} is not accepted: a dict with 'regrasping_base' (and 'grasping_base')"
+                )
+            if respect_limits and shield:  # the base frame's inverse in e_g, per query
+                base = np.linalg.inv(dvrk.as_matrix(psm["regrasping_base"]))
+                base_inv = f32([base @ dvrk.pose_matrix(e) for e in c_eg])
+        out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(depth), base_inv)
+        plan = self._finish(out, single, True, nearest)
+        return plan if psm is None else _with_joints(plan, psm, c_eg, single)
+
+    def _default_goal(self, needle: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        from regrasp_mjx import geometry
+        from regrasp_mjx.sampling import goal_in_needle
+
+        env = self.env_config
+        radius = env.scene.needle_radius_mm * 1e-3
+        goal = jax.vmap(lambda p, q, d: geometry.compose((p, q), goal_in_needle(env.task, d, radius)))(
+            jnp.asarray(needle[:, :3]), jnp.asarray(needle[:, 3:]), jnp.asarray(depth)
+        )
+        return np.concatenate([np.asarray(goal[0]), np.asarray(goal[1])], axis=1)
+
+    def _check_grasp(self, needle: np.ndarray) -> np.ndarray:
+        from regrasp_mjx.grasps import GraspLibrary
+
+        dist = GraspLibrary.default().nearest(needle)[1]
+        far = dist > OOD_WARN_DISTANCE
+        if np.any(far):
+            warnings.warn(
+                f"needle pose {int(np.argmax(far))} is {float(dist[far][0]):.2f} (mm + deg/5) from the nearest "
+                f"valid grasp of the library (beyond {OOD_WARN_DISTANCE}): far from anything trained on; "
+                "project it with regrasp_mjx.grasps.GraspLibrary.project or check the pose estimate",
+                stacklevel=3,
+            )
+        return dist
+
+
+def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
+    from regrasp_mjx import dvrk
+
+    steps = np.atleast_1d(plan.steps)
+    cam = plan.poses_camera[None] if single else plan.poses_camera
+    joints = [dvrk.joint_trajectory(psm["regrasping_base"], cam[i][: steps[i] + 1]) for i in range(len(cam))]
+    grasping = None
+    if psm.get("grasping_base") is not None:
+        base_inv = np.linalg.inv(dvrk.as_matrix(psm["grasping_base"]))
+        grasping = [dvrk.inverse_kinematics(base_inv @ dvrk.pose_matrix(e)) for e in c_eg]
+    if single:
+        joints, grasping = joints[0], None if grasping is None else grasping[0]
+    return dataclasses.replace(plan, joints=joints, grasping_joints=grasping)
+
+
+def shipped_policies() -> list[str]:
+    """Names of the policies shipped in the package (``default``: one network; ``student_v1``: the
+    earlier default, distilled before the conservative needle model; ``ensemble3``: the earlier
+    three-network ensemble)."""
+    return sorted(p.name for p in SHIPPED.iterdir() if (p / "policy.json").is_file())
+
+
+def load_policy(path: str | os.PathLike | None = None) -> Policy:
+    """Reads a policy folder (or its ``policy.json``/``policy.npz``) and checks it against its
+    contract; with no path, the policy shipped in the package; a bare name that is no existing
+    path, one of :func:`shipped_policies` (``load_policy("ensemble3")``)."""
+    if path is None:
+        path = DEFAULT_POLICY
+    elif isinstance(path, str) and path in shipped_policies() and not Path(path).exists():
+        path = SHIPPED / path
+    path = Path(path)
+    folder = path if path.is_dir() else path.parent
+    js, npz = folder / "policy.json", folder / "policy.npz"
+    for f in (js, npz):
+        if not f.is_file():
+            raise PolicyError(f"policy file not found: {f}")
+    try:
+        contract = json.loads(js.read_text())
+    except json.JSONDecodeError as err:
+        raise PolicyError(f"{js} is not valid JSON: {err}") from err
+    if contract.get("format") != POLICY_FORMAT or contract.get("version") != POLICY_VERSION:
+        raise PolicyError(
+            f"{js}: format {contract.get('format')!r} version {contract.get('version')!r}; "
+            f"this package reads {POLICY_FORMAT!r} version {POLICY_VERSION}"
+        )
+    try:
+        with np.load(npz, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+    except Exception as err:
+        raise PolicyError(f"{npz} is not a readable policy array file: {err}") from err
+    try:
+        hidden = tuple(int(h) for h in contract["network"]["hidden"])
+        members = int(contract["network"].get("ensemble", 1))
+        env_config_from_dict(contract["env"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise PolicyError(f"{js}: incomplete contract ({err})") from err
+    missing = sorted((set(contract.get("arrays", [])) | {"normalizer/mean", "normalizer/std"}) - set(arrays))
+    if missing:
+        raise PolicyError(f"{npz} lacks arrays {missing}")
+    expected = make_networks(6, hidden).actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 21)))
+    params = {}
+    for k, v in traverse_util.flatten_dict(expected).items():
+        name = "actor/" + "/".join(k)
+        want = (members, *v.shape)
+        if name not in arrays or arrays[name].shape != want:
+            raise PolicyError(
+                f"{npz}: {name} has shape {arrays.get(name, np.zeros(0)).shape}, the contract's "
+                f"network (hidden {list(hidden)}, ensemble {members}) needs {want}"
+            )
+        params[k] = jnp.asarray(arrays[name], jnp.float32)  # stored float32 or float16
+    for name in ("normalizer/mean", "normalizer/std"):
+        if arrays[name].shape != (members, 21):
+            raise PolicyError(f"{npz}: {name} has shape {arrays[name].shape}, needs {(members, 21)}")
+        if not np.all(np.isfinite(arrays[name])) or (name.endswith("std") and np.any(arrays[name] <= 0)):
+            raise PolicyError(f"{npz}: {name} has non-finite or non-positive values")
+    norm = running_statistics.RunningStatisticsState(
+        count=jnp.ones((members,)),
+        mean=jnp.asarray(arrays["normalizer/mean"]),
+        summed_variance=jnp.zeros((members, 21)),
+        std=jnp.asarray(arrays["normalizer/std"]),
+    )
+    return Policy(contract, traverse_util.unflatten_dict(params), norm)

@@ -1,0 +1,248 @@
+"""The paper's start and goal distributions (§IV; SPEC "Distributions") and test-set files.
+
+An :class:`Episode` is one regrasping problem, every pose in the grasping end-effector frame e_g
+(the world frame of the scene). :func:`draw_episode` draws one from the distributions;
+:func:`sample_episode` redraws until neither the start nor the goal pose collides. Both are pure
+JAX and run under jit and vmap. Test sets are ``.npz`` files of plain arrays plus a JSON ``meta``
+string; :func:`load_testset` validates them and never unpickles.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from regrasp_mjx import geometry
+from regrasp_mjx.config import TaskConfig
+
+# The paper300 test set (SPEC seed 2021), shipped inside the package so that an installed copy finds it
+# (experiments/testsets/paper300.npz is a link to this file).
+PAPER300 = Path(__file__).resolve().parent / "data" / "paper300.npz"
+
+TESTSET_FORMAT = "regrasp_mjx.testset"
+TESTSET_VERSION = 1
+QUAT_TOLERANCE = 1e-3  # |norm - 1| up to this is normalised; beyond it a quaternion is refused
+
+
+@struct.dataclass
+class Episode:
+    """One regrasping problem. Positions in metres, quaternions wxyz, all in the e_g frame.
+
+    Attributes:
+      needle_pos, needle_quat: the needle frame n (held by the grasping tool, never moves).
+      start_pos, start_quat: the regrasping end-effector at the start.
+      goal_pos, goal_quat: the regrasping end-effector at the goal.
+      grasp: the initial grasp ``(alpha [rad], depth [m], theta [rad], phi [rad])``.
+      goal_depth: the goal's depth d* [m].
+    """
+
+    needle_pos: jax.Array
+    needle_quat: jax.Array
+    start_pos: jax.Array
+    start_quat: jax.Array
+    goal_pos: jax.Array
+    goal_quat: jax.Array
+    grasp: jax.Array
+    goal_depth: jax.Array
+
+    def __len__(self) -> int:
+        return int(self.needle_pos.shape[0]) if self.needle_pos.ndim == 2 else 1
+
+    def row(self, i: int) -> Episode:
+        """The i-th problem of a batch."""
+        return jax.tree.map(lambda x: x[i], self)
+
+
+FIELD_SHAPES: dict[str, tuple[int, ...]] = {
+    "needle_pos": (3,),
+    "needle_quat": (4,),
+    "start_pos": (3,),
+    "start_quat": (4,),
+    "goal_pos": (3,),
+    "goal_quat": (4,),
+    "grasp": (4,),
+    "goal_depth": (),
+}
+FIELD_DOCS: dict[str, str] = {
+    "needle_pos": "needle frame origin in e_g [m]",
+    "needle_quat": "needle frame orientation in e_g [wxyz]",
+    "start_pos": "regrasping end-effector at the start, in e_g [m]",
+    "start_quat": "regrasping end-effector orientation at the start, in e_g [wxyz]",
+    "goal_pos": "regrasping end-effector at the goal, in e_g [m]",
+    "goal_quat": "regrasping end-effector orientation at the goal, in e_g [wxyz]",
+    "grasp": "initial grasp (alpha [rad], depth [m], theta [rad], phi [rad])",
+    "goal_depth": "goal depth d* [m]",
+}
+
+
+def _uniform(key: jax.Array, rng: tuple[float, float], scale: float = 1.0) -> jax.Array:
+    return jax.random.uniform(key, (), minval=rng[0] * scale, maxval=rng[1] * scale)
+
+
+def goal_in_needle(task: TaskConfig, goal_depth: jax.Array, radius: float) -> geometry.Pose:
+    """The goal end-effector pose ``T_n_er*`` for a goal depth (metres)."""
+    return geometry.grasp_pose(task.goal_alpha_rad, goal_depth, task.goal_theta_rad, task.goal_phi_rad, radius)
+
+
+def draw_episode(key: jax.Array, task: TaskConfig, radius: float) -> Episode:
+    """One draw from the distributions, without the collision test.
+
+    The start: the point ``start_distance`` from the needle centre on the ray through the goal
+    end-effector position, each needle-frame axis moved by ``U(-noise, noise)``; the goal
+    orientation turned by ``U(-rot_noise, rot_noise)`` about a uniformly random unit axis (applied
+    in the needle frame).
+    """
+    k = jax.random.split(key, 9)
+    grasp = jnp.stack(
+        [
+            _uniform(k[0], task.init_alpha_rad),
+            _uniform(k[1], task.init_depth_mm, 1e-3),
+            _uniform(k[2], task.init_theta_rad),
+            _uniform(k[3], task.init_phi_rad),
+        ]
+    )
+    goal_depth = _uniform(k[4], task.goal_depth_mm, 1e-3)
+    needle = geometry.inverse(geometry.grasp_pose(grasp[0], grasp[1], grasp[2], grasp[3], radius))
+    goal_n = goal_in_needle(task, goal_depth, radius)
+    direction = goal_n[0] / jnp.linalg.norm(goal_n[0])
+    noise = task.start_pos_noise_mm * 1e-3
+    start_pos_n = task.start_distance_mm * 1e-3 * direction + jax.random.uniform(
+        k[5], (3,), minval=-noise, maxval=noise
+    )
+    axis = jax.random.normal(k[6], (3,))
+    axis = axis / jnp.linalg.norm(axis)
+    angle = jax.random.uniform(k[7], (), minval=-1.0, maxval=1.0) * math.radians(task.start_rot_noise_deg)
+    start_quat_n = geometry.quat_mul(geometry.quat_from_rotvec(axis * angle), goal_n[1])
+    start = geometry.compose(needle, (start_pos_n, start_quat_n))
+    goal = geometry.compose(needle, goal_n)
+    return Episode(
+        needle_pos=needle[0],
+        needle_quat=needle[1],
+        start_pos=start[0],
+        start_quat=start[1],
+        goal_pos=goal[0],
+        goal_quat=goal[1],
+        grasp=grasp,
+        goal_depth=goal_depth,
+    )
+
+
+def sample_episode(
+    key: jax.Array, task: TaskConfig, radius: float, distance_fn: Callable[..., jax.Array]
+) -> tuple[Episode, jax.Array]:
+    """Draws until neither the start nor the goal pose collides (SPEC: such starts are redrawn).
+
+    Returns:
+      ``(episode, valid)``: ``valid`` is False only if ``task.max_sample_tries`` draws all collided
+      (the last draw is returned then); with the default distributions this does not happen.
+    """
+
+    def is_free(ep: Episode) -> jax.Array:
+        start = distance_fn(ep.needle_pos, ep.needle_quat, ep.start_pos, ep.start_quat)
+        goal = distance_fn(ep.needle_pos, ep.needle_quat, ep.goal_pos, ep.goal_quat)
+        return (jnp.min(start) > 0.0) & (jnp.min(goal) > 0.0)
+
+    def body(carry):
+        key, _, tries, _ = carry
+        key, sub = jax.random.split(key)
+        ep = draw_episode(sub, task, radius)
+        return key, ep, tries + 1, is_free(ep)
+
+    def cond(carry):
+        _, _, tries, valid = carry
+        return (~valid) & (tries < task.max_sample_tries)
+
+    shapes = jax.eval_shape(lambda k: draw_episode(k, task, radius), key)
+    empty = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    _, ep, _, valid = jax.lax.while_loop(cond, body, (key, empty, jnp.int32(0), jnp.bool_(False)))
+    return ep, valid
+
+
+# ----------------------------------------------------------------------------------------------
+# Test-set files.
+# ----------------------------------------------------------------------------------------------
+class TestsetError(ValueError):
+    """A test-set file that is missing, unreadable, or has wrong keys, shapes or values."""
+
+    __test__ = False  # not a pytest class, despite its name
+
+
+def save_testset(path: str | os.PathLike, episodes: Episode, meta: dict[str, Any]) -> Path:
+    """Writes ``episodes`` (a batch) and ``meta`` to ``path`` atomically (temp file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {name: np.asarray(getattr(episodes, name), dtype=np.float64) for name in FIELD_SHAPES}
+    meta = {"format": TESTSET_FORMAT, "version": TESTSET_VERSION, "n": len(episodes), "fields": FIELD_DOCS, **meta}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; a test set is meant to be shared
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _unit_quats(name: str, q: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(q, axis=-1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > QUAT_TOLERANCE)
+    if bad.size:
+        raise TestsetError(
+            f"{name}: quaternion norm {norms[bad[0]]:.6g} in row {bad[0]} ({bad.size} rows in all) is not unit; "
+            f"accepted: |norm - 1| <= {QUAT_TOLERANCE:g} (normalised on load)"
+        )
+    return q / norms[..., None]
+
+
+def load_testset(path: str | os.PathLike) -> tuple[Episode, dict[str, Any]]:
+    """Reads and validates a test-set file written by :func:`save_testset`.
+
+    Returns:
+      ``(episodes, meta)``: numpy arrays (float64) with a leading row axis, and the JSON metadata.
+
+    Raises:
+      TestsetError: missing file, missing keys, wrong shapes, NaN/inf, non-unit quaternions
+        (beyond a tolerance of 1e-3; within it they are normalised).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TestsetError(f"test-set file not found: {path} (make one with `python -m regrasp_mjx.testset`)")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except Exception as err:  # zip, header or pickle errors all mean the same to the user
+        raise TestsetError(f"{path} is not a readable .npz test-set file: {err}") from err
+    missing = [k for k in (*FIELD_SHAPES, "meta") if k not in data]
+    if missing:
+        raise TestsetError(f"{path} lacks keys {missing}; a test set holds {sorted([*FIELD_SHAPES, 'meta'])}")
+    try:
+        meta = json.loads(str(data["meta"]))
+    except json.JSONDecodeError as err:
+        raise TestsetError(f"{path}: 'meta' is not valid JSON: {err}") from err
+    n = data["needle_pos"].shape[0] if data["needle_pos"].ndim == 2 else -1
+    if n < 1:
+        raise TestsetError(f"{path}: needle_pos must have shape (N, 3) with N >= 1, got {data['needle_pos'].shape}")
+    fields = {}
+    for name, shape in FIELD_SHAPES.items():
+        arr = np.asarray(data[name])
+        if arr.shape != (n, *shape) or not np.issubdtype(arr.dtype, np.floating):
+            raise TestsetError(
+                f"{path}: {name} must be a float array of shape {(n, *shape)}, got {arr.dtype} {arr.shape}"
+            )
+        if not np.all(np.isfinite(arr)):
+            row = int(np.argwhere(~np.isfinite(arr))[0][0])
+            raise TestsetError(f"{path}: {name} has NaN or inf (row {row}); all values must be finite")
+        fields[name] = _unit_quats(f"{path}: {name}", arr) if name.endswith("quat") else arr
+    return Episode(**fields), meta

@@ -1,0 +1,336 @@
+"""``python -m regrasp_mjx.sweep``: a grid of training runs over the local GPUs, resumable, one table.
+
+Each grid point is one ``python -m regrasp_mjx.train`` run in ``OUT/<point>``, its Table I settings
+(``--exploration a,b,c``) and seeds (``--seeds N``) trained side by side as one vmapped program
+(learners in one program share a GPU far better than processes do; experiments/RESULTS.md). The
+points run one per GPU at a time (``CUDA_VISIBLE_DEVICES``), or one at a time without a GPU. A
+point whose folder holds ``final_eval.json`` is done and skipped; one with a checkpoint resumes from
+it; so a killed sweep started again with the same arguments goes on where it stopped (a different
+grid in the same folder is refused). At the end, or with ``--report``, it writes ``sweep.md``,
+``sweep.json`` and ``sweep.png``: per point and setting, the bare test success at the last epoch,
+over the last 10 epochs and of the exported policy (best on validation), mean ± std over seeds.
+
+    # Table I (the paper's three settings x 3 seeds at the paper's scale), one command:
+    python -m regrasp_mjx.sweep --out runs/table1 --preset paper --exploration ddpg_bc,targeted,mixed \\
+        --seeds 3 --demos runs/demos
+    # a grid: 2 x 2 points, each 3 seeds, over the GPUs this machine has:
+    python -m regrasp_mjx.sweep --out runs/bc --preset fast --seeds 3 \\
+        --grid "bc_decay_epochs=0|30" --grid "critic_layer_norm=False|True"
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import itertools
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from regrasp_mjx.atomic import write_json
+from regrasp_mjx.config import ConfigError
+
+FORMAT = "regrasp_mjx.sweep"
+
+
+def parse_grid(items: list[str]) -> list[tuple[str, list[Any]]]:
+    """``["k=v1|v2", ...]`` to ``[(k, [v1, v2]), ...]``; values as Python literals, else strings."""
+    grid = []
+    for item in items:
+        key, sep, values = item.partition("=")
+        key = key.strip()
+        if not sep or not key or not values.strip():
+            raise ConfigError(f"--grid {item!r} is not accepted: KEY=V1|V2|... (e.g. bc_decay_epochs=0|100)")
+        if key in (k for k, _ in grid):
+            raise ConfigError(f"--grid {key} is given twice; list all its values in one --grid")
+        parsed = []
+        for v in values.split("|"):
+            try:
+                parsed.append(ast.literal_eval(v.strip()))
+            except (ValueError, SyntaxError):
+                parsed.append(v.strip())
+        if len(set(map(repr, parsed))) != len(parsed):
+            raise ConfigError(f"--grid {item!r} is not accepted: a value is listed twice")
+        grid.append((key, parsed))
+    return grid
+
+
+def points(grid: list[tuple[str, list[Any]]]) -> list[dict[str, Any]]:
+    """The grid's points in order (the last key varies fastest); one empty point for no grid."""
+    keys = [k for k, _ in grid]
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(v for _, v in grid))]
+
+
+def point_name(index: int, point: dict[str, Any]) -> str:
+    slug = "_".join(f"{k}={v!r}" for k, v in point.items()) or "run"
+    return f"{index:02d}_" + re.sub(r"[^A-Za-z0-9_.=+-]", "", slug.replace(" ", ""))[:80]
+
+
+def train_args(args: argparse.Namespace, point: dict[str, Any], out: Path) -> list[str]:
+    """The ``python -m regrasp_mjx.train`` arguments of one point (``--resume`` added by the caller)."""
+    argv = ["--preset", args.preset, "--exploration", args.exploration, "--learner", args.learner]
+    argv += ["--seeds", str(args.seeds), "--seed", str(args.seed), "--out", str(out), "--quiet"]
+    if args.demos:
+        argv += ["--demos", args.demos]
+    if args.testset:
+        argv += ["--testset", args.testset]
+    for item in args.set:
+        argv += ["--set", item]
+    for key, value in point.items():
+        argv += ["--set", f"{key}={value!r}"]
+    return argv
+
+
+def command(folder: Path, argv: list[str]) -> list[str]:
+    """The process that trains one point: resuming from its checkpoint when it has one."""
+    resume = ["--resume"] if status(folder) == "resume" else []
+    return [sys.executable, "-m", "regrasp_mjx.train", *argv, *resume]
+
+
+def status(folder: Path) -> str:
+    """``done`` (final evaluation written), ``resume`` (a checkpoint) or ``new``."""
+    if (folder / "final_eval.json").is_file():
+        return "done"
+    if (folder / "checkpoint" / "meta.json").is_file():
+        return "resume"
+    return "new"
+
+
+def gpu_slots(requested: str | None) -> list[str | None]:
+    """GPU indices to run on, one run each at a time; ``[None]`` (one run at a time, no pinning)
+    when the machine shows no NVIDIA GPU. Asked of ``nvidia-smi``, not JAX: this process must not
+    take GPU memory from its runs."""
+    if requested:
+        return [g.strip() for g in requested.split(",") if g.strip()]
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [g.strip() for g in visible.split(",") if g.strip()] or [None]
+    smi = shutil.which("nvidia-smi")
+    if smi is None:
+        return [None]
+    try:
+        lines = subprocess.run([smi, "-L"], capture_output=True, text=True, timeout=30).stdout.splitlines()
+    except (OSError, subprocess.SubprocessError):
+        return [None]
+    gpus = [str(i) for i, line in enumerate(lines) if line.startswith("GPU ")]
+    return gpus or [None]
+
+
+def check_manifest(out: Path, manifest: dict[str, Any]) -> None:
+    path = out / "sweep.json"
+    if path.is_file():
+        saved = json.loads(path.read_text()).get("manifest")
+        if saved != manifest:
+            raise ConfigError(
+                f"{out} holds a sweep with other arguments ({path}); start it again with the same "
+                "arguments to resume, or use another --out"
+            )
+
+
+def run_all(out: Path, names: list[str], argvs: list[list[str]], slots: list[str | None], log) -> dict[str, int]:
+    """Runs the points not done yet, one per slot at a time; returns each started point's exit code."""
+    todo = [(n, a) for n, a in zip(names, argvs) if status(out / n) != "done"]
+    log(f"{len(names)} points, {len(names) - len(todo)} done already, {len(todo)} to run on {len(slots)} slot(s)")
+    running: dict[str | None, tuple[str, subprocess.Popen, Any, float]] = {}
+    codes: dict[str, int] = {}
+    t0, finished = time.perf_counter(), 0
+
+    def stop(signum, frame):  # a killed sweep stops its runs; they resume from their checkpoints
+        for _, proc, _, _ in running.values():
+            proc.terminate()
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        while todo or running:
+            for slot in slots:
+                if slot not in running and todo:
+                    name, argv = todo.pop(0)
+                    folder = out / name
+                    folder.mkdir(parents=True, exist_ok=True)
+                    resume = status(folder) == "resume"
+                    env = dict(os.environ)
+                    if slot is not None:
+                        env["CUDA_VISIBLE_DEVICES"] = slot
+                    stdout = open(folder / "sweep_stdout.txt", "a")  # noqa: SIM115 - closed when the run ends
+                    proc = subprocess.Popen(command(folder, argv), stdout=stdout, stderr=subprocess.STDOUT, env=env)
+                    running[slot] = (name, proc, stdout, time.perf_counter())
+                    where = f"GPU {slot}" if slot is not None else "this machine"
+                    log(f"started {name} on {where}{' (resumed)' if resume else ''}")
+            time.sleep(1.0)
+            for slot, (name, proc, stdout, started) in list(running.items()):
+                if proc.poll() is None:
+                    continue
+                stdout.close()
+                del running[slot]
+                codes[name] = proc.returncode
+                finished += 1
+                left = len(todo) + len(running)
+                rate = (time.perf_counter() - t0) / finished
+                eta = rate * left / max(1, len(slots))
+                verdict = (
+                    "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode}; see its sweep_stdout.txt)"
+                )
+                log(
+                    f"{name} {verdict} after {time.perf_counter() - started:.0f} s; "
+                    f"{finished} of {finished + left} finished, ETA {eta / 60:.1f} min"
+                )
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    return codes
+
+
+def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tuple[list[str], list[dict]]:
+    """``sweep.md`` lines (and the figure) from the points' logs; points without a log are listed as such."""
+    from regrasp_mjx import analysis
+
+    rows, curves = [], []
+    for name, point in zip(names, grid_points):
+        folder = out / name
+        if not (folder / "log.jsonl").is_file():
+            rows.append({"point": name, "overrides": point, "setting": None, "missing": True})
+            continue
+        finals = []
+        if (folder / "final_eval.json").is_file():
+            finals = json.loads((folder / "final_eval.json").read_text()).get("seeds", [])
+        for setting in analysis.settings_in_log(folder / "log.jsonl") or [None]:
+            log = analysis.read_log(folder / "log.jsonl", setting)
+            summary = analysis.summarize_setting(log, [m for m in finals if m.get("setting") == setting])
+            rows.append({"point": name, "overrides": point, "setting": setting, **summary})
+            curves.append((f"{name}{' ' + setting if setting else ''}", *analysis.seed_band(log, "test.success_rate")))
+    ms = analysis.mean_std
+    lines = [
+        "Bare policy (no shield) on the run's test set; mean ± std over seeds.",
+        "",
+        "| point | overrides | setting | epochs | last epoch | mean of last 10 | best epoch | exported (best on validation) | exported, shielded | collision, last |",
+        "| --- | --- | --- | ---: | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        over = ", ".join(f"{k}={v!r}" for k, v in r["overrides"].items()) or "-"
+        if r.get("missing"):
+            lines.append(f"| {r['point']} | {over} | - | - | not run yet | | | | | |")
+            continue
+        lines.append(
+            f"| {r['point']} | {over} | {r['setting'] or '-'} | {r['epochs']} | {ms(r['last'])} | {ms(r['last10'])} | "
+            f"{ms(r['best'])} | {ms(r['exported'])} | {ms(r['exported_shielded'])} | {ms(r['collision_last'])} |"
+        )
+    if curves:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        for label, epochs, succ in curves:
+            (line,) = ax.plot(epochs, succ.mean(0), label=label, lw=1.2)
+            ax.fill_between(epochs, succ.min(0), succ.max(0), color=line.get_color(), alpha=0.2, lw=0)
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("test success rate (bare), mean and range over seeds")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "sweep.png", dpi=120)
+        plt.close(fig)
+    (out / "sweep.md").write_text("\n".join(lines) + "\n")
+    return lines, rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m regrasp_mjx.sweep",
+        description=__doc__.splitlines()[0],
+        epilog="Every other option is passed to each run (python -m regrasp_mjx.train --help).",
+    )
+    p.add_argument("--out", required=True, help="sweep folder: one run folder per point, sweep.md/json/png")
+    p.add_argument("--preset", default="paper", help="training preset of every point (default paper)")
+    p.add_argument("--exploration", default="mixed", help="Table I setting(s), comma-separated, one program")
+    p.add_argument("--learner", default="ours", choices=("ours", "paper"))
+    p.add_argument("--seeds", type=int, default=3, help="seeds per setting and point (one program)")
+    p.add_argument("--seed", type=int, default=0, help="first seed")
+    p.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="KEY=V1|V2",
+        help="a config field and its values (repeatable: the points are the product)",
+    )
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a field fixed for every point")
+    p.add_argument(
+        "--demos", default=None, help="a demonstration folder every point shares (default: each builds its own)"
+    )
+    p.add_argument("--testset", default=None, help="test set .npz (default paper300)")
+    p.add_argument("--gpus", default=None, help="GPU indices to use, comma-separated (default: all nvidia-smi lists)")
+    p.add_argument("--report", action="store_true", help="only write the table and figure from what has run")
+    p.add_argument("--dry-run", action="store_true", help="print each point's command and status, run nothing")
+    args = p.parse_args(argv)
+    log = lambda msg: print(msg, flush=True)  # noqa: E731
+    out = Path(args.out)
+    try:
+        from regrasp_mjx.agents.ddpg_bc.config import make_config
+        from regrasp_mjx.config import parse_overrides
+
+        if args.seeds < 1:
+            raise ConfigError(f"--seeds {args.seeds} is not accepted: at least 1")
+        grid = parse_grid(args.grid)
+        grid_points = points(grid)
+        fixed = parse_overrides(args.set)
+        for point in grid_points:  # every point's config is checked before anything runs
+            make_config(args.preset, args.exploration, args.learner, **{**fixed, **point})
+        names = [point_name(i, pt) for i, pt in enumerate(grid_points)]
+        argvs = [train_args(args, pt, out / n) for n, pt in zip(names, grid_points)]
+        manifest = {
+            "preset": args.preset,
+            "exploration": args.exploration,
+            "learner": args.learner,
+            "seeds": args.seeds,
+            "seed": args.seed,
+            "grid": [[k, [repr(v) for v in vs]] for k, vs in grid],
+            "set": args.set,
+            "demos": args.demos,
+            "testset": args.testset,
+        }
+        check_manifest(out, manifest)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if args.dry_run:
+        for name, a in zip(names, argvs):
+            print(f"[{status(out / name)}] python {' '.join(command(out / name, a)[1:])}")
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"format": FORMAT, "manifest": manifest, "points": dict(zip(names, grid_points))}
+    write_json(out / "sweep.json", record, indent=2)
+    codes = {}
+    if not args.report:
+        codes = run_all(out, names, argvs, gpu_slots(args.gpus), log)
+    lines, rows = report(out, names, grid_points)
+    record["results"] = rows
+    record["exit_codes"] = codes
+    write_json(out / "sweep.json", json.loads(json.dumps(record, default=_jsonable)), indent=2)
+    log("\n".join(lines))
+    failed = [n for n, c in codes.items() if c != 0]
+    if failed:
+        print(f"error: {len(failed)} point(s) failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return repr(x)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
