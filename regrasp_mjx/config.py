@@ -38,7 +38,7 @@ def _check_range(field: str, rng: tuple[float, float], lo: float, hi: float, uni
 
 @dataclasses.dataclass(frozen=True)
 class SceneConfig:
-    """Geometry that varies from the MJCF defaults (``models/mjcf/regrasp_scene.xml``).
+    """Geometry that varies from the MJCF defaults (``regrasp_mjx/models/regrasp_scene.xml``).
 
     Attributes:
       jaw_angle_deg: angle between the two open jaws of the regrasping tool (SPEC: 20, ours).

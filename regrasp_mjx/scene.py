@@ -1,6 +1,7 @@
 """The regrasp scene: the MJCF loaded once, names resolved once, the counted collision pairs.
 
-``models/mjcf/regrasp_scene.xml`` is the single source of truth for geometry. :func:`load_scene`
+``regrasp_mjx/models/regrasp_scene.xml`` (package data; ``models/mjcf`` in the repository links to it) is
+the single source of truth for geometry. :func:`load_scene`
 applies a :class:`~regrasp_mjx.config.SceneConfig` (jaw angle, needle and wire radii) with MuJoCo's
 ``MjSpec`` and compiles two models from it: ``render_model`` (with the visual meshes) and
 ``model`` (collision capsules only), which goes to MJX and to the host (CPU) checker alike. Keeping
