@@ -131,26 +131,18 @@ class Scene:
         radius = self.config.needle_radius_mm * 1e-3
         return max(radius - float(np.linalg.norm((c.p0 + c.p1) / 2.0)) for c in self.needle_capsules)
 
-    def distance_fn(self, method: str = "exact") -> DistanceFn:
+    def distance_fn(self) -> DistanceFn:
         """A pure JAX function ``(needle_pos, needle_quat, ee_pos, ee_quat) -> distances[npairs]``.
 
         Signed surface distances (m) of the counted pairs in the order of :attr:`pairs`, negative
-        when they penetrate; the minimum is the clearance. Geom poses come from ``mjx.kinematics``.
-
-        Args:
-          method: ``"exact"`` (default): exact closest points of the two capsule axes (Ericson,
-            Real-Time Collision Detection, 5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes.
-            ``"mjx"``: ``mjx.collision``'s capsule-capsule contact. Its closest-point search is
-            one clip-and-project pass, which overestimates the distance of some configurations
-            (tens of microns, up to 20x at a few microns' clearance on this scene; measured against
-            ``mj_geomDistance``), so it is kept for comparison only.
+        when they penetrate; the minimum is the clearance. Geom poses come from ``mjx.kinematics``;
+        distances are the exact closest points of the two capsule axes (Ericson, Real-Time Collision
+        Detection, 5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes. (``mjx.collision``'s
+        capsule-capsule contact is one clip-and-project pass that overestimates some distances by
+        tens of microns, up to 20x at a few microns' clearance on this scene, so it is not used.)
         """
         mx = self.mjx_model
         data0 = mjx.make_data(mx)
-        if method == "mjx":
-            return self._mjx_collision_distances(mx, data0)
-        if method != "exact":
-            raise ValueError(f"method={method!r} is not accepted: 'exact' or 'mjx'")
         g1 = np.array([p[0] for p in self.pairs])
         g2 = np.array([p[1] for p in self.pairs])
         half1, half2 = self.model.geom_size[g1, 1], self.model.geom_size[g2, 1]
@@ -164,23 +156,6 @@ class Scene:
             b0 = xpos[g2] - axis[g2] * half2[:, None]
             b1 = xpos[g2] + axis[g2] * half2[:, None]
             return segment_distance(a0, a1, b0, b1) - radii
-
-        return distances
-
-    def _mjx_collision_distances(self, mx, data0) -> DistanceFn:
-        def collide(qpos):
-            d = mjx.collision(mx, mjx.kinematics(mx, data0.replace(qpos=qpos)))
-            # mjx 3.17 keeps contacts under the backend-specific `_impl`; `d.contact` is deprecated.
-            return d._impl.contact
-
-        # MJX orders contacts by its own grouping of geom types; find that order once, on the CPU.
-        with jax.default_device(jax.devices("cpu")[0]):
-            geom = np.asarray(jax.jit(collide)(jnp.asarray(self.model.qpos0, jnp.float32)).geom)
-        index = {tuple(sorted(p)): i for i, p in enumerate(geom.tolist())}
-        order = np.array([index[tuple(sorted(p))] for p in self.pairs])
-
-        def distances(needle_pos, needle_quat, ee_pos, ee_quat):
-            return collide(self.qpos(needle_pos, needle_quat, ee_pos, ee_quat)).dist[order]
 
         return distances
 
