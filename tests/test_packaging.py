@@ -4,6 +4,7 @@ and the shipped policies, and a copy of the package imported from another folder
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -28,9 +29,14 @@ print("ok", scene.model.ngeom)
 
 
 def test_the_wheel_alone_loads_scene_test_set_and_policies(tmp_path):
+    # setuptools builds in the source tree (build/, *.egg-info): build a copy, not the checkout
+    src = tmp_path / "src"
+    shutil.copytree(ROOT / "regrasp_mjx", src / "regrasp_mjx", ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, src / name)
     wheels = tmp_path / "wheels"
     build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(ROOT)],
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(src)],
         capture_output=True,
         text=True,
         timeout=600,
