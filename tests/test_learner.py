@@ -293,6 +293,13 @@ def test_actor_ema_and_cosine_learning_rate(easy_env, easy_demos):
     # cosine to 0.2: halfway is (1 + 0.2) / 2 = 0.6 of the start
     assert [float(floor.bc_coef(jnp.int32(u))) for u in at] == pytest.approx([0.01, 0.006, 0.002, 0.002], abs=1e-9)
     assert [float(floor.action_l2(jnp.int32(u))) for u in at] == pytest.approx([2.0, 1.2, 0.4, 0.4], abs=1e-6)
+    # ... and the gradient step uses it: past the span of a decay to 0, the primary term is -Q alone
+    gone = Learner(dataclasses.replace(cfg, bc_decay_epochs=1, action_l2=5.0, action_l2_decay=True), easy_env)
+    late, batch = ts.replace(updates=jnp.int32(10**6)), {k: v[:64] for k, v in easy_demos[1].items()}
+    _, m = jax.jit(gone.learn)(late, batch, jax.random.PRNGKey(1))
+    assert float(m["primary_loss"]) == pytest.approx(-cfg.prm_coef * float(m["q_pi"]), rel=1e-5)
+    _, m = jax.jit(learner.learn)(late, batch, jax.random.PRNGKey(1))  # constant penalty: more than -Q
+    assert float(m["primary_loss"]) > -cfg.prm_coef * float(m["q_pi"]) + 1e-9
 
 
 def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):

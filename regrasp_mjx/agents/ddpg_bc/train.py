@@ -401,7 +401,7 @@ class Learner:
             q,
             cfg.prm_coef,
             self.bc_coef(ts.updates) * self.devices,
-            cfg.action_l2,
+            self.action_l2(ts.updates),
         )
         a_upd, actor_opt = self.actor_opt.update(self._pmean(a_grad), ts.actor_opt, ts.actor)
         actor = optax.apply_updates(ts.actor, a_upd)
