@@ -18,6 +18,7 @@ import argparse
 import gzip
 import json
 import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,8 @@ def read(path: Path) -> dict[str, np.ndarray]:
     if not rows:
         raise SystemExit(f"error: {path} holds no log rows")
     seeds = sorted({r["seed"] for r in rows})
-    epochs = sorted({r["epoch"] for r in rows if sum(q["epoch"] == r["epoch"] for q in rows) == len(seeds)})
+    logged = Counter(r["epoch"] for r in rows)
+    epochs = sorted(e for e, n in logged.items() if n == len(seeds))  # epochs every seed logged
     at = {(r["seed"], r["epoch"]): r for r in rows}
     out = {"epoch": np.array(epochs)}
     for name, (a, b), _ in COLUMNS:

@@ -482,9 +482,10 @@ class Learner:
 
         def own(ts, member, chunk):
             # whole members per device: only the device holding ``member`` adds the whole chunk
-            local = member - jax.lax.axis_index(AXIS) * ts.iteration.shape[0]
-            mine = (local >= 0) & (local < ts.iteration.shape[0])
-            return jax.lax.cond(mine, add, lambda ts, *_: ts, ts, jnp.clip(local, 0, ts.iteration.shape[0] - 1), chunk)
+            here = ts.iteration.shape[0]  # members on this device
+            local = member - jax.lax.axis_index(AXIS) * here
+            mine = (local >= 0) & (local < here)
+            return jax.lax.cond(mine, add, lambda ts, *_: ts, ts, jnp.clip(local, 0, here - 1), chunk)
 
         return self._shard_map(own, (specs, P(), P()), specs)(ts, member, chunk)
 
