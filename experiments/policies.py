@@ -14,15 +14,33 @@ touching a test set. Timings are not taken here: time one query on one core with
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 import jax
 from results_io import write_results
 
-from regrasp_mjx.evaluate import DEFAULT_TESTSET, outcomes
+from regrasp_mjx import host
+from regrasp_mjx.config import parse_overrides
+from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses, outcomes
 from regrasp_mjx.policy import load_policy
 from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.scene import load_scene
 from regrasp_mjx.testset import make_testset
+
+
+def valid_at_margin(episodes, env_config):
+    """The problems whose start and goal keep ``env_config.clearance_mm`` (as
+    ``experiments/clearance.py`` counts them): the others fail before a step is taken."""
+    gate = host.HostChecker(scene=load_scene(env_config.scene), clearance=env_config.clearance_mm * 1e-3)
+    needle, start, goal = episode_poses(episodes)
+    keep = [
+        i
+        for i in range(len(needle))
+        if not gate.collides(needle[i, :3], needle[i, 3:], start[i, :3], start[i, 3:])
+        and not gate.collides(needle[i, :3], needle[i, 3:], goal[i, :3], goal[i, 3:])
+    ]
+    return type(episodes)(**{f.name: getattr(episodes, f.name)[keep] for f in dataclasses.fields(episodes)})
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -32,18 +50,30 @@ def main(argv: list[str] | None = None) -> None:
         "--heldout", action="append", default=None, help="N:SEED of a set drawn here (repeatable; default 3000:2022)"
     )
     p.add_argument("--no-paper300", action="store_true", help="leave the committed test set out (e.g. to select)")
+    p.add_argument(
+        "--env",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="plan every policy in this changed environment (Policy.with_env), e.g. scene.conservative_needle=True "
+        "or clearance_mm=0.1; with a margin, problems whose start or goal is already within it are left out",
+    )
     p.add_argument("--out", default=None)
     p.add_argument("--name", default="policies")
     args = p.parse_args(argv)
+    changes = parse_overrides(args.env)
     policies = {}
     for item in args.policy:
         name, _, folder = item.partition("=")
-        policies[name] = (folder or "shipped", load_policy(folder or None))
+        policy = load_policy(folder or None)
+        policies[name] = (folder or "shipped", policy.with_env(**changes) if changes else policy)
     env_config = next(iter(policies.values()))[1].env_config
     sets = {} if args.no_paper300 else {"paper300": load_testset(DEFAULT_TESTSET)[0]}
     for spec in args.heldout or ["3000:2022"]:
         n, seed = (int(x) for x in spec.split(":"))
         sets[f"held-out {n} (seed {seed})"] = make_testset(n, seed, env_config)
+    if env_config.clearance_mm > 0:
+        sets = {k: valid_at_margin(v, env_config) for k, v in sets.items()}
     rows = []
     for name, (folder, policy) in policies.items():
         for sname, episodes in sets.items():
@@ -55,6 +85,7 @@ def main(argv: list[str] | None = None) -> None:
                         "hidden": policy.contract["network"]["hidden"],
                         "members": policy.members,
                         "testset": sname,
+                        "env": changes,
                         **r,
                     }
                 )

@@ -72,7 +72,8 @@ class Scene:
 
     @functools.cached_property
     def mjx_model(self) -> mjx.Model:
-        return mjx.put_model(self.model)
+        # this process's first device: MJX's default, jax.devices()[0], is process 0's in a distributed run
+        return mjx.put_model(self.model, device=jax.local_devices()[0])
 
     def qpos(self, needle_pos, needle_quat, ee_pos, ee_quat) -> np.ndarray | jax.Array:
         """The model's ``qpos`` for a needle pose and a regrasping end-effector pose (world = e_g)."""
@@ -142,7 +143,7 @@ class Scene:
         tens of microns, up to 20x at a few microns' clearance on this scene, so it is not used.)
         """
         mx = self.mjx_model
-        data0 = mjx.make_data(mx)
+        data0 = mjx.make_data(mx, device=jax.local_devices()[0])
         g1 = np.array([p[0] for p in self.pairs])
         g2 = np.array([p[1] for p in self.pairs])
         half1, half2 = self.model.geom_size[g1, 1], self.model.geom_size[g2, 1]

@@ -29,8 +29,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx import gpu_memory
-from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, TrainConfig, make_config
+from regrasp_mjx import distributed, gpu_memory
+from regrasp_mjx.agents.ddpg_bc.config import (
+    EXPLORATION,
+    LEARNERS,
+    PRESETS,
+    TrainConfig,
+    grow_with_devices,
+    make_config,
+)
 from regrasp_mjx.agents.ddpg_bc.train import TRANSITION, Learner, TrainingState
 from regrasp_mjx.atomic import atomic_write, write_json, write_text
 from regrasp_mjx.config import ConfigError, parse_overrides
@@ -108,14 +115,14 @@ class Run:
         self.replay = None
 
     def log(self, msg: str) -> None:
-        if not self.quiet:
+        if not self.quiet and distributed.is_main():
             print(msg, flush=True)
 
     def _demos(self, demos_dir: Path | None):
         if demos_dir is not None:
             return load_demos(demos_dir)
         path = self.out / "demos"
-        if not (path / "demos.npz").exists():
+        if not (path / "demos.npz").exists() and distributed.is_main():
             from regrasp_mjx import demos as demos_cli
 
             self.log(f"building {self.cfg.num_demos} demonstrations in {path} (BIT* reverse) ...")
@@ -133,6 +140,7 @@ class Run:
                 quiet=self.quiet,
             )
             demos_cli.build(args)
+        distributed.sync("demos")  # the others wait for process 0's set
         demos = load_demos(path)
         env_meta = demos.meta.get("settings", {}).get("env", {})
         if env_meta and env_meta.get("scene") != dataclasses.asdict(self.cfg.env.scene):
@@ -143,7 +151,9 @@ class Run:
     def save(self, ts: TrainingState, meta: dict[str, Any]) -> None:
         """The whole training state (networks, optimisers, targets, normaliser, both buffers, key) as
         plain arrays in tree order, then the metadata; each file written atomically, state first."""
-        leaves = jax.device_get(jax.tree_util.tree_leaves(ts))
+        leaves = distributed.to_host(jax.tree_util.tree_leaves(ts))  # a collective: every process
+        if not distributed.is_main():
+            return
         arrays = {f"leaf_{i:05d}": np.asarray(x) for i, x in enumerate(leaves)}
         atomic_write(self.ckpt / "state.npz", lambda f: np.savez(f, **arrays))
         write_json(self.ckpt / "meta.json", meta, indent=None)
@@ -196,7 +206,10 @@ class Run:
         setting = self.cfg.member_setting(m)[0]
         return self.out / setting if setting else self.out
 
-    def _export(self, folder: Path, ts: TrainingState, m: int, training: dict[str, Any]) -> None:
+    def _export(self, folder: Path, host: tuple[Any, Any], m: int, training: dict[str, Any]) -> None:
+        """Writes member ``m`` of ``host`` (``(actor, normaliser)`` from :meth:`_host_policy`)."""
+        if not distributed.is_main():
+            return
         pick = lambda tree: jax.tree.map(lambda x: x[m], tree)  # noqa: E731
         cfg = self.cfg
         training = {
@@ -206,20 +219,24 @@ class Run:
             "actor_ema": cfg.actor_ema,
             **training,
         }
-        params = self.learner.policy_params(ts)
-        save_policy(folder, pick(params), pick(ts.normalizer), cfg.hidden, cfg.env, extra={"training": training})
+        params, normalizer = host
+        save_policy(folder, pick(params), pick(normalizer), cfg.hidden, cfg.env, extra={"training": training})
+
+    def _host_policy(self, ts: TrainingState) -> tuple[Any, Any]:
+        """Every member's exported actor and normaliser as numpy (a collective across processes)."""
+        return distributed.to_host((self.learner.policy_params(ts), ts.normalizer))
 
     def _truncate_log(self, epoch: int) -> None:
         """Drops log rows of epochs after the checkpoint (they will be run again)."""
         path = self.out / "log.jsonl"
-        if path.exists():
+        if path.exists() and distributed.is_main():
             keep = [x for x in path.read_text().splitlines() if x.strip() and json.loads(x)["epoch"] <= epoch]
             write_text(path, "".join(x + "\n" for x in keep))
 
     def train(self, resume: bool = False) -> dict[str, Any]:
         cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_members
-        demos = {k: jnp.asarray(getattr(self.demos, k)) for k in ("obs", "action", "reward", "next_obs")}
-        demos["terminal"] = jnp.asarray(self.demos.done)
+        demos = {k: np.asarray(getattr(self.demos, k), np.float32) for k in ("obs", "action", "reward", "next_obs")}
+        demos["terminal"] = np.asarray(self.demos.done, np.float32)
         ts = learner.init(demos)
         meta: dict[str, Any] = {
             "epoch": 0,
@@ -237,13 +254,17 @@ class Run:
             self._truncate_log(meta["epoch"])
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
-        test = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.testset)
-        val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), self.valset)
+        # numpy, not device arrays: in a distributed run a host value given to a jitted program is
+        # the same on every process and is placed on the global mesh as such
+        test = jax.tree.map(lambda x: np.asarray(x, np.float32), self.testset)
+        val = jax.tree.map(lambda x: np.asarray(x, np.float32), self.valset)
         explos = [cfg.member_setting(m)[1] for m in range(seeds)]
-        pool = self._pool() if any(x.targeted_eps > 0 for x in explos) else None
+        targeted = any(x.targeted_eps > 0 for x in explos)
+        pool = self._pool() if targeted and distributed.is_main() else None  # planners: process 0's
         pending = [{k: [] for k in TRANSITION} for _ in range(seeds)]
         log_path = self.out / "log.jsonl"
-        writers = [self._tensorboard(self.member_dir(m)) for m in range(seeds)]
+        main = distributed.is_main()
+        writers = [self._tensorboard(self.member_dir(m)) if main else None for m in range(seeds)]
         steps_per_iter = seeds * cfg.num_envs * cfg.env.horizon
         t_start, compile_s, last, epochs_run = time.perf_counter(), None, [], 0
         try:
@@ -255,8 +276,8 @@ class Run:
                 for _ in range(cfg.iterations_per_epoch):
                     e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
                     t_it = time.perf_counter()
-                    ts, metrics, outcome, problems = learner.iteration(ts, jnp.asarray(e_r))
-                    outcome = np.asarray(outcome)  # [seed, env, 5]; waits for the device
+                    ts, metrics, outcome, problems = learner.iteration(ts, e_r)
+                    outcome = distributed.to_host(outcome)  # [seed, env, 5]; waits for the device
                     if compile_s is None:
                         compile_s = time.perf_counter() - t_it
                         self.log(
@@ -264,27 +285,32 @@ class Run:
                         )
                     else:
                         iter_s, timed = iter_s + time.perf_counter() - t_it, timed + 1
-                    metrics_acc.append({k: np.asarray(v) for k, v in metrics.items()})
+                    metrics_acc.append(distributed.to_host(dict(metrics)))
                     outcomes.append(outcome)
                     meta["iteration"] += 1
-                    if pool is not None:
+                    if targeted:  # every process draws the same choices from the same generator
                         chosen = []
                         for m in range(seeds):
                             failed = np.flatnonzero(outcome[m, :, 1] == 0)
                             chosen.append(failed[rng.random(len(failed)) < e_t[m]])
-                        self._submit(pool, problems, chosen, meta)
+                        if any(len(rows) for rows in chosen):
+                            problems = distributed.to_host(problems)  # a collective: every process
+                            if pool is not None:
+                                self._submit(pool, problems, chosen, meta)
                         ts = self._receive(pool, ts, pending, meta)
                 eval_s = time.perf_counter()
                 actor = learner.policy_params(ts)
-                ev_all = jax.device_get(learner.evaluate(actor, ts.normalizer, test))
-                va_all = jax.device_get(learner.evaluate_q(actor, ts.normalizer, val, ts.critic))
+                ev_all = distributed.to_host(learner.evaluate(actor, ts.normalizer, test))
+                va_all = distributed.to_host(learner.evaluate_q(actor, ts.normalizer, val, ts.critic))
                 evs = [summarize({k: v[m] for k, v in ev_all.items()}, "bare") for m in range(seeds)]
                 vas = [summarize({k: v[m] for k, v in va_all.items()}, "bare") for m in range(seeds)]
-                for m, va in enumerate(vas):
-                    if va["success_rate"] >= meta["best_val"][m]:  # export the best by validation
-                        meta["best_val"][m], meta["best_epoch"][m] = va["success_rate"], epoch + 1
-                        training = {"epoch": epoch + 1, "validation_success": va["success_rate"]}
-                        self._export(self.member_dir(m) / "policy", ts, m, training)
+                best = [m for m, va in enumerate(vas) if va["success_rate"] >= meta["best_val"][m]]
+                host = self._host_policy(ts) if best else None
+                for m in best:  # export the best by validation
+                    va = vas[m]
+                    meta["best_val"][m], meta["best_epoch"][m] = va["success_rate"], epoch + 1
+                    training = {"epoch": epoch + 1, "validation_success": va["success_rate"]}
+                    self._export(self.member_dir(m) / "policy", host, m, training)
                 eval_s = time.perf_counter() - eval_s
                 epoch_s = time.perf_counter() - t_epoch
                 mean = {k: np.mean([x[k] for x in metrics_acc], axis=0) for k in metrics_acc[0]}  # [seed]
@@ -327,8 +353,9 @@ class Run:
                 meta["config"] = _config_json(cfg)
                 if (epoch + 1) % cfg.checkpoint_every == 0 or epoch + 1 == cfg.epochs:
                     self.save(ts, meta)
-                with open(log_path, "a") as f:
-                    f.write("".join(json.dumps(r) + "\n" for r in rows))
+                if main:
+                    with open(log_path, "a") as f:
+                        f.write("".join(json.dumps(r) + "\n" for r in rows))
                 for writer, row in zip(writers, rows):
                     if writer is None:
                         continue
@@ -373,9 +400,12 @@ class Run:
         from regrasp_mjx.evaluate import outcomes
         from regrasp_mjx.policy import load_policy
 
+        host = self._host_policy(ts)  # a collective: every process
+        if not distributed.is_main():
+            return {}  # the tests, distillation and the summary are process 0's
         members = []
         for m in range(cfg.num_members):
-            self._export(self.member_dir(m) / "policy_last", ts, m, {"epoch": meta["epoch"]})
+            self._export(self.member_dir(m) / "policy_last", host, m, {"epoch": meta["epoch"]})
             policy_dir = self.member_dir(m) / "policy"
             members.append(
                 {
@@ -474,6 +504,17 @@ class Run:
                 meta["planned"][m] += 1
 
     def _receive(self, pool, ts: TrainingState, pending: list[dict[str, list[np.ndarray]]], meta: dict[str, Any]):
+        """Inserts the planner demonstrations that fill a ``demo_chunk`` into their seed's online
+        buffer. The pool is process 0's; in a distributed run its chunks are broadcast, so every
+        process inserts the same ones."""
+        chunks = self._ready_chunks(pool, pending, meta) if pool is not None else []
+        if distributed.multi_process():
+            chunks = self._broadcast_chunks(chunks)
+        for m, data in chunks:
+            ts = self.learner.add_online(ts, np.int32(m), data)
+        return ts
+
+    def _ready_chunks(self, pool, pending, meta) -> list[tuple[int, dict[str, np.ndarray]]]:
         done = [r for r in pool.collect() if r.ok and r.result["solved"]]
         if done:
             if self.replay is None:
@@ -487,15 +528,31 @@ class Run:
                     for k in ("obs", "action", "reward", "next_obs"):
                         pending[m][k].append(row[k])
                     pending[m]["terminal"].append(row["done"])
-        chunk = self.cfg.demo_chunk
+        chunk, chunks = self.cfg.demo_chunk, []
         for m, waiting in enumerate(pending):
             while sum(len(x) for x in waiting["obs"]) >= chunk:
                 cat = {k: np.concatenate(v) for k, v in waiting.items()}
-                data = {k: jnp.asarray(v[:chunk], jnp.float32) for k, v in cat.items()}
-                ts = self.learner.add_online(ts, jnp.int32(m), data)
+                chunks.append((m, {k: np.asarray(v[:chunk], np.float32) for k, v in cat.items()}))
                 for k in waiting:
                     waiting[k] = [cat[k][chunk:]] if len(cat[k]) > chunk else []
-        return ts
+        return chunks
+
+    def _broadcast_chunks(self, chunks: list[tuple[int, dict[str, np.ndarray]]]):
+        """Process 0's ``chunks`` on every process: their count first, then the stacked arrays."""
+        n = int(distributed.broadcast(np.int32(len(chunks))))
+        if n == 0:
+            return []
+        size, env = self.cfg.demo_chunk, self.learner.env
+        obs, act = env.observation_size, env.action_size
+        shapes = {"obs": (obs,), "action": (act,), "reward": (), "next_obs": (obs,), "terminal": ()}
+        if chunks:
+            stacked = {k: np.stack([c[1][k] for c in chunks]) for k in TRANSITION}
+            members = np.array([c[0] for c in chunks], np.int32)
+        else:
+            stacked = {k: np.zeros((n, size, *shapes[k]), np.float32) for k in TRANSITION}
+            members = np.zeros(n, np.int32)
+        members, stacked = distributed.broadcast((members, stacked))
+        return [(int(members[i]), {k: v[i] for k, v in stacked.items()}) for i in range(n)]
 
     def _tensorboard(self, folder: Path):
         try:
@@ -538,12 +595,29 @@ def main(argv: list[str] | None = None) -> int:
         "buffer and batches split, gradients averaged); auto (default): members when they divide evenly",
     )
     p.add_argument(
+        "--grow-batch",
+        action="store_true",
+        help="data parallel with weak scaling: the preset's environments, batch, buffer and demo chunk are "
+        "each GPU's share (global sizes grow with --devices) and both learning rates scale by sqrt(devices)",
+    )
+    p.add_argument(
         "--gpu-memory",
         default=None,
         metavar="FRACTION|grow",
         help="share of the GPU to pre-allocate (e.g. 0.45 for each of two runs on one GPU) or 'grow' "
         "(allocate as needed); default: JAX's 75 %%, or 'grow' when another process runs on the GPU",
     )
+    p.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join a run of several processes (hosts) through jax.distributed: the coordinator, process "
+        "count and index come from the flags below or are detected (SLURM, Open MPI, JAX_COORDINATOR_ADDRESS)",
+    )
+    p.add_argument(
+        "--coordinator", default=None, metavar="HOST:PORT", help="process 0's address (implies --distributed)"
+    )
+    p.add_argument("--num-processes", type=int, default=None, help="processes in the run (with --coordinator)")
+    p.add_argument("--process-id", type=int, default=None, help="this process's index, 0..N-1 (with --coordinator)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint")
     p.add_argument("--demos", default=None, help="a demonstration folder (default: build OUT/demos)")
     p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="evaluation test set (.npz)")
@@ -568,6 +642,10 @@ def main(argv: list[str] | None = None) -> int:
             overrides["shard"] = args.shard
         cfg = make_config(args.preset, args.exploration, args.learner, **overrides)
         gpu_memory.configure(gpu_memory.parse_setting(args.gpu_memory))  # before JAX starts a GPU client
+        if args.distributed or args.coordinator:
+            distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+        if args.grow_batch:
+            cfg = grow_with_devices(cfg, cfg.devices or len(jax.devices()))
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         if jax.default_backend() == "cpu" and args.preset != "smoke":
@@ -591,6 +669,8 @@ def main(argv: list[str] | None = None) -> int:
             out["student"] = {"policy": g["student"]["student"], "test": g["student"]["test"]}
         return out
 
+    if not distributed.is_main():
+        return 0  # process 0 reports
     if "settings" in final:
         print(json.dumps({"out": str(out), "settings": {k: summary(g) for k, g in final["settings"].items()}}))
     else:

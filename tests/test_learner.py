@@ -129,6 +129,34 @@ def test_exploration_schedules():
     assert EXPLORATION["targeted"].at(0) == EXPLORATION["targeted"].at(999) == pytest.approx((0.02, 0.5))
 
 
+def test_grow_with_devices_keeps_each_devices_share_and_scales_the_learning_rate_by_sqrt():
+    from regrasp_mjx.agents.ddpg_bc.config import grow_with_devices, make_config
+
+    base = make_config("fast")
+    two = grow_with_devices(base, 2)
+    assert (two.num_envs, two.batch_size, two.buffer_size, two.demo_chunk) == (1024, 512, 2_000_000, 1024)
+    assert (two.online_batch, two.demo_batch) == (2 * base.online_batch, 2 * base.demo_batch)  # 384 + 128
+    assert two.lr_actor == pytest.approx(1e-4 * 2**0.5) and two.lr_critic == pytest.approx(1e-4 * 2**0.5)
+    assert (two.devices, two.shard, two.epochs, two.updates_per_iteration) == (2, "envs", 60, 200)
+    assert grow_with_devices(base, 1) == dataclasses.replace(base, shard="envs")
+    with pytest.raises(ConfigError, match="data parallel"):
+        grow_with_devices(make_config("fast", num_seeds=2, shard="members"), 2)
+    with pytest.raises(ConfigError, match="integer >= 1"):
+        grow_with_devices(base, 0)
+
+
+def test_decay_preset_is_fast_with_both_regularisers_decayed_over_a_third_of_training():
+    decay, fast = make_config("decay"), make_config("fast")
+    assert decay == dataclasses.replace(fast, bc_decay_epochs=20, action_l2_decay=True)
+    learner = Learner(decay)
+    per_epoch = decay.iterations_per_epoch * decay.updates_per_iteration
+    assert float(learner.bc_coef(jnp.int32(10 * per_epoch))) == pytest.approx(0.5e-3, rel=1e-5)  # half-way
+    assert float(learner.action_l2(jnp.int32(10 * per_epoch))) == pytest.approx(0.5, rel=1e-5)
+    assert (
+        float(learner.bc_coef(jnp.int32(30 * per_epoch))) == 0.0 == float(learner.action_l2(jnp.int32(30 * per_epoch)))
+    )
+
+
 def test_set_overrides_parse_as_literals():
     from regrasp_mjx.config import parse_overrides
 

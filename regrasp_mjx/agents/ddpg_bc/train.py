@@ -151,8 +151,13 @@ class Learner:
     @staticmethod
     def _check_devices(cfg: TrainConfig) -> tuple[int, str]:
         """``(devices, shard)``: the device count in use and how the work is split over them."""
-        available = jax.devices()
+        available = jax.devices()  # every process's devices in a distributed run
         n = cfg.devices or len(available)
+        if jax.process_count() > 1 and n != len(available):
+            raise ConfigError(
+                f"devices={cfg.devices} is not accepted in a run of {jax.process_count()} processes: the mesh "
+                f"spans every process's devices; accepted: 0 (all) or {len(available)}"
+            )
         if n > len(available):
             raise ConfigError(
                 f"devices={cfg.devices} is not accepted: JAX sees {len(available)} "
@@ -199,8 +204,17 @@ class Learner:
         return jax.tree.map(lambda spec: NamedSharding(self.mesh, spec), self.state_specs(ts))
 
     def place(self, ts: TrainingState) -> TrainingState:
-        """Puts a state (fresh or restored from a checkpoint) on the mesh."""
-        return jax.device_put(ts, self.state_shardings(ts))
+        """Puts a state (fresh or restored from a checkpoint) on the mesh. Across processes each
+        holds the whole host value and gives its own devices their part of it."""
+        shardings = self.state_shardings(ts)
+        if jax.process_count() == 1:
+            return jax.device_put(ts, shardings)
+
+        def put(x, sharding):
+            x = np.asarray(x)
+            return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+        return jax.tree.map(put, ts, shardings)
 
     def _shard_map(self, fn, in_specs, out_specs):
         # Replication of the outputs given P() is by construction (averaged gradients, summed
@@ -218,7 +232,9 @@ class Learner:
     def init(self, demos: dict[str, jax.Array]) -> TrainingState:
         """Fresh learners, one per member (``TrainConfig.member_seed``), stacked on a leading axis."""
         cfg = self.config
-        keys = jnp.stack([jax.random.PRNGKey(cfg.member_seed(m)) for m in range(cfg.num_members)])
+        # host values: in a distributed run every process passes the same ones to the jitted program
+        keys = np.stack([np.asarray(jax.random.PRNGKey(cfg.member_seed(m))) for m in range(cfg.num_members)])
+        demos = jax.tree.map(np.asarray, demos)
 
         def make(keys, demos):
             ts = jax.vmap(self.init_one, in_axes=(0, None))(keys, demos)

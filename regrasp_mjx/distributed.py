@@ -1,0 +1,72 @@
+"""Several processes (hosts) training one program, on JAX's own distributed runtime.
+
+Every process runs the same host loop and the same jitted programs over one global mesh of all
+processes' devices (``jax.devices()``). What runs where:
+
+- the device work (rollouts, updates, evaluation) is one SPMD program over the global mesh;
+- values the host reads (outcomes, metrics, evaluations, parameters to export or checkpoint) are
+  gathered from every process (:func:`to_host`, a collective all processes call);
+- the planner pool runs on process 0 only; the demonstrations it returns are broadcast
+  (:func:`broadcast`) so every process inserts the same ones;
+- logs, TensorBoard, checkpoints, exported policies and the final evaluation are process 0's
+  (:func:`is_main`); a resumed run reads the checkpoint on every process (a shared file system).
+
+On a single process every helper is the identity (or ``np.asarray``), so nothing changes there.
+CPU devices exchange data through gloo (JAX has no other CPU collectives across processes).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import numpy as np
+
+
+def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
+    """Joins this process to a distributed run: ``jax.distributed.initialize`` with the given
+    coordinator (``HOST:PORT``), process count and index, or, left out, what JAX detects (SLURM,
+    Open MPI, ``JAX_COORDINATOR_ADDRESS``). Must run before anything else touches a device."""
+    # Cross-process collectives between CPU devices need gloo; GPU devices use NCCL regardless.
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
+
+
+def is_main() -> bool:
+    """Whether this process writes files and talks to the planners (process 0)."""
+    return jax.process_index() == 0
+
+
+def multi_process() -> bool:
+    return jax.process_count() > 1
+
+
+def to_host(tree: Any) -> Any:
+    """The whole value of every leaf as numpy on this process. Leaves spread over other processes'
+    devices are all-gathered: every process must call this at the same point with the same tree."""
+
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            from jax.experimental import multihost_utils
+
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(x)
+
+    return jax.tree.map(one, tree)
+
+
+def broadcast(tree: Any) -> Any:
+    """Process 0's value of ``tree`` (numpy leaves of the same shapes on every process) on all."""
+    if not multi_process():
+        return tree
+    from jax.experimental import multihost_utils
+
+    return jax.tree.map(np.asarray, multihost_utils.broadcast_one_to_all(tree))
+
+
+def sync(name: str) -> None:
+    """Waits until every process reaches the barrier ``name``."""
+    if multi_process():
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
