@@ -61,12 +61,12 @@ def window(run: dict[str, np.ndarray], column: str, upto: int, width: int = 5) -
     return np.nanmean(run[column][:, sel], axis=1) if sel.any() else np.full(run[column].shape[0], np.nan)
 
 
-def summarize(run: dict[str, np.ndarray]) -> dict:
+def summarize(run: dict[str, np.ndarray], epochs: tuple[int, ...] = EPOCHS) -> dict:
     val = run["validation success"]
     best = val.max(axis=1)
     last = int(run["epoch"][-1])
     rows = {}
-    for e in [e for e in EPOCHS if e <= last] + [last]:
+    for e in sorted({e for e in epochs if e <= last} | {last}):
         rows[e] = {c: [float(x) for x in window(run, c, e)] for c, _, _ in COLUMNS}
     return {
         "last_epoch": last,
@@ -86,14 +86,17 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run", action="append", required=True, metavar="NAME=LOG")
     p.add_argument("--out", required=True)
+    p.add_argument("--epochs", default=",".join(map(str, EPOCHS)), help="epochs tabled (and each run's last)")
+    p.add_argument("--name", default="drift", help="the output files' stem")
     args = p.parse_args(argv)
+    epochs = tuple(int(e) for e in args.epochs.split(","))
     runs = {}
     for item in args.run:
         name, sep, path = item.partition("=")
         if not sep:
             raise SystemExit(f"error: --run {item!r} is not accepted: NAME=LOG")
         runs[name] = read(Path(path))
-    summary = {name: summarize(run) for name, run in runs.items()}
+    summary = {name: summarize(run, epochs) for name, run in runs.items()}
     lines = [
         "| run | epoch | " + " | ".join(c for c, _, _ in COLUMNS) + " |",
         "| --- | ---: |" + " --- |" * len(COLUMNS),
@@ -112,7 +115,7 @@ def main(argv: list[str] | None = None) -> None:
             f"| {name} | {s['last_epoch']} | {fmt(s['best_validation'], '{:.3f}')} "
             f"({', '.join(map(str, s['best_epoch']))}) | {fmt(s['last_minus_best'], '{:+.3f}')} |"
         )
-    write_results(args.out, "drift", lines, summary)
+    write_results(args.out, args.name, lines, summary)
     print("\n".join(lines))
 
     import matplotlib
@@ -138,7 +141,7 @@ def main(argv: list[str] | None = None) -> None:
     axes[1].set_ylim(0.0, 0.08)
     axes[0].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    fig.savefig(Path(args.out) / "drift.png", dpi=120)
+    fig.savefig(Path(args.out) / f"{args.name}.png", dpi=120)
 
 
 if __name__ == "__main__":

@@ -62,6 +62,18 @@ def test_shipped_policy_plans_the_test_problems(policy, problems):
     np.testing.assert_allclose(one.trajectory(), traj, atol=1e-6)
 
 
+def test_the_decay_recipes_network_plans_bare_without_a_collision(problems):
+    """``load_policy("decay")``: one 3x512 network of the ``decay`` preset (RESULTS, "The stalls'
+    cause"), trained with the chord needle and planning under the conservative one; 1.000 bare on
+    paper300 in RESULTS, here its first 40 problems, in fewer steps than the default takes."""
+    decay = load_policy("decay")
+    assert decay.members == 1 and decay.contract["network"]["hidden"] == [512, 512, 512]
+    assert decay.env_config.scene.conservative_needle and decay.contract["training"]["config"]["bc_decay_epochs"] == 20
+    plan = decay.plan(*problems, check_grasp=False, shield=False)
+    assert plan.success.all()
+    assert plan.steps.mean() < 7.5  # ~6.3; the default's 2x256 takes ~9.3
+
+
 # Rows of paper300 where the shipped network's bare rollout collides (both of its failures).
 COLLIDING_ROWS = [161, 169]
 
@@ -208,7 +220,7 @@ def test_shipped_policies_by_name_and_one_compiled_planner_per_network_shape(pol
     from regrasp_mjx import policy as policy_module
     from regrasp_mjx.policy import PolicyError, shipped_policies
 
-    assert shipped_policies() == ["default", "ensemble3", "student_v1"]
+    assert shipped_policies() == ["decay", "default", "ensemble3", "student_v1"]
     ensemble = load_policy("ensemble3")  # the earlier default: three networks, stored as float16
     assert ensemble.members == 3 and ensemble.contract["network"]["weights_dtype"] == "float16"
     assert all(x.dtype == np.float32 for x in __import__("jax").tree_util.tree_leaves(ensemble.actor_params))

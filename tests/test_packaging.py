@@ -22,7 +22,7 @@ assert Path(regrasp_mjx.__file__).resolve().is_relative_to(Path(sys.argv[1]).res
 scene = load_scene()
 episodes, _ = load_testset(PAPER300)
 assert episodes.start_pos.shape == (300, 3)
-assert shipped_policies() == ["default", "ensemble3", "student_v1"]
+assert shipped_policies() == ["decay", "default", "ensemble3", "student_v1"]
 load_policy()
 print("ok", scene.model.ngeom)
 """
