@@ -26,10 +26,10 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from results_io import write_results
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
-from regrasp_mjx.agents.ddpg_bc.train import Learner
+from regrasp_mjx.agents.ddpg_bc.learner import Learner
+from regrasp_mjx.atomic import write_results
 
 
 def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int = 1, shard: str = "auto") -> dict:

@@ -29,15 +29,11 @@ import argparse
 import dataclasses
 import json
 import os
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_io import write_results  # noqa: E402
-
 from regrasp_mjx import dvrk, host  # noqa: E402
+from regrasp_mjx.atomic import write_results  # noqa: E402
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402
 from regrasp_mjx.planning.ompl_planner import PlannerConfig  # noqa: E402
 from regrasp_mjx.planning.pool import PlannerPool  # noqa: E402

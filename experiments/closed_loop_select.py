@@ -10,14 +10,10 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_io import write_results  # noqa: E402
-
+from regrasp_mjx.atomic import write_results  # noqa: E402
 from regrasp_mjx.closed_loop import NeedleNoise  # noqa: E402
 from regrasp_mjx.evaluate import episode_poses  # noqa: E402
 from regrasp_mjx.policy import load_policy  # noqa: E402

@@ -14,9 +14,9 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from results_io import write_results
 
 from regrasp_mjx import analysis
+from regrasp_mjx.atomic import write_results
 
 RUNS = {
     "paper_learner_paper_scale": ("paper's learner", "paper scale (5 envs)"),

@@ -17,14 +17,12 @@ from __future__ import annotations
 import argparse
 import gzip
 import json
-import sys
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_io import write_results  # noqa: E402
+from regrasp_mjx.atomic import write_results  # noqa: E402
 
 EPOCHS = (50, 100, 150, 200, 250, 300, 400)
 COLUMNS = (

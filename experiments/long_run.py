@@ -15,15 +15,12 @@ from __future__ import annotations
 
 import argparse
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_io import write_results  # noqa: E402
-
 from regrasp_mjx import analysis  # noqa: E402
+from regrasp_mjx.atomic import write_results  # noqa: E402
 
 LABEL = {"ddpg_bc": "DDPG+BC", "targeted": "DDPG+BC (targeted)", "mixed": "DDPG+BC (mixed)"}
 CHECKPOINTS = (50, 100, 200, 300, 400)

@@ -22,17 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results_io import write_results  # noqa: E402
-
 from regrasp_mjx import host  # noqa: E402
+from regrasp_mjx.atomic import write_results  # noqa: E402
 from regrasp_mjx.closed_loop import NeedleNoise, episode_bias, frame_estimate  # noqa: E402
 from regrasp_mjx.env import RegraspEnv  # noqa: E402
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402

@@ -18,9 +18,9 @@ import dataclasses
 import json
 
 import jax
-from results_io import write_results
 
 from regrasp_mjx import host
+from regrasp_mjx.atomic import write_results
 from regrasp_mjx.config import parse_overrides
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses, outcomes
 from regrasp_mjx.policy import load_policy

@@ -21,9 +21,9 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from results_io import write_results
 
 from regrasp_mjx import analysis
+from regrasp_mjx.atomic import write_results
 
 SETTINGS = ("mixed", "ddpg_bc")
 LABEL = {"mixed": "DDPG+BC (mixed)", "ddpg_bc": "DDPG+BC"}

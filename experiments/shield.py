@@ -16,8 +16,8 @@ import argparse
 import json
 
 import jax
-from results_io import write_results
 
+from regrasp_mjx.atomic import write_results
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, evaluate
 from regrasp_mjx.policy import load_policy
 from regrasp_mjx.sampling import load_testset

@@ -38,7 +38,7 @@ PAPER = {"ddpg_bc": (0.71, 0.0262, 4.2), "targeted": (0.64, 0.0233, 4.2), "mixed
 def train(args: argparse.Namespace) -> None:
     from regrasp_mjx.agents.ddpg_bc.config import make_config
     from regrasp_mjx.config import parse_overrides
-    from regrasp_mjx.train import DEFAULT_TESTSET, Run
+    from regrasp_mjx.trainer import DEFAULT_TESTSET, Run
 
     out = Path(args.out)
     if (out / "final_eval.json").exists():

@@ -17,9 +17,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from results_io import write_results
 
 from regrasp_mjx import analysis
+from regrasp_mjx.atomic import write_results
 
 
 def first_time(times: np.ndarray, values: np.ndarray, level: float) -> float | None:

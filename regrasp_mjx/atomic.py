@@ -32,3 +32,12 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> Non
 
 def write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def write_results(out: str | os.PathLike | None, name: str, lines: list[str], data: Any) -> None:
+    """An experiment's results: ``OUT/NAME.md`` (a table's lines, for people) and ``OUT/NAME.json``
+    (``data``, for scripts), each written atomically; nothing when ``out`` is None."""
+    if out is None:
+        return
+    write_text(Path(out) / f"{name}.md", "\n".join(lines) + "\n")
+    write_json(Path(out) / f"{name}.json", data)

@@ -85,13 +85,29 @@ def _read_plan(path: Path) -> dict:
         return {"solved": bool(f["solved"]), "poses": f["poses"], "plan_time_s": float(f["plan_time_s"])}
 
 
-def build(args: argparse.Namespace) -> Path:
-    config = EnvConfig(scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg))
-    planner = PlannerConfig(planner=args.planner, direction=args.direction, budget_s=args.budget_s)
-    out = Path(args.out)
+def build(
+    n: int,
+    out: str | os.PathLike,
+    *,
+    seed: int = 0,
+    workers: int = 1,
+    planner: str = "BITstar",
+    direction: str = "reverse",
+    budget_s: float = 10.0,
+    timeout_s: float | None = None,
+    scene: SceneConfig = SceneConfig(),
+    replay_batch: int = 256,
+    quiet: bool = False,
+) -> Path:
+    """Plans ``n`` demonstrations into ``out`` (resumed when it holds plans of the same settings):
+    problems from ``seed``, ``planner`` in ``direction`` with ``budget_s`` each on ``workers``
+    processes, each path replayed in the environment of ``scene``; returns ``out/demos.npz``."""
+    config = EnvConfig(scene=scene)
+    planner_cfg = PlannerConfig(planner=planner, direction=direction, budget_s=budget_s)
+    out = Path(out)
     plans = out / "plans"
     plans.mkdir(parents=True, exist_ok=True)
-    settings = {"seed": args.seed, "planner": dataclasses.asdict(planner), "env": dataclasses.asdict(config)}
+    settings = {"seed": seed, "planner": dataclasses.asdict(planner_cfg), "env": dataclasses.asdict(config)}
     meta_path = out / "meta.json"
     if meta_path.exists():
         old = json.loads(meta_path.read_text())
@@ -111,7 +127,7 @@ def build(args: argparse.Namespace) -> Path:
 
     env = RegraspEnv(dataclasses.replace(config, check_actions=False))
     replay = make_replay(env)
-    sample = problem_sampler(env, args.seed)
+    sample = problem_sampler(env, seed)
     verified: dict[int, dict] = {}
     stats = {"planned": 0, "failed": 0, "replay_failed": 0, "resumed": 0}
 
@@ -119,7 +135,7 @@ def build(args: argparse.Namespace) -> Path:
         if not items:
             return
         idx = np.array([i for i, _ in items])
-        ok, rows = replay_paths(env, replay, sample(idx), [p["poses"] for _, p in items], batch=args.replay_batch)
+        ok, rows = replay_paths(env, replay, sample(idx), [p["poses"] for _, p in items], batch=replay_batch)
         for (i, plan), good, row in zip(items, ok, rows):
             if good:
                 verified[i] = {**row, "problem_index": i, "plan_time_s": plan["plan_time_s"]}
@@ -133,22 +149,22 @@ def build(args: argparse.Namespace) -> Path:
 
     next_index, batch_cache = 0, {}
     pending: list[tuple[int, dict]] = []
-    options = {"planner": dataclasses.asdict(planner), "scene": dataclasses.asdict(config.scene), "seed": args.seed}
-    timeout = args.timeout_s or 3 * args.budget_s + 30
+    options = {"planner": dataclasses.asdict(planner_cfg), "scene": dataclasses.asdict(config.scene), "seed": seed}
+    timeout = timeout_s or 3 * budget_s + 30
     t0 = time.perf_counter()
     with (
-        PlannerPool(args.workers, options=options, timeout_s=timeout) as pool,
+        PlannerPool(workers, options=options, timeout_s=timeout) as pool,
         tqdm(
-            total=args.n,
-            initial=min(len(verified), args.n),
+            total=n,
+            initial=min(len(verified), n),
             desc="demonstrations",
             unit="demo",
             file=sys.stdout,
-            disable=args.quiet,
+            disable=quiet,
         ) as bar,
     ):
-        while len(verified) < args.n:
-            while pool.in_flight < 4 * args.workers:
+        while len(verified) < n:
+            while pool.in_flight < 4 * workers:
                 while next_index in done:
                     next_index += 1
                 block = next_index // 1024
@@ -164,21 +180,21 @@ def build(args: argparse.Namespace) -> Path:
                     pending.append((r.payload, result))
                 else:
                     stats["failed"] += 1
-            if len(pending) >= args.replay_batch or (pending and len(verified) + len(pending) >= args.n):
+            if len(pending) >= replay_batch or (pending and len(verified) + len(pending) >= n):
                 before = len(verified)
                 verify(pending)
                 pending = []
-                bar.update(min(len(verified), args.n) - min(before, args.n))
+                bar.update(min(len(verified), n) - min(before, n))
                 bar.set_postfix(
                     planned=stats["planned"], plan_failed=stats["failed"], replay_failed=stats["replay_failed"]
                 )
             else:
                 time.sleep(0.005)
-    chosen = sorted(verified)[: args.n]
+    chosen = sorted(verified)[:n]
     meta = {
         "settings": settings,
         "versions": versions(),
-        "n": args.n,
+        "n": n,
         "wall_s": round(time.perf_counter() - t0, 2),
         "problems_planned": len(done),
         "stats": stats,
@@ -205,7 +221,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.n < 1 or args.workers < 1:
         p.error("--n and --workers must be >= 1")
     try:
-        build(args)
+        build(
+            args.n,
+            args.out,
+            seed=args.seed,
+            workers=args.workers,
+            planner=args.planner,
+            direction=args.direction,
+            budget_s=args.budget_s,
+            timeout_s=args.timeout_s,
+            scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg),
+            replay_batch=args.replay_batch,
+            quiet=args.quiet,
+        )
     except (ConfigError, DemosError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

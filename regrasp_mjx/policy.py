@@ -1,16 +1,9 @@
-"""Exported policies: plain arrays (``policy.npz``) plus a JSON contract (``policy.json``).
+"""Loaded policies: ``Policy.act``, ``Policy.plan`` and ``Policy.plan_from_camera``, pose checks, ensembles.
 
-The npz holds the actor's parameters under their flax paths (``actor/params/hidden_0/kernel``) and
-the observation normaliser (``normalizer/mean``, ``normalizer/std``), each with a leading member
-axis of size ``network.ensemble`` (1 for one network; K for the mean-action ensemble of K
-independently trained actors, ours). The JSON holds what a robot integrator needs: the network
-(hidden sizes, activation, tanh output, ensemble size), the observation and action layouts with
-units and frames, the action scales, the environment, the versions. No pickle anywhere: a policy
-file is loaded with ``allow_pickle=False`` and checked against its contract.
-
-Planning (``Policy.plan``, ``Policy.plan_from_camera``) rolls the deterministic policy out in the
-same environment it was trained in (kinematics and exact collision checks, on whatever device JAX
-uses) until success, collision or the horizon, and returns the trajectory.
+Planning rolls the deterministic policy out in the same environment it was trained in (kinematics
+and exact collision checks, on whatever device JAX uses) until success, collision or the horizon,
+shielded by default, and returns the trajectory (the program: :mod:`regrasp_mjx.planner`). The file
+format and the shipped policies are :mod:`regrasp_mjx.policy_file`, re-exported here.
 """
 
 from __future__ import annotations
@@ -28,64 +21,51 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.training.acme import running_statistics
-from flax import traverse_util
 
-from regrasp_mjx.agents.ddpg_bc.networks import make_networks
-from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
-from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
+from regrasp_mjx.planner import PLANNERS, make_planner, mean_action, members_apply
+from regrasp_mjx.policy_file import (
+    ACTION_LAYOUT,
+    DEFAULT_POLICY,
+    OBS_LAYOUT,
+    POLICY_FORMAT,
+    POLICY_VERSION,
+    SHIPPED,
+    WEIGHT_DTYPES,
+    PolicyError,
+    read_policy,
+    save_policy,
+    shipped_policies,
+)
 
-POLICY_FORMAT = "regrasp_mjx.policy"
-POLICY_VERSION = 2
-SHIPPED = Path(__file__).resolve().parent / "policies"
-DEFAULT_POLICY = SHIPPED / "default"
-OBS_LAYOUT = [
-    "p_eg_n (3, m)",
-    "q_eg_n (4, wxyz, w>=0)",
-    "p_eg_er (3, m)",
-    "q_eg_er (4, wxyz, w>=0)",
-    "p_er_n (3, m)",
-    "q_er_n (4, wxyz, w>=0)",
+__all__ = [
+    "ACTION_LAYOUT",
+    "DEFAULT_POLICY",
+    "OBS_LAYOUT",
+    "POLICY_FORMAT",
+    "POLICY_VERSION",
+    "SHIPPED",
+    "WEIGHT_DTYPES",
+    "Plan",
+    "Policy",
+    "PolicyError",
+    "PoseError",
+    "check_poses",
+    "ensemble_policies",
+    "load_policy",
+    "mean_action",
+    "save_policy",
+    "shipped_policies",
 ]
-ACTION_LAYOUT = [
-    "dp_x, dp_y, dp_z in the e_g frame, times max_dp_mm",
-    "rotation vector x, y, z in the e_g frame, times max_drot_deg, applied as q_t = exp(w) q_{t-1}",
-]
-
-
-class PolicyError(ValueError):
-    """A policy file that is missing, corrupt, or from an incompatible version."""
 
 
 class PoseError(ValueError):
     """A pose that is not a finite 7-vector ``[x, y, z, qw, qx, qy, qz]`` with a unit quaternion."""
 
 
-WEIGHT_DTYPES = ("float32", "float16")
 QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the pose is refused
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
-
-
-_PLANNERS: dict[tuple, Any] = {}  # jitted planners by (hidden, members, env, camera, shield)
-
-
-def _members_apply(hidden: tuple[int, ...]):
-    """``apply(weights, obs) -> [each member's action]``, ``weights`` one ``(params, mean, std)``
-    per member. Members are unrolled (not vmapped): K is small, and exporters (jax2onnx) see plain
-    dense layers."""
-    nets = make_networks(6, hidden)
-
-    def apply(weights, obs):
-        return [nets.policy(p, types.SimpleNamespace(mean=m, std=s), obs) for p, m, s in weights]
-
-    return apply
-
-
-def mean_action(actions: list[jax.Array]) -> jax.Array:
-    """An ensemble's action: the mean of its members' actions."""
-    return sum(actions) / len(actions)
 
 
 def check_poses(name: str, poses: Any) -> np.ndarray:
@@ -103,67 +83,6 @@ def check_poses(name: str, poses: Any) -> np.ndarray:
             f"{QUAT_NORM_TOLERANCE:g} (normalised), wxyz order"
         )
     return np.concatenate([arr[..., :3], arr[..., 3:] / norm], axis=-1)
-
-
-def save_policy(
-    out_dir: str | os.PathLike,
-    actor_params: Any,
-    normalizer: Any,
-    hidden: tuple[int, ...],
-    env_config: Any,
-    extra: dict[str, Any] | None = None,
-    ensemble: int | None = None,
-    weights_dtype: str = "float32",
-) -> Path:
-    """Writes ``policy.npz`` and ``policy.json`` into ``out_dir`` atomically.
-
-    ``actor_params`` and ``normalizer`` are one learner's, or, with ``ensemble=K``, K learners'
-    stacked on a leading axis. ``weights_dtype="float16"`` stores the actor's weights at half the
-    size (they are computed in float32 after loading); the normaliser stays float32."""
-    if weights_dtype not in WEIGHT_DTYPES:
-        raise PolicyError(f"weights_dtype={weights_dtype!r} is not accepted: one of {WEIGHT_DTYPES}")
-    out = Path(out_dir)
-    lead = (lambda x: np.asarray(x, np.float32)) if ensemble else (lambda x: np.asarray(x, np.float32)[None])
-    flat = {
-        "actor/" + "/".join(k): lead(v).astype(weights_dtype)
-        for k, v in traverse_util.flatten_dict(jax.device_get(actor_params)).items()
-    }
-    flat["normalizer/mean"] = lead(normalizer.mean)
-    flat["normalizer/std"] = lead(normalizer.std)
-    from regrasp_mjx.testset import versions
-
-    contract = {
-        "format": POLICY_FORMAT,
-        "version": POLICY_VERSION,
-        "network": {
-            "hidden": list(hidden),
-            "activation": "relu",
-            "output": "tanh",
-            "obs_clip_std": 5.0,
-            "ensemble": int(ensemble or 1),
-            "weights_dtype": weights_dtype,
-            "combine": "mean of the members' actions",
-        },
-        "observation": {
-            "size": 21,
-            "layout": OBS_LAYOUT,
-            "frames": "e_g: grasping end-effector; er: regrasping; n: needle",
-        },
-        "action": {
-            "size": 6,
-            "range": [-1.0, 1.0],
-            "layout": ACTION_LAYOUT,
-            "max_dp_mm": env_config.max_dp_mm,
-            "max_drot_deg": env_config.max_drot_deg,
-        },
-        "env": dataclasses.asdict(env_config),
-        "arrays": sorted(flat),
-        "versions": versions(),
-        **(extra or {}),
-    }
-    atomic_write(out / "policy.npz", lambda f: np.savez(f, **flat))
-    write_json(out / "policy.json", contract)
-    return out
 
 
 def ensemble_policies(
@@ -251,7 +170,7 @@ class Policy:
     normalizer: Any
 
     def __post_init__(self) -> None:
-        apply = _members_apply(tuple(self.contract["network"]["hidden"]))
+        apply = members_apply(tuple(self.contract["network"]["hidden"]))
         # the weights as one pytree of device arrays: the planners take them as an argument, so
         # policies of one network shape share their compiled programs
         pick = lambda tree, i: jax.tree.map(lambda x: x[i], tree)  # noqa: E731
@@ -330,139 +249,10 @@ class Policy:
         if (camera, shield) not in self._planners:  # looked up once per policy, not per plan
             key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
             key += (camera, shield)
-            if key not in _PLANNERS:
-                _PLANNERS[key] = self._make_planner(camera, shield)
-            self._planners[(camera, shield)] = functools.partial(_PLANNERS[key], self._weights)
+            if key not in PLANNERS:
+                PLANNERS[key] = make_planner(self.env_config, tuple(self.contract["network"]["hidden"]), camera, shield)
+            self._planners[(camera, shield)] = functools.partial(PLANNERS[key], self._weights)
         return self._planners[(camera, shield)]
-
-    def _make_planner(self, camera: bool, shield: bool):
-        """The jitted program of :meth:`_planner`, taking the weights as its first argument."""
-        from regrasp_mjx import dvrk, geometry
-        from regrasp_mjx.env import RegraspEnv
-        from regrasp_mjx.sampling import Episode
-
-        env = RegraspEnv(self.env_config)
-        horizon = env.config.horizon
-
-        apply = _members_apply(tuple(self.contract["network"]["hidden"]))
-
-        def rollout(weights, needle, start, goal, base_inv=None):
-            """``base_inv`` ``[B, 4, 4]`` (optional): the inverse of each query's regrasping PSM base
-            frame in e_g; the shield then also replaces actions that leave the joint limits."""
-            b = needle.shape[0]
-
-            def reach(st, rows=None):
-                if base_inv is None:
-                    return jnp.ones(st.pipeline_state.t.shape, bool)
-                es, binv = st.pipeline_state, base_inv if rows is None else base_inv[rows]
-                return jax.vmap(dvrk.within_limits_jax)(binv, es.ee_pos, es.ee_quat)
-
-            zeros = jnp.zeros((b, 4))
-            episodes = Episode(
-                needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0]
-            )
-            state = jax.vmap(env.reset_from)(episodes)
-            valid = state.metrics["reset_valid"] > 0
-            pose0 = jnp.concatenate([start[:, :3], start[:, 3:]], axis=1)
-            poses = jnp.repeat(pose0[:, None], horizon + 1, axis=1)
-            actions = jnp.zeros((b, horizon, 6))
-            # [ended, success, collision, time_out, steps, path_mm]
-            result = jnp.zeros((b, 6)).at[:, 0].set(~valid).at[:, 2].set(~valid)
-
-            def cond(c):
-                t, _, result, _, _ = c
-                return (t < horizon) & jnp.any(result[:, 0] == 0)
-
-            step = jax.vmap(env.step)
-
-            def safer(state, t, members, a, nxt, need):
-                """Replaces the actions of the rows in ``need`` (their policy action collides), a
-                chunk of at most SHIELD_CHUNK rows at a time, so the work follows the colliding
-                rows, not the batch; each row's alternatives depend only on its own state and t.
-                ``members``: each network's actions for the whole batch (``a`` is their mean)."""
-                b = a.shape[0]
-                size = min(b, SHIELD_CHUNK)
-                key = step_key(t)
-
-                def chunk(c):
-                    a, nxt, need = c
-                    rows = jnp.nonzero(need, size=size, fill_value=b)[0]  # b: no row (dropped below)
-                    safe_rows = jnp.minimum(rows, b - 1)
-                    sub = jax.tree.map(lambda x: x[safe_rows], state)
-                    cands = shield_candidates([m[safe_rows] for m in members], a[safe_rows], key)
-                    tried = jax.vmap(step, in_axes=(None, 0))(sub, cands)  # [K, size, ...]
-                    free = (tried.metrics["collision"] == 0) & jax.vmap(lambda s: reach(s, safe_rows))(tried)
-                    first, cols = jnp.argmax(free, axis=0), jnp.arange(size)  # the first free candidate
-                    found = jnp.any(free, axis=0)
-                    put = lambda x, y: x.at[jnp.where(found, rows, b)].set(y[first, cols], mode="drop")  # noqa: E731
-                    return put(a, cands), jax.tree.map(put, nxt, tried), need.at[rows].set(False, mode="drop")
-
-                a, nxt, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), chunk, (a, nxt, need))
-                return a, nxt
-
-            def body(c):
-                t, state, result, poses, actions = c
-                members = apply(weights, state.obs)
-                a = mean_action(members)
-                nxt = step(state, a)
-                if shield:
-                    live_collides = ((nxt.metrics["collision"] > 0) | ~reach(nxt)) & (result[:, 0] == 0)
-                    # only steps where some live query's action collides pay for the alternatives
-                    a, nxt = jax.lax.cond(
-                        jnp.any(live_collides),
-                        lambda: safer(state, t, members, a, nxt, live_collides),
-                        lambda: (a, nxt),
-                    )
-                live = result[:, 0] == 0
-                es = nxt.pipeline_state
-                pose = jnp.concatenate([es.ee_pos, es.ee_quat], axis=1)
-                # rows after the end repeat the last pose
-                poses = jnp.where(
-                    live[:, None, None] & (jnp.arange(horizon + 1) > t)[None, :, None], pose[:, None], poses
-                )
-                actions = actions.at[:, t].set(jnp.where(live[:, None], jnp.clip(a, -1, 1), 0.0))
-                new = jnp.stack(
-                    [
-                        nxt.done,
-                        nxt.metrics["success"],
-                        nxt.metrics["collision"],
-                        nxt.metrics["time_out"],
-                        es.t.astype(jnp.float32),
-                        nxt.metrics["path_length_mm"],
-                    ],
-                    axis=1,
-                )
-                result = jnp.where((live & (nxt.done > 0))[:, None], new, result)
-                state = jax.tree.map(
-                    lambda x, y: jnp.where(live.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), nxt, state
-                )
-                return t + 1, state, result, poses, actions
-
-            _, _, result, poses, actions = jax.lax.while_loop(cond, body, (jnp.int32(0), state, result, poses, actions))
-            return valid, result, poses, actions
-
-        task = env.config.task
-        radius = env.needle_radius
-
-        def from_camera(weights, c_eg, c_er, c_n, goal_depth, base_inv=None):
-            pose = lambda x: (x[:, :3], x[:, 3:])  # noqa: E731
-            join = lambda p: jnp.concatenate([p[0], p[1]], axis=-1)  # noqa: E731
-            eg_inv = geometry.inverse(pose(c_eg))
-            needle = geometry.compose(eg_inv, pose(c_n))
-            start = geometry.compose(eg_inv, pose(c_er))
-            from regrasp_mjx.sampling import goal_in_needle
-
-            goal = jax.vmap(lambda n_p, n_q, d: join(geometry.compose((n_p, n_q), goal_in_needle(task, d, radius))))(
-                needle[0], needle[1], goal_depth
-            )
-            needle, start = join(needle), join(start)
-            start = start.at[:, 3:].set(geometry.canonical_quat(start[:, 3:]))
-            needle = needle.at[:, 3:].set(geometry.canonical_quat(needle[:, 3:]))
-            valid, result, poses, actions = rollout(weights, needle, start, goal, base_inv)
-            cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
-            return valid, result, poses, actions, cam
-
-        return jax.jit(from_camera if camera else rollout)
 
     def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
         out = jax.device_get(out)
@@ -494,16 +284,16 @@ class Policy:
         if setting not in self._planners:
             key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
             key += setting
-            if key not in _PLANNERS:
+            if key not in PLANNERS:
                 env = RegraspEnv(self.env_config)
                 guard = RegraspEnv(dataclasses.replace(self.env_config, clearance_mm=margin_mm)) if margin_mm else env
-                apply = _members_apply(tuple(self.contract["network"]["hidden"]))
-                _PLANNERS[key] = (
+                apply = members_apply(tuple(self.contract["network"]["hidden"]))
+                PLANNERS[key] = (
                     closed_loop.make_executor(env, apply, shield, fused, guard, stop, warmup)
                     if kind == "execute"
                     else closed_loop.make_stepper(guard, apply, shield, stop)
                 )
-            self._planners[setting] = functools.partial(_PLANNERS[key], self._weights)
+            self._planners[setting] = functools.partial(PLANNERS[key], self._weights)
         return self._planners[setting]
 
     def _estimate_inputs(self, needle: Any, ee_name: str, ee: Any, goal: Any, goal_depth_mm: Any):
@@ -718,70 +508,8 @@ def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
     return dataclasses.replace(plan, joints=joints, grasping_joints=grasping)
 
 
-def shipped_policies() -> list[str]:
-    """Names of the policies shipped in the package (``default``: one network; ``student_v1``: the
-    earlier default, distilled before the conservative needle model; ``ensemble3``: the earlier
-    three-network ensemble)."""
-    return sorted(p.name for p in SHIPPED.iterdir() if (p / "policy.json").is_file())
-
-
 def load_policy(path: str | os.PathLike | None = None) -> Policy:
     """Reads a policy folder (or its ``policy.json``/``policy.npz``) and checks it against its
     contract; with no path, the policy shipped in the package; a bare name that is no existing
     path, one of :func:`shipped_policies` (``load_policy("ensemble3")``)."""
-    if path is None:
-        path = DEFAULT_POLICY
-    elif isinstance(path, str) and path in shipped_policies() and not Path(path).exists():
-        path = SHIPPED / path
-    path = Path(path)
-    folder = path if path.is_dir() else path.parent
-    js, npz = folder / "policy.json", folder / "policy.npz"
-    for f in (js, npz):
-        if not f.is_file():
-            raise PolicyError(f"policy file not found: {f}")
-    try:
-        contract = json.loads(js.read_text())
-    except json.JSONDecodeError as err:
-        raise PolicyError(f"{js} is not valid JSON: {err}") from err
-    if contract.get("format") != POLICY_FORMAT or contract.get("version") != POLICY_VERSION:
-        raise PolicyError(
-            f"{js}: format {contract.get('format')!r} version {contract.get('version')!r}; "
-            f"this package reads {POLICY_FORMAT!r} version {POLICY_VERSION}"
-        )
-    try:
-        with np.load(npz, allow_pickle=False) as f:
-            arrays = {k: f[k] for k in f.files}
-    except Exception as err:
-        raise PolicyError(f"{npz} is not a readable policy array file: {err}") from err
-    try:
-        hidden = tuple(int(h) for h in contract["network"]["hidden"])
-        members = int(contract["network"].get("ensemble", 1))
-        env_config_from_dict(contract["env"])
-    except (KeyError, TypeError, ValueError) as err:
-        raise PolicyError(f"{js}: incomplete contract ({err})") from err
-    missing = sorted((set(contract.get("arrays", [])) | {"normalizer/mean", "normalizer/std"}) - set(arrays))
-    if missing:
-        raise PolicyError(f"{npz} lacks arrays {missing}")
-    expected = make_networks(6, hidden).actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 21)))
-    params = {}
-    for k, v in traverse_util.flatten_dict(expected).items():
-        name = "actor/" + "/".join(k)
-        want = (members, *v.shape)
-        if name not in arrays or arrays[name].shape != want:
-            raise PolicyError(
-                f"{npz}: {name} has shape {arrays.get(name, np.zeros(0)).shape}, the contract's "
-                f"network (hidden {list(hidden)}, ensemble {members}) needs {want}"
-            )
-        params[k] = jnp.asarray(arrays[name], jnp.float32)  # stored float32 or float16
-    for name in ("normalizer/mean", "normalizer/std"):
-        if arrays[name].shape != (members, 21):
-            raise PolicyError(f"{npz}: {name} has shape {arrays[name].shape}, needs {(members, 21)}")
-        if not np.all(np.isfinite(arrays[name])) or (name.endswith("std") and np.any(arrays[name] <= 0)):
-            raise PolicyError(f"{npz}: {name} has non-finite or non-positive values")
-    norm = running_statistics.RunningStatisticsState(
-        count=jnp.ones((members,)),
-        mean=jnp.asarray(arrays["normalizer/mean"]),
-        summed_variance=jnp.zeros((members, 21)),
-        std=jnp.asarray(arrays["normalizer/std"]),
-    )
-    return Policy(contract, traverse_util.unflatten_dict(params), norm)
+    return Policy(*read_policy(path))

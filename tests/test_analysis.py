@@ -23,6 +23,17 @@ def _pose(ep, field, i):
 
 
 # ---- logs --------------------------------------------------------------------------------------
+def test_write_results_writes_the_table_and_the_rows_whole_and_nothing_without_a_folder(tmp_path):
+    from regrasp_mjx.atomic import write_results
+
+    write_results(tmp_path / "r", "t", ["| a |", "| 1 |"], {"rows": [1.5]})
+    assert (tmp_path / "r" / "t.md").read_text() == "| a |\n| 1 |\n"
+    assert json.loads((tmp_path / "r" / "t.json").read_text()) == {"rows": [1.5]}
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["t.json", "t.md"]  # no temporary left
+    write_results(None, "t", ["x"], {})  # experiments run without --out write nothing
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
+
+
 def test_read_log_groups_seeds_sorts_epochs_and_flattens(tmp_path):
     rows = [
         {"epoch": 2, "seed": 1, "test": {"success_rate": 0.5}, "wall_s": 20.0},

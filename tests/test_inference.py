@@ -217,7 +217,7 @@ def test_policy_file_versions_and_missing_arrays(tmp_path, policy):
 
 
 def test_shipped_policies_by_name_and_one_compiled_planner_per_network_shape(policy, problems):
-    from regrasp_mjx import policy as policy_module
+    from regrasp_mjx import planner as planner_module
     from regrasp_mjx.policy import PolicyError, shipped_policies
 
     assert shipped_policies() == ["decay", "default", "ensemble3", "student_v1"]
@@ -228,9 +228,9 @@ def test_shipped_policies_by_name_and_one_compiled_planner_per_network_shape(pol
         load_policy("no_such_policy")
     # Policies of one network shape share their compiled planners (the weights are an argument).
     policy.plan(*(x[:3] for x in problems), check_grasp=False)
-    compiled = dict(policy_module._PLANNERS)
+    compiled = dict(planner_module.PLANNERS)
     twin = load_policy()  # another Policy object, same shape
     a = twin.plan(*(x[:3] for x in problems), check_grasp=False)
-    assert dict(policy_module._PLANNERS) == compiled
+    assert dict(planner_module.PLANNERS) == compiled
     b = policy.plan(*(x[:3] for x in problems), check_grasp=False)
     np.testing.assert_array_equal(a.poses, b.poses)

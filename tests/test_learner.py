@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx.agents.ddpg_bc import losses
+from regrasp_mjx.agents.ddpg_bc import checkpoint, losses
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, PAPER_LEARNER, Exploration, TrainConfig, make_config
-from regrasp_mjx.agents.ddpg_bc.train import Learner
+from regrasp_mjx.agents.ddpg_bc.learner import Learner
 from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.planning.episodes import make_replay, replay_paths, save_demos
@@ -169,10 +169,10 @@ def test_set_overrides_parse_as_literals():
 
 
 def test_checkpoints_from_before_the_new_learner_fields_still_compare_equal():
-    from regrasp_mjx.train import _ADDED_FIELDS, _config_json, with_added_defaults
+    from regrasp_mjx.agents.ddpg_bc.checkpoint import ADDED_FIELDS, config_json, with_added_defaults
 
-    now = _config_json(make_config("smoke"))
-    old = {k: v for k, v in now.items() if k not in _ADDED_FIELDS}  # as written before those fields
+    now = config_json(make_config("smoke"))
+    old = {k: v for k, v in now.items() if k not in ADDED_FIELDS}  # as written before those fields
     assert with_added_defaults(old) == now
     # a checkpoint that saved another value keeps it (and so is refused when it differs)
     assert with_added_defaults({**old, "bc_decay_epochs": 100})["bc_decay_epochs"] == 100
@@ -353,7 +353,7 @@ def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):
 
 # ---- a run killed and resumed is the run uninterrupted -------------------------------------------
 def test_resume_continues_exactly(tmp_path, easy_demos):
-    from regrasp_mjx.train import Run
+    from regrasp_mjx.trainer import Run
 
     save_demos(tmp_path / "demos" / "demos.npz", easy_demos[0], {"settings": {"env": dataclasses.asdict(EASY)}})
     testset = tmp_path / "test.npz"
@@ -392,13 +392,7 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
     ).read_bytes()
     # A checkpoint from other settings is refused.
     with pytest.raises(ConfigError, match="other settings"):
-        Run(
-            dataclasses.replace(cfg, epochs=3, batch_size=64),
-            tmp_path / "split",
-            tmp_path / "demos",
-            testset,
-            quiet=True,
-        ).load(None)
+        checkpoint.load(tmp_path / "split" / "checkpoint", None, dataclasses.replace(cfg, epochs=3, batch_size=64))
 
 
 # ---- exported policies ----------------------------------------------------------------------------

@@ -85,6 +85,7 @@ def _child(folder: Path, out: Path, process_id: int | None, port: int | None) ->
     import jax
 
     from regrasp_mjx.agents.ddpg_bc.config import make_config
+    from regrasp_mjx.agents.ddpg_bc.exchange import PlannerExchange
     from regrasp_mjx.env import RegraspEnv
 
     assert jax.process_count() == 2 and jax.device_count() == 4
@@ -95,7 +96,7 @@ def _child(folder: Path, out: Path, process_id: int | None, port: int | None) ->
         (m, {k: rng.normal(size=(4, *s)).astype(np.float32) for k, s in shapes})
         for m, shapes in ((1, _SHAPES), (0, _SHAPES))
     ]
-    got = train.Run._broadcast_chunks(fake, sent if process_id == 0 else [])
+    got = PlannerExchange.broadcast_chunks(fake, sent if process_id == 0 else [])
     ok = [m for m, _ in got] == [1, 0] and all(
         np.array_equal(g[1][k], s[1][k]) for g, s in zip(got, sent) for k in g[1]
     )

@@ -65,7 +65,7 @@ def _child() -> dict:
     import numpy as np
     from jax.sharding import PartitionSpec as P
 
-    from regrasp_mjx.agents.ddpg_bc.train import AXIS, Learner
+    from regrasp_mjx.agents.ddpg_bc.learner import AXIS, Learner
     from regrasp_mjx.env import RegraspEnv
 
     assert jax.device_count() == 2, jax.devices()
@@ -231,7 +231,7 @@ def test_members_per_device_compute_what_one_device_computes(child):
 def test_devices_must_exist_and_divide_the_sizes():
     import dataclasses
 
-    from regrasp_mjx.agents.ddpg_bc.train import Learner
+    from regrasp_mjx.agents.ddpg_bc.learner import Learner
     from regrasp_mjx.config import ConfigError
 
     with pytest.raises(ConfigError, match="devices=3 is not accepted: JAX sees 1"):
