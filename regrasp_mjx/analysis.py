@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx import geometry
+from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.sampling import Episode
 
@@ -53,9 +54,7 @@ def save_figure(figure: Any, name: str) -> Path | None:
         from regrasp_mjx.render import write_gif
 
         return write_gif(path, figure)
-    tmp = path.with_name(path.name + ".tmp.png")
-    figure.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)
+    atomic_write(path, lambda f: figure.savefig(f, format="png", dpi=110, bbox_inches="tight"))
     return path
 
 

@@ -30,6 +30,8 @@ import math
 
 import numpy as np
 
+from regrasp_mjx.geometry import unit_quaternions
+
 # (alpha, a, d, theta offset, type) per joint, modified DH, metres and radians
 DH = (
     (math.pi / 2, 0.0, 0.0, math.pi / 2, "revolute"),  # outer yaw
@@ -94,9 +96,9 @@ def as_matrix(pose) -> np.ndarray:
     """A pose as a 4x4 matrix: a 4x4 is checked and returned, a 7-vector converted (unit quaternion)."""
     pose = np.asarray(pose, np.float64)
     if pose.shape == (7,):
-        if not np.all(np.isfinite(pose)) or abs(np.linalg.norm(pose[3:]) - 1.0) > 1e-3:
-            raise ValueError(f"pose must be [x, y, z, qw, qx, qy, qz] with a unit quaternion, got {pose!r}")
-        return pose_matrix(pose)
+        if not np.all(np.isfinite(pose)):
+            raise ValueError(f"pose must be [x, y, z, qw, qx, qy, qz] with finite values, got {pose!r}")
+        return pose_matrix(np.r_[pose[:3], unit_quaternions("pose [x, y, z, qw, qx, qy, qz]", pose[3:])])
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
         raise ValueError(f"pose must be a 4x4 homogeneous matrix or a 7-vector, got shape {pose.shape}")
     return pose

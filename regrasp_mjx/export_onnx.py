@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.policy import DEFAULT_POLICY, Policy, PolicyError, load_policy, shipped_policies
 
 
@@ -34,9 +35,7 @@ def export_onnx(policy: Policy, path: str | os.PathLike) -> Path:
         input_names=["obs"],
         output_names=["action"],
     )
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(model.SerializeToString())
-    os.replace(tmp, path)  # atomic
+    atomic_write(path, lambda f: f.write(model.SerializeToString()))
     return path
 
 

@@ -12,12 +12,31 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 
 Array = jnp.ndarray
 Pose = tuple[Array, Array]
 
 NEEDLE_RADIUS = 0.0054  # m, paper §V-C
 OBS_SIZE = 21
+# |norm - 1| up to this is normalised; beyond it a quaternion is refused (ours; one tolerance for
+# every input: pose arrays to plan, test-set files, dVRK poses)
+QUAT_NORM_TOLERANCE = 1e-2
+
+
+def unit_quaternions(what: str, q, error: type[Exception] = ValueError) -> np.ndarray:
+    """``q[..., 4]`` (wxyz) divided by its norms, as float64; ``error`` when a norm is off by more
+    than :data:`QUAT_NORM_TOLERANCE`, naming ``what``, the first bad row and the tolerance."""
+    q = np.asarray(q, np.float64)
+    norms = np.linalg.norm(q, axis=-1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > QUAT_NORM_TOLERANCE)
+    if bad.size:
+        raise error(
+            f"{what}: quaternion norm {norms.reshape(-1)[bad[0]]:.6g} in row {bad[0]} ({bad.size} rows in all) "
+            f"is not unit (a unit quaternion is needed, wxyz); accepted: |norm - 1| <= {QUAT_NORM_TOLERANCE:g} "
+            "(normalised)"
+        )
+    return q / norms[..., None]
 
 
 # ----------------------------------------------------------------------------------------------

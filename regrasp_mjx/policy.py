@@ -24,6 +24,7 @@ import numpy as np
 
 from regrasp_mjx.config import env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
+from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE, unit_quaternions
 from regrasp_mjx.planner import PLANNERS, make_planner, mean_action, members_apply
 from regrasp_mjx.policy_file import (
     ACTION_LAYOUT,
@@ -45,6 +46,7 @@ __all__ = [
     "OBS_LAYOUT",
     "POLICY_FORMAT",
     "POLICY_VERSION",
+    "QUAT_NORM_TOLERANCE",
     "SHIPPED",
     "WEIGHT_DTYPES",
     "Plan",
@@ -64,7 +66,6 @@ class PoseError(ValueError):
     """A pose that is not a finite 7-vector ``[x, y, z, qw, qx, qy, qz]`` with a unit quaternion."""
 
 
-QUAT_NORM_TOLERANCE = 1e-2  # |norm - 1| up to this is normalised; beyond it the pose is refused
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
 
 
@@ -75,14 +76,7 @@ def check_poses(name: str, poses: Any) -> np.ndarray:
         raise PoseError(f"{name} has shape {arr.shape}; accepted: (..., 7) = [x, y, z, qw, qx, qy, qz] in metres")
     if not np.all(np.isfinite(arr)):
         raise PoseError(f"{name} has NaN or inf; accepted: finite values")
-    norm = np.linalg.norm(arr[..., 3:], axis=-1, keepdims=True)
-    bad = np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE
-    if np.any(bad):
-        raise PoseError(
-            f"{name} has a quaternion of norm {float(norm[bad][0]):.4g}; accepted: |norm - 1| <= "
-            f"{QUAT_NORM_TOLERANCE:g} (normalised), wxyz order"
-        )
-    return np.concatenate([arr[..., :3], arr[..., 3:] / norm], axis=-1)
+    return np.concatenate([arr[..., :3], unit_quaternions(name, arr[..., 3:], PoseError)], axis=-1)
 
 
 def ensemble_policies(

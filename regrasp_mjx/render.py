@@ -16,7 +16,6 @@ from __future__ import annotations
 import importlib
 import os
 import platform
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +23,7 @@ import mujoco
 import numpy as np
 
 from regrasp_mjx import host
+from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.config import SceneConfig
 from regrasp_mjx.policy import PoseError, check_poses
 from regrasp_mjx.scene import Scene, load_scene
@@ -276,15 +276,12 @@ def write_gif(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) ->
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     images = [Image.fromarray(f) for f in frames]
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=1000.0 / fps, loop=0)
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; a figure is for sharing
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    atomic_write(
+        path,
+        lambda f: images[0].save(
+            f, format="GIF", save_all=True, append_images=images[1:], duration=1000.0 / fps, loop=0
+        ),
+    )
     return path
 
 

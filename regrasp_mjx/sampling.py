@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,7 @@ import numpy as np
 from flax import struct
 
 from regrasp_mjx import geometry
+from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.config import TaskConfig
 
 # The paper300 test set (SPEC seed 2021), shipped inside the package so that an installed copy finds it
@@ -31,7 +31,6 @@ PAPER300 = Path(__file__).resolve().parent / "data" / "paper300.npz"
 
 TESTSET_FORMAT = "regrasp_mjx.testset"
 TESTSET_VERSION = 1
-QUAT_TOLERANCE = 1e-3  # |norm - 1| up to this is normalised; beyond it a quaternion is refused
 
 
 @struct.dataclass
@@ -180,30 +179,10 @@ class TestsetError(ValueError):
 def save_testset(path: str | os.PathLike, episodes: Episode, meta: dict[str, Any]) -> Path:
     """Writes ``episodes`` (a batch) and ``meta`` to ``path`` atomically (temp file + rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {name: np.asarray(getattr(episodes, name), dtype=np.float64) for name in FIELD_SHAPES}
     meta = {"format": TESTSET_FORMAT, "version": TESTSET_VERSION, "n": len(episodes), "fields": FIELD_DOCS, **meta}
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; a test set is meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda f: np.savez_compressed(f, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays))
     return path
-
-
-def _unit_quats(name: str, q: np.ndarray) -> np.ndarray:
-    norms = np.linalg.norm(q, axis=-1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > QUAT_TOLERANCE)
-    if bad.size:
-        raise TestsetError(
-            f"{name}: quaternion norm {norms[bad[0]]:.6g} in row {bad[0]} ({bad.size} rows in all) is not unit; "
-            f"accepted: |norm - 1| <= {QUAT_TOLERANCE:g} (normalised on load)"
-        )
-    return q / norms[..., None]
 
 
 def load_testset(path: str | os.PathLike) -> tuple[Episode, dict[str, Any]]:
@@ -214,7 +193,7 @@ def load_testset(path: str | os.PathLike) -> tuple[Episode, dict[str, Any]]:
 
     Raises:
       TestsetError: missing file, missing keys, wrong shapes, NaN/inf, non-unit quaternions
-        (beyond a tolerance of 1e-3; within it they are normalised).
+        (beyond ``geometry.QUAT_NORM_TOLERANCE``; within it they are normalised).
     """
     path = Path(path)
     if not path.is_file():
@@ -244,5 +223,5 @@ def load_testset(path: str | os.PathLike) -> tuple[Episode, dict[str, Any]]:
         if not np.all(np.isfinite(arr)):
             row = int(np.argwhere(~np.isfinite(arr))[0][0])
             raise TestsetError(f"{path}: {name} has NaN or inf (row {row}); all values must be finite")
-        fields[name] = _unit_quats(f"{path}: {name}", arr) if name.endswith("quat") else arr
+        fields[name] = geometry.unit_quaternions(f"{path}: {name}", arr, TestsetError) if name.endswith("quat") else arr
     return Episode(**fields), meta

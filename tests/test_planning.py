@@ -117,7 +117,9 @@ def test_straight_line_baseline(paper_testset):
 
 
 def test_bad_planner_inputs():
-    with pytest.raises(ValueError, match="planner='RRT' is not accepted"):
+    from regrasp_mjx.config import ConfigError
+
+    with pytest.raises(ConfigError, match="planner='RRT' is not accepted"):  # every config raises ConfigError
         PlannerConfig(planner="RRT")
     with pytest.raises(ValueError, match="budget_s=0 is not accepted"):
         PlannerConfig(budget_s=0)
@@ -125,7 +127,7 @@ def test_bad_planner_inputs():
     good = np.r_[0, 0, 0, 1.0, 0, 0, 0]
     with pytest.raises(ValueError, match="start pose must be 7 finite numbers"):
         planner.plan(good, np.r_[np.nan, 0, 0, 1.0, 0, 0, 0], good)
-    with pytest.raises(ValueError, match="goal quaternion has norm 2"):
+    with pytest.raises(ValueError, match="goal pose: quaternion norm 2"):
         planner.plan(good, good, np.r_[0, 0, 0, 2.0, 0, 0, 0])
 
 

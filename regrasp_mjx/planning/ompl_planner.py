@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from regrasp_mjx.config import ConfigError
+from regrasp_mjx.geometry import unit_quaternions
 from regrasp_mjx.host import HostChecker
 
 PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar")
@@ -52,15 +54,15 @@ class PlannerConfig:
 
     def __post_init__(self) -> None:
         if self.planner not in PLANNERS:
-            raise ValueError(f"planner={self.planner!r} is not accepted: one of {PLANNERS}")
+            raise ConfigError(f"planner={self.planner!r} is not accepted: one of {PLANNERS}")
         if self.direction not in DIRECTIONS:
-            raise ValueError(f"direction={self.direction!r} is not accepted: one of {DIRECTIONS}")
+            raise ConfigError(f"direction={self.direction!r} is not accepted: one of {DIRECTIONS}")
         for name in ("budget_s", "margin_mm", "rotation_weight_mm", "check_step_mm", "rrt_range_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}={v!r} is not accepted: a finite number > 0")
+                raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
         if not (math.isfinite(self.simplify_s) and self.simplify_s >= 0):
-            raise ValueError(f"simplify_s={self.simplify_s!r} is not accepted: a finite number >= 0")
+            raise ConfigError(f"simplify_s={self.simplify_s!r} is not accepted: a finite number >= 0")
 
 
 @dataclasses.dataclass
@@ -97,10 +99,7 @@ def _unit_pose(name: str, pose: np.ndarray) -> np.ndarray:
     pose = np.array(pose, np.float64).reshape(-1)
     if pose.shape != (7,) or not np.all(np.isfinite(pose)):
         raise ValueError(f"{name} pose must be 7 finite numbers [x, y, z, qw, qx, qy, qz], got {pose}")
-    norm = np.linalg.norm(pose[3:])
-    if abs(norm - 1.0) > 1e-3:
-        raise ValueError(f"{name} quaternion has norm {norm:.6g}; accepted: unit within 1e-3")
-    pose[3:] /= norm
+    pose[3:] = unit_quaternions(f"{name} pose", pose[3:])
     return pose
 
 
