@@ -2,7 +2,7 @@
 
 Row i is the problem that ``RegraspEnv.reset`` draws from key i of ``jax.random.split(PRNGKey(seed),
 n)``, so a test set is the environment's own start distribution, colliding starts and goals
-redrawn. The file's keys, shapes and units are listed in the README and in its ``meta`` JSON.
+redrawn. The file's keys, shapes and units are listed in docs/environment.md and in its ``meta`` JSON.
 """
 
 from __future__ import annotations
