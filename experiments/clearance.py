@@ -129,12 +129,7 @@ def main() -> None:
     for m in (float(x) for x in args.margins.split(",")):
         policy = base.with_env(clearance_mm=m)
         gate = host.HostChecker(clearance=m * 1e-3)
-        valid = [
-            i
-            for i in range(len(needle))
-            if not (gate.collides(needle[i, :3], needle[i, 3:], start[i, :3], start[i, 3:]))
-            and not gate.collides(needle[i, :3], needle[i, 3:], goal[i, :3], goal[i, 3:])
-        ]
+        valid = gate.clear_problems(needle, start, goal)
         entry = {"valid": len(valid), "substeps": policy_substeps(policy)}
         for shield in (False, True):
             plan = policy.plan(needle[valid], start[valid], goal[valid], check_grasp=False, shield=shield)

@@ -33,13 +33,7 @@ def valid_at_margin(episodes, env_config):
     """The problems whose start and goal keep ``env_config.clearance_mm`` (as
     ``experiments/clearance.py`` counts them): the others fail before a step is taken."""
     gate = host.HostChecker(scene=load_scene(env_config.scene), clearance=env_config.clearance_mm * 1e-3)
-    needle, start, goal = episode_poses(episodes)
-    keep = [
-        i
-        for i in range(len(needle))
-        if not gate.collides(needle[i, :3], needle[i, 3:], start[i, :3], start[i, 3:])
-        and not gate.collides(needle[i, :3], needle[i, 3:], goal[i, :3], goal[i, 3:])
-    ]
+    keep = gate.clear_problems(*episode_poses(episodes))
     return type(episodes)(**{f.name: getattr(episodes, f.name)[keep] for f in dataclasses.fields(episodes)})
 
 

@@ -106,6 +106,17 @@ class HostChecker:
             [mujoco.mj_geomDistance(self.model, self.data, g1, g2, distmax, None) for g1, g2 in self.scene.pairs]
         )
 
+    def clear_problems(self, needle, start, goal) -> list[int]:
+        """Rows of ``[N, 7]`` needle, start and goal poses whose start and goal both keep this
+        checker's margin (the others fail before a step is taken)."""
+        needle, start, goal = (np.asarray(x, float).reshape(-1, 7) for x in (needle, start, goal))
+        return [
+            i
+            for i in range(len(needle))
+            if not self.collides(needle[i, :3], needle[i, 3:], start[i, :3], start[i, 3:])
+            and not self.collides(needle[i, :3], needle[i, 3:], goal[i, :3], goal[i, 3:])
+        ]
+
     def clearance(self, needle_pos, needle_quat, ee_pos, ee_quat) -> float:
         return float(self.distances(needle_pos, needle_quat, ee_pos, ee_quat).min())
 
