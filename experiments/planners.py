@@ -39,13 +39,8 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
     valid = [
         i
         for i in range(len(episodes.needle_pos))
-        if not (
-            checker.collides(
-                episodes.needle_pos[i], episodes.needle_quat[i], episodes.start_pos[i], episodes.start_quat[i]
-            )
-            or checker.collides(
-                episodes.needle_pos[i], episodes.needle_quat[i], episodes.goal_pos[i], episodes.goal_quat[i]
-            )
+        if checker.for_needle(episodes.needle_radius[i], episodes.wire_radius[i]).clear_problems(
+            *(np.asarray(episodes.problem(i)[k]) for k in ("needle", "start", "goal"))
         )
     ]
     out = []
@@ -60,14 +55,7 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
         t0 = time.perf_counter()
         with PlannerPool(workers, options=options, timeout_s=3 * budget + 60, queue_size=len(valid)) as pool:
             for i in valid:
-                pool.submit(
-                    {
-                        "needle": np.r_[episodes.needle_pos[i], episodes.needle_quat[i]],
-                        "start": np.r_[episodes.start_pos[i], episodes.start_quat[i]],
-                        "goal": np.r_[episodes.goal_pos[i], episodes.goal_quat[i]],
-                    },
-                    payload=i,
-                )
+                pool.submit(episodes.problem(i), payload=i)
             results = pool.wait(24 * 3600)
         solved = [r.result for r in results if r.ok and r.result["solved"]]
         times_ok = np.array([r["plan_time_s"] for r in solved])
@@ -103,6 +91,13 @@ def main() -> None:
     p.add_argument("--limit", type=int, default=None, help="first N problems only (a quick look)")
     p.add_argument("--wide-jaw-deg", type=float, default=35.0)
     p.add_argument("--out", default="experiments/results")
+    p.add_argument(
+        "--rows",
+        default=None,
+        help="only these rows at 20° jaws, e.g. 'straight_line,BITstar:reverse' (default: the straight line and "
+        "every planner both ways, then the straight line and BIT* (R) at --wide-jaw-deg)",
+    )
+    p.add_argument("--name", default="planners", help="output file names NAME.md and NAME.csv")
     args = p.parse_args()
     episodes, meta = load_testset(args.testset)
     if args.limit:
@@ -110,17 +105,20 @@ def main() -> None:
             **{f.name: getattr(episodes, f.name)[: args.limit] for f in dataclasses.fields(episodes)}
         )
     planners = [("ompl", pl, d) for pl in PLANNERS for d in ("forward", "reverse")]
-    rows = run_rows(
-        episodes, [("straight_line", "BITstar", "forward"), *planners], 20.0, args.budget_s, args.workers, args.seed
-    )
-    rows += run_rows(
-        episodes,
-        [("straight_line", "BITstar", "forward"), ("ompl", "BITstar", "reverse")],
-        args.wide_jaw_deg,
-        args.budget_s,
-        args.workers,
-        args.seed,
-    )
+    chosen = [("straight_line", "BITstar", "forward"), *planners]
+    if args.rows:
+        wanted = [r.strip() for r in args.rows.split(",")]
+        chosen = [r for r in chosen if (r[0] if r[0] == "straight_line" else f"{r[1]}:{r[2]}") in wanted]
+    rows = run_rows(episodes, chosen, 20.0, args.budget_s, args.workers, args.seed)
+    if not args.rows:
+        rows += run_rows(
+            episodes,
+            [("straight_line", "BITstar", "forward"), ("ompl", "BITstar", "reverse")],
+            args.wide_jaw_deg,
+            args.budget_s,
+            args.workers,
+            args.seed,
+        )
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.workers} planner processes"
     try:
         machine = (
@@ -131,7 +129,7 @@ def main() -> None:
         pass
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "planners.csv", "w", newline="") as f:
+    with open(out / f"{args.name}.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
@@ -148,7 +146,7 @@ def main() -> None:
             f"{_fmt(r['plan_time_mean_s'], '.4f')} | {_fmt(r['plan_time_median_s'], '.4f')} | "
             f"{r['plan_time_mean_all_s']:.4f} | {_fmt(r['path_length_mm'], '.2f')} |"
         )
-    (out / "planners.md").write_text("\n".join(lines) + "\n")
+    (out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

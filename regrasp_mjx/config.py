@@ -81,9 +81,18 @@ class SceneConfig:
 
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
-    """The paper's goal and start distributions (§IV; SPEC "Distributions").
+    """The paper's goal and start distributions (§IV; SPEC "Distributions"), and optional ranges of
+    the goal grasp and the needle that make the task general (ours, issue 15).
 
-    Grasp coordinates (alpha, theta, phi) are radians, depths millimetres.
+    Grasp coordinates (alpha, theta, phi) are radians, depths millimetres. ``goal_*_rad`` are the
+    paper's goal grasp; ``goal_*_range_rad``, when given, are drawn from uniformly instead (the
+    fixed value then is only the default goal a plan asks for). ``needle_radius_range_mm`` and
+    ``wire_radius_range_mm`` draw the needle of each problem (None: the scene's one needle). With a
+    needle-radius range the start keeps the meaning SPEC gives it for the paper's needle: on the
+    ray from the needle centre through the goal end-effector position, as far beyond the goal as
+    ``start_distance_mm`` puts it for a needle of ``geometry.NEEDLE_RADIUS`` (5.4 mm) with the same
+    goal grasp. A task with any range observes the goal and the needle (``EnvConfig``'s
+    observation grows to :data:`regrasp_mjx.geometry.OBS_SIZE_GENERAL`).
     """
 
     goal_alpha_rad: float = 4.0 * math.pi / 3.0
@@ -98,6 +107,29 @@ class TaskConfig:
     start_pos_noise_mm: float = 1.0
     start_rot_noise_deg: float = 5.0
     max_sample_tries: int = 64
+    goal_alpha_range_rad: tuple[float, float] | None = None
+    goal_theta_range_rad: tuple[float, float] | None = None
+    goal_phi_range_rad: tuple[float, float] | None = None
+    needle_radius_range_mm: tuple[float, float] | None = None
+    wire_radius_range_mm: tuple[float, float] | None = None
+
+    @property
+    def varies_needle(self) -> bool:
+        """Each problem draws its own needle (radius or wire radius)."""
+        return self.needle_radius_range_mm is not None or self.wire_radius_range_mm is not None
+
+    @property
+    def general(self) -> bool:
+        """Any range of the goal grasp or the needle is set: problems differ in what the policy
+        must be told, so the observation holds the goal and the needle."""
+        return self.varies_needle or any(
+            r is not None for r in (self.goal_alpha_range_rad, self.goal_theta_range_rad, self.goal_phi_range_rad)
+        )
+
+    def span(self, name: str, fixed: float) -> tuple[float, float]:
+        """``(low, high)`` of ``name`` (a ``*_range_*`` field); ``(fixed, fixed)`` when it is None."""
+        rng = getattr(self, name)
+        return (float(fixed), float(fixed)) if rng is None else (float(rng[0]), float(rng[1]))
 
     def __post_init__(self) -> None:
         for name in ("goal_alpha_rad", "goal_theta_rad", "goal_phi_rad"):
@@ -137,6 +169,37 @@ class TaskConfig:
             self.max_sample_tries,
             "an integer in [1, 4096]",
         )
+        for name, fixed, lo, hi, unit in (
+            ("goal_alpha_range_rad", self.goal_alpha_rad, math.pi / 2, 3 * math.pi / 2, "rad"),
+            ("goal_theta_range_rad", self.goal_theta_rad, -2 * math.pi, 4 * math.pi, "rad"),
+            ("goal_phi_range_rad", self.goal_phi_rad, 0.0, math.pi, "rad"),
+        ):
+            rng = getattr(self, name)
+            if rng is None:
+                continue
+            _check_range(name, rng, lo, hi, unit)
+            _check(
+                rng[0] - 1e-9 <= fixed <= rng[1] + 1e-9,
+                name,
+                rng,
+                f"a range that holds the default goal {name.replace('_range', '')}={fixed:.6g}",
+            )
+        if self.needle_radius_range_mm is not None:
+            _check_range("needle_radius_range_mm", self.needle_radius_range_mm, 1.0, 20.0, "mm")
+        if self.wire_radius_range_mm is not None:
+            _check_range("wire_radius_range_mm", self.wire_radius_range_mm, 0.05, 1.0, "mm")
+
+
+# The general task of issue 15 (ours): any goal grasp in these ranges, half-circle needles of 4 to 12 mm
+# radius and 0.15 to 0.35 mm wire radius; the paper's goal grasp and needle lie inside them.
+GENERAL_TASK = TaskConfig(
+    goal_alpha_range_rad=(10.0 * math.pi / 9.0, 13.0 * math.pi / 9.0),
+    goal_theta_range_rad=(0.0, 2.0 * math.pi),
+    goal_phi_range_rad=(3.0 * math.pi / 4.0, math.pi),
+    needle_radius_range_mm=(4.0, 12.0),
+    wire_radius_range_mm=(0.15, 0.35),
+)
+TASKS = {"paper": TaskConfig(), "general": GENERAL_TASK}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -228,6 +291,16 @@ class EnvConfig:
             "None (derived) or an integer in [1, 64]",
         )
         _check(isinstance(self.check_actions, bool), "check_actions", self.check_actions, "True or False")
+        for field, value, rng in (
+            ("needle_radius_mm", self.scene.needle_radius_mm, self.task.needle_radius_range_mm),
+            ("wire_radius_mm", self.scene.wire_radius_mm, self.task.wire_radius_range_mm),
+        ):
+            _check(
+                rng is None or rng[0] - 1e-9 <= value <= rng[1] + 1e-9,
+                f"scene.{field}",
+                value,
+                f"a value within task's range {rng} (the scene's needle is the default one a plan takes)",
+            )
 
 
 def replace(config: Any, **changes: Any) -> Any:

@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from regrasp_mjx.atomic import atomic_write, write_json
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
 from regrasp_mjx.planning.ompl_planner import PLANNERS, PlannerConfig
@@ -35,13 +35,14 @@ from regrasp_mjx.testset import versions
 
 def problem_sampler(env: RegraspEnv, seed: int, batch: int = 1024):
     """``sample(indices) -> Episode`` (numpy): problem i from ``fold_in(PRNGKey(seed), i)``."""
-    radius = env.config.scene.needle_radius_mm * 1e-3
     base = jax.random.PRNGKey(seed)
 
     @jax.jit
     def draw(idx):
         keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
-        return jax.vmap(lambda k: sample_episode(k, env.config.task, radius, env.distances))(keys)
+        return jax.vmap(
+            lambda k: sample_episode(k, env.config.task, env.needle_radius, env.distances, env.wire_radius)
+        )(keys)
 
     def sample(indices: np.ndarray) -> Episode:
         indices = np.asarray(indices, np.int32)
@@ -54,14 +55,6 @@ def problem_sampler(env: RegraspEnv, seed: int, batch: int = 1024):
         return jax.tree.map(lambda x: x[: len(indices)], cat)
 
     return sample
-
-
-def _problem(ep: Episode, i: int) -> dict[str, np.ndarray]:
-    return {
-        "needle": np.r_[ep.needle_pos[i], ep.needle_quat[i]],
-        "start": np.r_[ep.start_pos[i], ep.start_quat[i]],
-        "goal": np.r_[ep.goal_pos[i], ep.goal_quat[i]],
-    }
 
 
 def _plan_path(plans: Path, i: int) -> Path:
@@ -96,13 +89,15 @@ def build(
     budget_s: float = 10.0,
     timeout_s: float | None = None,
     scene: SceneConfig = SceneConfig(),
+    task: TaskConfig = TaskConfig(),
     replay_batch: int = 256,
     quiet: bool = False,
 ) -> Path:
     """Plans ``n`` demonstrations into ``out`` (resumed when it holds plans of the same settings):
-    problems from ``seed``, ``planner`` in ``direction`` with ``budget_s`` each on ``workers``
-    processes, each path replayed in the environment of ``scene``; returns ``out/demos.npz``."""
-    config = EnvConfig(scene=scene)
+    problems of ``task`` from ``seed``, ``planner`` in ``direction`` with ``budget_s`` each on
+    ``workers`` processes, each path replayed in the environment of ``scene`` and ``task``;
+    returns ``out/demos.npz``."""
+    config = EnvConfig(scene=scene, task=task)
     planner_cfg = PlannerConfig(planner=planner, direction=direction, budget_s=budget_s)
     out = Path(out)
     plans = out / "plans"
@@ -170,7 +165,7 @@ def build(
                 block = next_index // 1024
                 if block not in batch_cache:
                     batch_cache = {block: sample(np.arange(block * 1024, block * 1024 + 1024))}
-                pool.submit(_problem(batch_cache[block], next_index % 1024), payload=next_index)
+                pool.submit(batch_cache[block].problem(next_index % 1024), payload=next_index)
                 done.add(next_index)
             for r in pool.collect():
                 result = r.result if r.ok else None
@@ -215,6 +210,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-s", type=float, default=10.0, help="planning time limit per problem")
     p.add_argument("--timeout-s", type=float, default=None, help="kill a plan after this long (default 3x budget + 30)")
     p.add_argument("--jaw-angle-deg", type=float, default=20.0)
+    p.add_argument(
+        "--task",
+        default="paper",
+        choices=sorted(TASKS),
+        help="problem distribution: paper (the paper's goal grasp and needle) or general (any goal grasp in "
+        "range, needles of 4-12 mm radius)",
+    )
     p.add_argument("--replay-batch", type=int, default=256)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
@@ -231,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
             budget_s=args.budget_s,
             timeout_s=args.timeout_s,
             scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg),
+            task=TASKS[args.task],
             replay_batch=args.replay_batch,
             quiet=args.quiet,
         )

@@ -39,6 +39,7 @@ class EpisodeState:
         which the success test compares against ``T_er_n`` (paper eqs. 8, 9).
       t: steps taken.
       path_length: sum of ``|dp|`` so far [m].
+      needle_radius, wire_radius: the needle [m] (the scene's, unless the task draws needles).
     """
 
     needle_pos: jax.Array
@@ -51,6 +52,8 @@ class EpisodeState:
     goal_needle_quat: jax.Array
     t: jax.Array
     path_length: jax.Array
+    needle_radius: jax.Array
+    wire_radius: jax.Array
 
 
 METRIC_NAMES = (
@@ -67,6 +70,11 @@ METRIC_NAMES = (
 
 class RegraspEnv(Env):
     """The regrasping task (SPEC "MDP"): 21-D ego-centric observation, 6-D action in [-1, 1].
+
+    A general task (``config.task.general``: ranges of the goal grasp or the needle, ours) observes
+    37 numbers: the 21 and :func:`regrasp_mjx.geometry.task_observation` (the goal and the needle);
+    where it draws needles each environment checks collisions against its own (one compiled
+    program for every size).
 
     A pose collides when a counted pair is closer than ``clearance_mm`` (0: when it penetrates).
 
@@ -93,8 +101,12 @@ class RegraspEnv(Env):
         self.max_dp = config.max_dp_mm * 1e-3
         self.max_drot = math.radians(config.max_drot_deg)
         self.needle_radius = config.scene.needle_radius_mm * 1e-3
+        self.wire_radius = config.scene.wire_radius_mm * 1e-3
         self.clearance = config.clearance_mm * 1e-3
-        required = self.scene.required_substeps(self.max_dp, self.max_drot, self.clearance)
+        self.varies_needle = config.task.varies_needle
+        self.general = config.task.general
+        thinnest = config.task.span("wire_radius_range_mm", config.scene.wire_radius_mm)[0] * 1e-3
+        required = self.scene.required_substeps(self.max_dp, self.max_drot, self.clearance, thinnest)
         if config.collision_substeps is not None and config.collision_substeps < required:
             raise ConfigError(
                 f"collision_substeps={config.collision_substeps} is not accepted: with max_dp_mm="
@@ -108,10 +120,16 @@ class RegraspEnv(Env):
         distances, margin = self.distances, self.clearance
         self._free_distances = distances if margin == 0.0 else (lambda *pose: distances(*pose) - margin)
 
+    def needle_distances(self, es, ee_pos: jax.Array, ee_quat: jax.Array) -> jax.Array:
+        """Signed distances of the counted pairs for an end-effector pose, around the needle of
+        ``es`` (an :class:`EpisodeState` or an :class:`Episode`): its own where the task draws needles."""
+        needle = (es.needle_radius, es.wire_radius) if self.varies_needle else ()
+        return self.distances(es.needle_pos, es.needle_quat, ee_pos, ee_quat, *needle)
+
     # ---- brax Env interface ------------------------------------------------------------------
     @property
     def observation_size(self) -> int:
-        return geometry.OBS_SIZE
+        return geometry.OBS_SIZE_GENERAL if self.general else geometry.OBS_SIZE
 
     @property
     def action_size(self) -> int:
@@ -125,7 +143,9 @@ class RegraspEnv(Env):
     def reset(self, rng: jax.Array) -> State:
         """A new problem from the paper's distributions (colliding starts and goals redrawn; with a
         clearance margin, those closer than it too)."""
-        episode, valid = sample_episode(rng, self.config.task, self.needle_radius, self._free_distances)
+        episode, valid = sample_episode(
+            rng, self.config.task, self.needle_radius, self._free_distances, self.wire_radius
+        )
         return self._first_state(episode, valid)
 
     def reset_from(self, episode: Episode) -> State:
@@ -136,7 +156,11 @@ class RegraspEnv(Env):
             start_quat=_normalise(episode.start_quat),
             goal_quat=_normalise(episode.goal_quat),
         )
-        start = self.distances(episode.needle_pos, episode.needle_quat, episode.start_pos, episode.start_quat)
+        if episode.needle_radius is None or episode.wire_radius is None:  # a problem of the scene's needle
+            episode = episode.replace(
+                needle_radius=jnp.float32(self.needle_radius), wire_radius=jnp.float32(self.wire_radius)
+            )
+        start = self.needle_distances(episode, episode.start_pos, episode.start_quat)
         start_free = jnp.min(start) > self.clearance
         return self._first_state(episode, start_free)
 
@@ -155,8 +179,10 @@ class RegraspEnv(Env):
             goal_needle_quat=goal_needle[1],
             t=jnp.int32(0),
             path_length=jnp.float32(0.0),
+            needle_radius=jnp.asarray(episode.needle_radius, jnp.float32),
+            wire_radius=jnp.asarray(episode.wire_radius, jnp.float32),
         )
-        dist = self.distances(es.needle_pos, es.needle_quat, es.ee_pos, es.ee_quat)
+        dist = self.needle_distances(es, es.ee_pos, es.ee_quat)
         metrics = self._metrics(es, jnp.min(dist), jnp.bool_(False), jnp.bool_(False), jnp.bool_(False))
         metrics["reset_valid"] = valid.astype(jnp.float32)
         zero = jnp.float32(0.0)
@@ -199,7 +225,7 @@ class RegraspEnv(Env):
         s = jnp.arange(1, self.substeps + 1, dtype=jnp.float32) / self.substeps
         sub_pos = es.ee_pos + s[:, None] * dp
         sub_quat = geometry.quat_mul(geometry.quat_from_rotvec(s[:, None] * rotvec), es.ee_quat)
-        dist = jax.vmap(self.distances, in_axes=(None, None, 0, 0))(es.needle_pos, es.needle_quat, sub_pos, sub_quat)
+        dist = jax.vmap(self.needle_distances, in_axes=(None, 0, 0))(es, sub_pos, sub_quat)
         collision = jnp.any(jnp.min(dist, axis=-1) < self.clearance)
 
         es = es.replace(
@@ -253,8 +279,14 @@ class RegraspEnv(Env):
         }
 
     def observe(self, es: EpisodeState) -> jax.Array:
-        """The ego-centric state (paper §III-B), world frame = e_g."""
-        return geometry.ego_observation_eg((es.needle_pos, es.needle_quat), (es.ee_pos, es.ee_quat))
+        """The ego-centric state (paper §III-B), world frame = e_g; a general task's adds the goal and
+        the needle (:func:`regrasp_mjx.geometry.task_observation`)."""
+        needle, ee = (es.needle_pos, es.needle_quat), (es.ee_pos, es.ee_quat)
+        obs = geometry.ego_observation_eg(needle, ee)
+        if not self.general:
+            return obs
+        goal = (es.goal_pos, es.goal_quat)
+        return jnp.concatenate([obs, geometry.task_observation(needle, ee, goal, es.needle_radius, es.wire_radius)])
 
 
 def _normalise(q: jax.Array) -> jax.Array:

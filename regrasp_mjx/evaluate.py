@@ -40,11 +40,19 @@ def episode_poses(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     )
 
 
+def episode_needles(ep) -> dict[str, np.ndarray]:
+    """The needles of test-set rows as ``Policy.plan`` takes them (``needle_radius_mm``, ``wire_radius_mm``)."""
+    return {
+        "needle_radius_mm": np.asarray(ep.needle_radius, np.float64) * 1e3,
+        "wire_radius_mm": np.asarray(ep.wire_radius, np.float64) * 1e3,
+    }
+
+
 def outcomes(policy, episodes) -> dict[str, dict]:
     """A loaded policy planned on the problems through ``Policy.plan``, bare and shielded."""
     out = {}
     for shield in (False, True):
-        plan = policy.plan(*episode_poses(episodes), check_grasp=False, shield=shield)
+        plan = policy.plan(*episode_poses(episodes), check_grasp=False, shield=shield, **episode_needles(episodes))
         result = {
             "success": plan.success,
             "collision": plan.collision | ~plan.start_valid,
@@ -69,11 +77,16 @@ def evaluate(
     repeats the test set's queries up to ``batch_size``; ``timed_queries=0`` and
     ``batch_repeats=0`` skip the timings."""
     needle, start, goal = episode_poses(episodes)
+    needles = episode_needles(episodes)
     n = len(needle)
-    run = lambda *poses: policy.plan(*poses, check_grasp=False, shield=shield)  # noqa: E731
+
+    def run(needle, start, goal, rows=slice(None)):
+        kw = {k: v[rows] for k, v in needles.items()}
+        return policy.plan(needle, start, goal, check_grasp=False, shield=shield, **kw)
+
     plan = run(needle, start, goal)
     rows = np.arange(batch_size or n) % n
-    big = (needle[rows], start[rows], goal[rows])
+    big = (needle[rows], start[rows], goal[rows], rows)
     batch_s = float("nan")
     if batch_repeats:
         if len(rows) != n:
@@ -84,10 +97,10 @@ def evaluate(
         batch_s = (time.perf_counter() - t0) / batch_repeats
     times = []
     if timed_queries != 0:
-        run(needle[0], start[0], goal[0])  # compiles the one-query program
+        run(needle[0], start[0], goal[0], 0)  # compiles the one-query program
         for i in range(min(n, timed_queries or n)):
             t0 = time.perf_counter()
-            run(needle[i], start[i], goal[i])
+            run(needle[i], start[i], goal[i], i)
             times.append(time.perf_counter() - t0)
     ok = plan.success
     return {

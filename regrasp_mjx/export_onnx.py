@@ -2,7 +2,8 @@
 
     python -m regrasp_mjx.export_onnx --out policy.onnx [--policy runs/fast/policy]
 
-Input ``obs`` float32 ``[B, 21]`` (B dynamic; the layout in ``policy.json``), output ``action``
+Input ``obs`` float32 ``[B, 21]`` (``[B, 37]`` for a general policy; B dynamic; the layout in
+``policy.json``), output ``action``
 float32 ``[B, 6]`` in [-1, 1]. The robot side then applies the action as ``policy.json`` says
 (or plans with :meth:`regrasp_mjx.policy.Policy.plan`, which also checks collisions). Converted
 with jax2onnx; ``check`` runs it in ONNX Runtime against JAX on random observations.
@@ -30,7 +31,7 @@ def export_onnx(policy: Policy, path: str | os.PathLike) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     model = to_onnx(
         policy.actor_fn(),
-        [("B", 21)],
+        [("B", policy.obs_size)],
         model_name="regrasp_actor",
         input_names=["obs"],
         output_names=["action"],
@@ -47,7 +48,7 @@ def check(policy: Policy, path: str | os.PathLike, n: int = 1000, seed: int = 0)
     rng = np.random.default_rng(seed)
     mean = np.asarray(policy.normalizer.mean)[0]
     std = np.asarray(policy.normalizer.std)[0]
-    obs = (mean + std * rng.standard_normal((n, 21)) * 2.0).astype(np.float32)
+    obs = (mean + std * rng.standard_normal((n, policy.obs_size)) * 2.0).astype(np.float32)
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     (onnx_actions,) = session.run(["action"], {"obs": obs})
     return float(np.max(np.abs(onnx_actions - policy.act(obs))))

@@ -19,6 +19,9 @@ Pose = tuple[Array, Array]
 
 NEEDLE_RADIUS = 0.0054  # m, paper §V-C
 OBS_SIZE = 21
+# a general task's observation (ours): the paper's 21, then the needle in the goal end-effector frame
+# (7), the goal end-effector in the current one (7), and the needle's radius and wire radius (2)
+OBS_SIZE_GENERAL = OBS_SIZE + 16
 # |norm - 1| up to this is normalised; beyond it a quaternion is refused (ours; one tolerance for
 # every input: pose arrays to plan, test-set files, dVRK poses)
 QUAT_NORM_TOLERANCE = 1e-2
@@ -186,6 +189,20 @@ def ego_observation_eg(needle: Pose, regrasp_ee: Pose) -> Array:
     er_n = relative(regrasp_ee, needle)
     return jnp.concatenate(
         [needle[0], canonical_quat(needle[1]), regrasp_ee[0], canonical_quat(regrasp_ee[1]), er_n[0], er_n[1]],
+        axis=-1,
+    )
+
+
+def task_observation(needle: Pose, regrasp_ee: Pose, goal_ee: Pose, radius: Array, wire: Array) -> Array:
+    """What a general task adds to the ego-centric state (16 numbers, ours): ``[p_er*_n(3),
+    q_er*_n(4), p_er_er*(3), q_er_er*(4), R, r_wire]``, the needle in the goal end-effector frame (the
+    pose the success test compares ``p_er_n, q_er_n`` with), the goal end-effector in the current
+    one, and the needle's radius and wire radius [m]. Poses in any one frame: only relative poses
+    enter, so one rigid transform of the whole world leaves it unchanged."""
+    goal_n = relative(goal_ee, needle)
+    er_goal = relative(regrasp_ee, goal_ee)
+    return jnp.concatenate(
+        [goal_n[0], goal_n[1], er_goal[0], er_goal[1], jnp.stack([jnp.asarray(radius), jnp.asarray(wire)], -1)],
         axis=-1,
     )
 

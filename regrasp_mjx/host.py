@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 
 from regrasp_mjx.config import EnvConfig
-from regrasp_mjx.scene import Scene, load_scene
+from regrasp_mjx.scene import Scene, load_scene, needle_scene
 
 
 def quat_mul(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
@@ -78,6 +78,12 @@ class HostChecker:
         self.model = self.scene.model
         self.data = mujoco.MjData(self.model)
         self.margin = float(clearance)
+
+    def for_needle(self, radius: float | None, wire: float | None) -> HostChecker:
+        """A checker of the same margin around another needle (radius and wire radius [m]; None
+        keeps this one's): this checker itself when the needle is its scene's."""
+        scene = needle_scene(self.scene, radius, wire)
+        return self if scene is self.scene else HostChecker(scene, self.margin)
 
     def _set(self, needle_pos, needle_quat, ee_pos, ee_quat) -> None:
         self.data.qpos[:] = self.scene.qpos(
@@ -144,15 +150,24 @@ class HostEnv:
     def __init__(self, config: EnvConfig = EnvConfig(), scene: Scene | None = None):
         self.config = config
         clearance = config.clearance_mm * 1e-3
-        self.checker = HostChecker(scene if scene is not None else load_scene(config.scene), clearance)
+        self.scene_checker = HostChecker(scene if scene is not None else load_scene(config.scene), clearance)
+        self.checker = self.scene_checker
         self.max_dp = config.max_dp_mm * 1e-3
         self.max_drot = math.radians(config.max_drot_deg)
+        thinnest = config.task.span("wire_radius_range_mm", config.scene.wire_radius_mm)[0] * 1e-3
         self.substeps = config.collision_substeps or self.checker.scene.required_substeps(
-            self.max_dp, self.max_drot, clearance
+            self.max_dp, self.max_drot, clearance, thinnest
         )
 
     def reset_from(self, episode) -> np.ndarray:
-        """Starts from one problem (an :class:`~regrasp_mjx.sampling.Episode` row); returns the obs."""
+        """Starts from one problem (an :class:`~regrasp_mjx.sampling.Episode` row, around its own
+        needle where it names one); returns the obs (21 numbers, 37 for a general task)."""
+        self.checker = self.scene_checker.for_needle(episode.needle_radius, episode.wire_radius)
+        self.radii = (
+            self.checker.scene.config.needle_radius_mm * 1e-3,
+            self.checker.scene.config.wire_radius_mm * 1e-3,
+        )
+        self.goal = (np.asarray(episode.goal_pos, float), np.asarray(episode.goal_quat, float))
         self.needle = (np.asarray(episode.needle_pos, float), np.asarray(episode.needle_quat, float))
         self.ee = (np.asarray(episode.start_pos, float), np.asarray(episode.start_quat, float))
         self.goal_needle = relative(
@@ -163,7 +178,12 @@ class HostEnv:
 
     def obs(self) -> np.ndarray:
         er_n = relative(*self.ee, *self.needle)
-        return np.concatenate([self.needle[0], canonical(self.needle[1]), self.ee[0], canonical(self.ee[1]), *er_n])
+        obs = np.concatenate([self.needle[0], canonical(self.needle[1]), self.ee[0], canonical(self.ee[1]), *er_n])
+        if not self.config.task.general:
+            return obs
+        goal_n = relative(*self.goal, *self.needle)
+        er_goal = relative(*self.ee, *self.goal)
+        return np.concatenate([obs, *goal_n, *er_goal, self.radii])
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict]:
         """Returns ``(obs, reward, done, info)``; info holds success, collision, time_out."""

@@ -43,8 +43,10 @@ def mean_action(actions: list[jax.Array]) -> jax.Array:
 def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield: bool):
     """The jitted planning program of a network shape in an environment, taking the weights
     (one ``(params, mean, std)`` per member) as its first argument: ``(weights, needle, start,
-    goal[, base_inv]) -> (valid, result, poses, actions)``; from camera-frame poses
-    ``(weights, c_eg, c_er, c_n, goal_depth[, base_inv]) -> (..., camera-frame poses)``."""
+    goal, radii[, base_inv]) -> (valid, result, poses, actions)``; from camera-frame poses
+    ``(weights, c_eg, c_er, c_n, goal_grasp, radii[, base_inv]) -> (..., camera-frame poses)``.
+    ``radii`` ``[B, 2]``: each query's needle radius and wire radius [m]; ``goal_grasp`` ``[B, 4]``:
+    ``(alpha*, d* [m], theta*, phi*)``."""
     from regrasp_mjx import dvrk, geometry
     from regrasp_mjx.env import RegraspEnv
     from regrasp_mjx.sampling import Episode
@@ -54,7 +56,7 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
 
     apply = members_apply(tuple(hidden))
 
-    def rollout(weights, needle, start, goal, base_inv=None):
+    def rollout(weights, needle, start, goal, radii, base_inv=None):
         """``base_inv`` ``[B, 4, 4]`` (optional): the inverse of each query's regrasping PSM base
         frame in e_g; the shield then also replaces actions that leave the joint limits."""
         b = needle.shape[0]
@@ -68,7 +70,7 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
         zeros = jnp.zeros((b, 4))
         episodes = Episode(
             needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0]
-        )
+        ).replace(needle_radius=radii[:, 0], wire_radius=radii[:, 1])
         state = jax.vmap(env.reset_from)(episodes)
         valid = state.metrics["reset_valid"] > 0
         pose0 = jnp.concatenate([start[:, :3], start[:, 3:]], axis=1)
@@ -145,25 +147,27 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
         _, _, result, poses, actions = jax.lax.while_loop(cond, body, (jnp.int32(0), state, result, poses, actions))
         return valid, result, poses, actions
 
-    task = env.config.task
-    radius = env.needle_radius
-
-    def from_camera(weights, c_eg, c_er, c_n, goal_depth, base_inv=None):
+    def from_camera(weights, c_eg, c_er, c_n, goal_grasp, radii, base_inv=None):
         pose = lambda x: (x[:, :3], x[:, 3:])  # noqa: E731
         join = lambda p: jnp.concatenate([p[0], p[1]], axis=-1)  # noqa: E731
         eg_inv = geometry.inverse(pose(c_eg))
         needle = geometry.compose(eg_inv, pose(c_n))
         start = geometry.compose(eg_inv, pose(c_er))
-        from regrasp_mjx.sampling import goal_in_needle
-
-        goal = jax.vmap(lambda n_p, n_q, d: join(geometry.compose((n_p, n_q), goal_in_needle(task, d, radius))))(
-            needle[0], needle[1], goal_depth
-        )
+        goal = join(geometry.compose(needle, goal_pose_in_needle(goal_grasp, radii[:, 0])))
         needle, start = join(needle), join(start)
         start = start.at[:, 3:].set(geometry.canonical_quat(start[:, 3:]))
         needle = needle.at[:, 3:].set(geometry.canonical_quat(needle[:, 3:]))
-        valid, result, poses, actions = rollout(weights, needle, start, goal, base_inv)
+        valid, result, poses, actions = rollout(weights, needle, start, goal, radii, base_inv)
         cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
         return valid, result, poses, actions, cam
 
     return jax.jit(from_camera if camera else rollout)
+
+
+def goal_pose_in_needle(goal_grasp: jax.Array, radius: jax.Array):
+    """The goal end-effector poses ``T_n_er*`` of goal grasps ``[..., 4]`` = ``(alpha*, d* [m], theta*,
+    phi*)`` on needles of ``radius`` [m] (paper eq. 3)."""
+    from regrasp_mjx import geometry
+
+    g = goal_grasp
+    return geometry.grasp_pose(g[..., 0], g[..., 1], g[..., 2], g[..., 3], radius)

@@ -35,6 +35,7 @@ from regrasp_mjx.policy_file import (
     SHIPPED,
     WEIGHT_DTYPES,
     PolicyError,
+    obs_size,
     read_policy,
     save_policy,
     shipped_policies,
@@ -213,10 +214,15 @@ class Policy:
         contract["env"] = dataclasses.asdict(env)
         return dataclasses.replace(self, contract=contract)
 
+    @property
+    def obs_size(self) -> int:
+        """Inputs of the network: 21 (the paper's task), 37 (a general task)."""
+        return obs_size(self.env_config)
+
     def act(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
-        if obs.shape[-1:] != (21,):
-            raise ValueError(f"observation has shape {obs.shape}; accepted: (..., 21)")
+        if obs.shape[-1:] != (self.obs_size,):
+            raise ValueError(f"observation has shape {obs.shape}; accepted: (..., {self.obs_size})")
         if not np.all(np.isfinite(obs)):
             raise ValueError("observation has NaN or inf; accepted: finite values")
         return np.asarray(self._act(jnp.asarray(obs)))
@@ -296,8 +302,12 @@ class Policy:
         needle, ee = check_poses("needle", needle), check_poses(ee_name, ee)
         single = needle.ndim == 1
         needle, ee = np.atleast_2d(needle), np.atleast_2d(ee)
+        if self.general:
+            raise PolicyError(
+                "the closed loop (execute, closed_loop_step) takes a paper-task policy; this one is general"
+            )
         if goal is None:
-            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+            goal = self._default_goal(needle, *self._task_inputs(len(needle), goal_depth_mm=goal_depth_mm))
         return needle, ee, np.atleast_2d(check_poses("goal", goal)), single
 
     def closed_loop_step(
@@ -364,15 +374,81 @@ class Policy:
         out = run(f32(needle), f32(start), f32(goal), jax.random.PRNGKey(seed), f32(noise.sigma_mm), f32(noise.bias_mm))
         return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
 
-    def _goal_depth(self, goal_depth_mm, n):
-        task = self.env_config.task
-        lo, hi = task.goal_depth_mm
-        d = np.broadcast_to(np.asarray((lo + hi) / 2 if goal_depth_mm is None else goal_depth_mm, np.float64), (n,))
-        if not np.all(np.isfinite(d)) or np.any((d < lo - 1e-9) | (d > hi + 1e-9)):
+    @property
+    def general(self) -> bool:
+        """Trained on a general task (ranges of the goal grasp or the needle; 37 inputs)."""
+        return self.env_config.task.general
+
+    def trained_ranges(self) -> dict[str, tuple[float, float]]:
+        """What this policy was trained for: ``(low, high)`` of each goal-grasp coordinate and of the
+        needle (one value twice where it was fixed), the names :meth:`plan` takes."""
+        env = self.env_config
+        task = env.task
+        return {
+            "goal_depth_mm": tuple(float(v) for v in task.goal_depth_mm),
+            "goal_alpha_rad": task.span("goal_alpha_range_rad", task.goal_alpha_rad),
+            "goal_theta_rad": task.span("goal_theta_range_rad", task.goal_theta_rad),
+            "goal_phi_rad": task.span("goal_phi_range_rad", task.goal_phi_rad),
+            "needle_radius_mm": task.span("needle_radius_range_mm", env.scene.needle_radius_mm),
+            "wire_radius_mm": task.span("wire_radius_range_mm", env.scene.wire_radius_mm),
+        }
+
+    _TASK_INPUTS = (
+        "goal_alpha_rad",
+        "goal_depth_mm",
+        "goal_theta_rad",
+        "goal_phi_rad",
+        "needle_radius_mm",
+        "wire_radius_mm",
+    )
+
+    @functools.cached_property
+    def _task_table(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """Defaults, lows and highs of :data:`_TASK_INPUTS` (looked up once), and whether theta*
+        spans a full turn."""
+        env, ranges = self.env_config, self.trained_ranges()
+        task = env.task
+        defaults = {
+            "goal_depth_mm": sum(task.goal_depth_mm) / 2,
+            "goal_alpha_rad": task.goal_alpha_rad,
+            "goal_theta_rad": task.goal_theta_rad,
+            "goal_phi_rad": task.goal_phi_rad,
+            "needle_radius_mm": env.scene.needle_radius_mm,
+            "wire_radius_mm": env.scene.wire_radius_mm,
+        }
+        lo = np.array([ranges[k][0] for k in self._TASK_INPUTS])
+        hi = np.array([ranges[k][1] for k in self._TASK_INPUTS])
+        full_turn = hi[2] - lo[2] >= 2 * np.pi - 1e-6
+        return np.array([defaults[k] for k in self._TASK_INPUTS]), lo, hi, full_turn
+
+    def _task_inputs(self, n: int, **given: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Each query's goal grasp ``[n, 4]`` = ``(alpha*, d* [m], theta*, phi*)`` and needle ``[n, 2]``
+        = ``(R, wire radius)`` [m] from ``plan``'s keyword arguments (scalars or ``[n]``; None: the
+        task's goal grasp, the middle of the depth range, the scene's needle), each checked against
+        the trained range: a :class:`PoseError` names the range (a specialist's is one value)."""
+        defaults, lo, hi, full_turn = self._task_table
+        values = np.empty((n, len(self._TASK_INPUTS)))
+        values[:] = defaults
+        for col, name in enumerate(self._TASK_INPUTS):
+            if given.get(name) is not None:
+                values[:, col] = np.asarray(given[name], np.float64)
+        if full_turn:  # any azimuth: wrapped into the trained turn
+            values[:, 2] = lo[2] + np.mod(values[:, 2] - lo[2], 2 * np.pi)
+        tol = 1e-6 * np.maximum(1.0, np.abs(hi))
+        bad = ~np.isfinite(values) | (values < lo - tol) | (values > hi + tol)
+        if bad.any():
+            row, col = (int(v) for v in np.argwhere(bad)[0])
+            name = self._TASK_INPUTS[col]
+            trained = f"{lo[col]:.6g}" if lo[col] == hi[col] else f"[{lo[col]:.6g}, {hi[col]:.6g}]"
+            hint = "" if self.general else " (a specialist: load_policy('general') plans any goal grasp and needle)"
+            where = f" (query {row})" if n > 1 else ""
             raise PoseError(
-                f"goal_depth_mm={goal_depth_mm!r} is not accepted: within the trained range [{lo}, {hi}] mm"
+                f"{name}={values[row, col]:.6g}{where} is not accepted: this policy was trained for {name} = "
+                f"{trained}{hint}"
             )
-        return d * 1e-3
+        grasp = values[:, :4].copy()
+        grasp[:, 1] *= 1e-3
+        return grasp, values[:, 4:] * 1e-3
 
     def plan(
         self,
@@ -382,14 +458,25 @@ class Policy:
         goal_depth_mm: Any = None,
         check_grasp: bool = True,
         shield: bool = True,
+        *,
+        goal_alpha_rad: Any = None,
+        goal_theta_rad: Any = None,
+        goal_phi_rad: Any = None,
+        needle_radius_mm: Any = None,
+        wire_radius_mm: Any = None,
     ) -> Plan:
         """Plans from poses in the grasping end-effector frame e_g (7-vectors, or batches ``[B, 7]``).
 
-        ``goal`` defaults to the task's goal grasp on this needle (depth ``goal_depth_mm``, default
-        the middle of the trained range). ``shield`` replaces a policy action that would collide by
-        the first collision-free alternative (:func:`shield_candidates`); ``shield=False`` rolls the
-        policy out as trained. Raises :class:`PoseError` on bad input; warns when the needle pose is
-        far from every valid grasp of the library.
+        ``goal`` defaults to the goal grasp ``(goal_alpha_rad, goal_depth_mm, goal_theta_rad,
+        goal_phi_rad)`` on this needle (each None: the task's goal grasp, the middle of the trained
+        depth range). ``needle_radius_mm`` and ``wire_radius_mm`` name the needle (None: the
+        scene's, the paper's 5.4 and 0.25 mm). Each may be a scalar or one value per query; each
+        must lie in what the policy was trained for (:meth:`trained_ranges`): a specialist takes
+        its one goal grasp and needle, a general policy their ranges. ``shield`` replaces a policy
+        action that would collide by the first collision-free alternative
+        (:func:`shield_candidates`); ``shield=False`` rolls the policy out as trained. Raises
+        :class:`PoseError` on bad input; warns when the needle pose of a paper-task policy is far
+        from every valid grasp of the library.
         """
         needle = check_poses("needle", needle)
         start = check_poses("start", start)
@@ -397,14 +484,23 @@ class Policy:
         needle, start = np.atleast_2d(needle), np.atleast_2d(start)
         if needle.shape != start.shape:
             raise PoseError(f"needle {needle.shape} and start {start.shape} poses differ in batch size")
+        grasp, radii = self._task_inputs(
+            len(needle),
+            goal_depth_mm=goal_depth_mm,
+            goal_alpha_rad=goal_alpha_rad,
+            goal_theta_rad=goal_theta_rad,
+            goal_phi_rad=goal_phi_rad,
+            needle_radius_mm=needle_radius_mm,
+            wire_radius_mm=wire_radius_mm,
+        )
         if goal is None:
-            goal = self._default_goal(needle, self._goal_depth(goal_depth_mm, len(needle)))
+            goal = self._default_goal(needle, grasp, radii)
         goal = np.atleast_2d(check_poses("goal", goal))
         if goal.shape != needle.shape:
             raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
-        nearest = self._check_grasp(needle) if check_grasp else None
+        nearest = self._check_grasp(needle) if check_grasp and not self.general else None
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
-        out = self._planner(False, shield)(f32(needle), f32(start), f32(goal))
+        out = self._planner(False, shield)(f32(needle), f32(start), f32(goal), f32(radii))
         return self._finish(out, single, False, nearest)
 
     def plan_from_camera(
@@ -417,10 +513,16 @@ class Policy:
         shield: bool = True,
         psm: dict | None = None,
         respect_limits: bool = True,
+        *,
+        goal_alpha_rad: Any = None,
+        goal_theta_rad: Any = None,
+        goal_phi_rad: Any = None,
+        needle_radius_mm: Any = None,
+        wire_radius_mm: Any = None,
     ) -> Plan:
         """Plans from three camera-frame poses (7-vectors or ``[B, 7]``), as on a real dVRK
         (SPEC "Deployment"); the plan's poses come in the e_g frame and the camera frame.
-        ``shield`` as in :meth:`plan`.
+        ``shield``, the goal grasp and the needle as in :meth:`plan`.
 
         ``psm``: ``{"regrasping_base": pose, "grasping_base": pose}`` (camera-frame 7-vectors or 4x4
         of each PSM's base, i.e. remote-centre-of-motion, frame; ``grasping_base`` optional). The
@@ -436,9 +538,17 @@ class Policy:
         c_eg, c_er, c_n = (np.atleast_2d(x) for x in (c_eg, c_er, c_n))
         if not (c_eg.shape == c_er.shape == c_n.shape):
             raise PoseError(f"camera poses differ in batch size: {c_eg.shape}, {c_er.shape}, {c_n.shape}")
-        depth = self._goal_depth(goal_depth_mm, len(c_eg))
+        grasp, radii = self._task_inputs(
+            len(c_eg),
+            goal_depth_mm=goal_depth_mm,
+            goal_alpha_rad=goal_alpha_rad,
+            goal_theta_rad=goal_theta_rad,
+            goal_phi_rad=goal_phi_rad,
+            needle_radius_mm=needle_radius_mm,
+            wire_radius_mm=wire_radius_mm,
+        )
         nearest = None
-        if check_grasp:
+        if check_grasp and not self.general:
             from regrasp_mjx import host
 
             rel = [host.relative(e[:3], e[3:], n[:3], n[3:]) for e, n in zip(c_eg, c_n)]
@@ -457,18 +567,18 @@ class Policy:
             if respect_limits and shield:  # the base frame's inverse in e_g, per query
                 base = np.linalg.inv(dvrk.as_matrix(psm["regrasping_base"]))
                 base_inv = f32([base @ dvrk.pose_matrix(e) for e in c_eg])
-        out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(depth), base_inv)
+        out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(grasp), f32(radii), base_inv)
         plan = self._finish(out, single, True, nearest)
         return plan if psm is None else _with_joints(plan, psm, c_eg, single)
 
-    def _default_goal(self, needle: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    def _default_goal(self, needle: np.ndarray, grasp: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """The goal end-effector poses ``[n, 7]`` (e_g) of goal grasps ``[n, 4]`` on needles."""
         from regrasp_mjx import geometry
-        from regrasp_mjx.sampling import goal_in_needle
+        from regrasp_mjx.planner import goal_pose_in_needle
 
-        env = self.env_config
-        radius = env.scene.needle_radius_mm * 1e-3
-        goal = jax.vmap(lambda p, q, d: geometry.compose((p, q), goal_in_needle(env.task, d, radius)))(
-            jnp.asarray(needle[:, :3]), jnp.asarray(needle[:, 3:]), jnp.asarray(depth)
+        goal = geometry.compose(
+            (jnp.asarray(needle[:, :3]), jnp.asarray(needle[:, 3:])),
+            goal_pose_in_needle(jnp.asarray(grasp), jnp.asarray(radii[:, 0])),
         )
         return np.concatenate([np.asarray(goal[0]), np.asarray(goal[1])], axis=1)
 

@@ -39,6 +39,24 @@ OBS_LAYOUT = [
     "p_er_n (3, m)",
     "q_er_n (4, wxyz, w>=0)",
 ]
+# what a general task's policy (37 inputs) observes after the 21 (geometry.task_observation)
+TASK_OBS_LAYOUT = [
+    "p_er*_n (3, m): the needle in the goal end-effector frame",
+    "q_er*_n (4, wxyz, w>=0)",
+    "p_er_er* (3, m): the goal end-effector in the current one",
+    "q_er_er* (4, wxyz, w>=0)",
+    "needle radius R (1, m)",
+    "wire radius (1, m)",
+]
+
+
+def obs_size(env_config: Any) -> int:
+    """Observation width of a policy trained in ``env_config``: 21, or 37 for a general task."""
+    from regrasp_mjx.geometry import OBS_SIZE, OBS_SIZE_GENERAL
+
+    return OBS_SIZE_GENERAL if env_config.task.general else OBS_SIZE
+
+
 ACTION_LAYOUT = [
     "dp_x, dp_y, dp_z in the e_g frame, times max_dp_mm",
     "rotation vector x, y, z in the e_g frame, times max_drot_deg, applied as q_t = exp(w) q_{t-1}",
@@ -91,8 +109,8 @@ def save_policy(
             "combine": "mean of the members' actions",
         },
         "observation": {
-            "size": 21,
-            "layout": OBS_LAYOUT,
+            "size": obs_size(env_config),
+            "layout": OBS_LAYOUT + (TASK_OBS_LAYOUT if env_config.task.general else []),
             "frames": "e_g: grasping end-effector; er: regrasping; n: needle",
         },
         "action": {
@@ -156,13 +174,13 @@ def read_policy(path: str | os.PathLike | None = None) -> tuple[dict[str, Any], 
     try:
         hidden = tuple(int(h) for h in contract["network"]["hidden"])
         members = int(contract["network"].get("ensemble", 1))
-        env_config_from_dict(contract["env"])
+        width = obs_size(env_config_from_dict(contract["env"]))
     except (KeyError, TypeError, ValueError) as err:
         raise PolicyError(f"{js}: incomplete contract ({err})") from err
     missing = sorted((set(contract.get("arrays", [])) | {"normalizer/mean", "normalizer/std"}) - set(arrays))
     if missing:
         raise PolicyError(f"{npz} lacks arrays {missing}")
-    expected = make_networks(6, hidden).actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 21)))
+    expected = make_networks(6, hidden).actor.init(jax.random.PRNGKey(0), jnp.zeros((1, width)))
     params = {}
     for k, v in traverse_util.flatten_dict(expected).items():
         name = "actor/" + "/".join(k)
@@ -174,14 +192,14 @@ def read_policy(path: str | os.PathLike | None = None) -> tuple[dict[str, Any], 
             )
         params[k] = jnp.asarray(arrays[name], jnp.float32)  # stored float32 or float16
     for name in ("normalizer/mean", "normalizer/std"):
-        if arrays[name].shape != (members, 21):
-            raise PolicyError(f"{npz}: {name} has shape {arrays[name].shape}, needs {(members, 21)}")
+        if arrays[name].shape != (members, width):
+            raise PolicyError(f"{npz}: {name} has shape {arrays[name].shape}, needs {(members, width)}")
         if not np.all(np.isfinite(arrays[name])) or (name.endswith("std") and np.any(arrays[name] <= 0)):
             raise PolicyError(f"{npz}: {name} has non-finite or non-positive values")
     norm = running_statistics.RunningStatisticsState(
         count=jnp.ones((members,)),
         mean=jnp.asarray(arrays["normalizer/mean"]),
-        summed_variance=jnp.zeros((members, 21)),
+        summed_variance=jnp.zeros((members, width)),
         std=jnp.asarray(arrays["normalizer/std"]),
     )
     return contract, traverse_util.unflatten_dict(params), norm

@@ -83,7 +83,9 @@ class Scene:
         ee = xp.concatenate([ee_pos, ee_quat], -1)
         return xp.concatenate([needle, ee] if self.needle_qpos < self.regrasp_qpos else [ee, needle], -1)
 
-    def required_substeps(self, max_dp: float, max_drot: float, clearance: float = 0.0) -> int:
+    def required_substeps(
+        self, max_dp: float, max_drot: float, clearance: float = 0.0, wire_radius: float | None = None
+    ) -> int:
         """Collision checks per step (end pose included) that make tunnelling impossible, and with a
         clearance margin > 0 also any penetration between the checked poses.
 
@@ -109,10 +111,12 @@ class Scene:
           max_dp: metres per action unit and axis.
           max_drot: radians per action unit and axis.
           clearance: the margin m in metres (0: penetration only).
+          wire_radius: the thinnest wire the count must guard [m] (default the scene's); a task that
+            draws its needles passes its range's low end.
         """
         n = 1
         # the true wire's radius, not the chords' grown one: the count guards the true wire
-        wire = self.config.wire_radius_mm * 1e-3
+        wire = self.config.wire_radius_mm * 1e-3 if wire_radius is None else wire_radius
         others = [min(c.radius, wire) for c in self.needle_capsules] + [c.radius for c in self.grasp_capsules]
         for cap in self.regrasp_capsules:
             lever = max(float(np.linalg.norm(cap.p0)), float(np.linalg.norm(cap.p1)))
@@ -133,7 +137,13 @@ class Scene:
         return max(radius - float(np.linalg.norm((c.p0 + c.p1) / 2.0)) for c in self.needle_capsules)
 
     def distance_fn(self) -> DistanceFn:
-        """A pure JAX function ``(needle_pos, needle_quat, ee_pos, ee_quat) -> distances[npairs]``.
+        """A pure JAX function ``(needle_pos, needle_quat, ee_pos, ee_quat[, radius, wire]) ->
+        distances[npairs]``.
+
+        With ``radius`` and ``wire`` [m] (traced values: one compiled program serves every needle)
+        the needle is that one instead of the scene's: its chords scaled by ``radius / R`` about the
+        needle centre, their radius the wire's plus the scaled sagitta (with
+        ``conservative_needle``), exactly the capsules :func:`load_scene` builds for that needle.
 
         Signed surface distances (m) of the counted pairs in the order of :attr:`pairs`, negative
         when they penetrate; the minimum is the clearance. Geom poses come from ``mjx.kinematics``;
@@ -148,15 +158,26 @@ class Scene:
         g2 = np.array([p[1] for p in self.pairs])
         half1, half2 = self.model.geom_size[g1, 1], self.model.geom_size[g2, 1]
         radii = (self.model.geom_size[g1, 0] + self.model.geom_size[g2, 0]).astype(np.float32)
+        # for another needle: which pairs' second geom is a needle chord, and what of its radius is sagitta
+        needle_ids = {c.geom_id for c in self.needle_capsules}
+        on_needle = np.array([g in needle_ids for g in g2])
+        wire0, radius0 = self.config.wire_radius_mm * 1e-3, self.config.needle_radius_mm * 1e-3
+        sagitta0 = np.where(on_needle, self.model.geom_size[g2, 0] - wire0, 0.0).astype(np.float32)
+        tool_radii = self.model.geom_size[g1, 0].astype(np.float32)
 
-        def distances(needle_pos, needle_quat, ee_pos, ee_quat):
+        def distances(needle_pos, needle_quat, ee_pos, ee_quat, radius=None, wire=None):
             d = mjx.kinematics(mx, data0.replace(qpos=self.qpos(needle_pos, needle_quat, ee_pos, ee_quat)))
             xpos, axis = d.geom_xpos, d.geom_xmat[:, :, 2]
             a0 = xpos[g1] - axis[g1] * half1[:, None]
             a1 = xpos[g1] + axis[g1] * half1[:, None]
             b0 = xpos[g2] - axis[g2] * half2[:, None]
             b1 = xpos[g2] + axis[g2] * half2[:, None]
-            return segment_distance(a0, a1, b0, b1) - radii
+            if radius is None:
+                return segment_distance(a0, a1, b0, b1) - radii
+            scale = radius / radius0
+            grow = lambda p: jnp.where(on_needle[:, None], needle_pos + scale * (p - needle_pos), p)  # noqa: E731
+            other = jnp.where(on_needle, wire + sagitta0 * scale, radii - tool_radii)
+            return segment_distance(a0, a1, grow(b0), grow(b1)) - (tool_radii + other)
 
         return distances
 
@@ -216,6 +237,17 @@ def _apply_config(spec: mujoco.MjSpec, config: SceneConfig) -> None:
             geom.size = [config.wire_radius_mm * 1e-3 + sagitta, 0.0, 0.0]
     spec.mesh("needle_tube").scale = [scale, scale, scale]
     spec.site("needle_tip").pos = [0.0, 0.0, config.needle_radius_mm * 1e-3]
+
+
+def needle_scene(scene: Scene, radius: float | None, wire: float | None) -> Scene:
+    """``scene`` with another needle (radius and wire radius in metres; None keeps the scene's), as the
+    host (CPU MuJoCo) checks it; the scene itself when the needle is its own (within 1 nm)."""
+    cfg = scene.config
+    r_mm = cfg.needle_radius_mm if radius is None else float(radius) * 1e3
+    w_mm = cfg.wire_radius_mm if wire is None else float(wire) * 1e3
+    if abs(r_mm - cfg.needle_radius_mm) < 1e-6 and abs(w_mm - cfg.wire_radius_mm) < 1e-6:
+        return scene
+    return load_scene(dataclasses.replace(cfg, needle_radius_mm=r_mm, wire_radius_mm=w_mm))
 
 
 @functools.lru_cache(maxsize=8)

@@ -17,7 +17,7 @@ from importlib import metadata
 import jax
 import numpy as np
 
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.sampling import Episode, load_testset, sample_episode, save_testset
 from regrasp_mjx.scene import load_scene
 
@@ -27,9 +27,9 @@ def make_testset(n: int, seed: int, config: EnvConfig = EnvConfig(), batch: int 
     if not isinstance(n, int) or n < 1:
         raise ConfigError(f"n={n!r} is not accepted: a positive number of problems")
     scene = load_scene(config.scene)
-    radius = config.scene.needle_radius_mm * 1e-3
+    radius, wire = config.scene.needle_radius_mm * 1e-3, config.scene.wire_radius_mm * 1e-3
     distances = scene.distance_fn()
-    draw = jax.jit(jax.vmap(lambda k: sample_episode(k, config.task, radius, distances)))
+    draw = jax.jit(jax.vmap(lambda k: sample_episode(k, config.task, radius, distances, wire)))
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     parts, valid = [], []
     for i in range(0, n, batch):
@@ -66,9 +66,15 @@ def main(argv: list[str] | None = None) -> int:
         default=SceneConfig.jaw_angle_deg,
         help="angle between the open regrasping jaws, degrees (default 20)",
     )
+    parser.add_argument(
+        "--task",
+        default="paper",
+        choices=sorted(TASKS),
+        help="problem distribution: paper (default) or general (any goal grasp in range, needles of 4-12 mm)",
+    )
     args = parser.parse_args(argv)
     try:
-        config = EnvConfig(scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg))
+        config = EnvConfig(scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg), task=TASKS[args.task])
         t0 = time.perf_counter()
         episodes = make_testset(args.n, args.seed, config)
     except ConfigError as err:

@@ -28,7 +28,7 @@ import jax
 
 from regrasp_mjx import distributed, gpu_memory
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, grow_with_devices, make_config
-from regrasp_mjx.config import ConfigError, parse_overrides
+from regrasp_mjx.config import TASKS, ConfigError, parse_overrides
 from regrasp_mjx.planning.episodes import DemosError
 from regrasp_mjx.sampling import TestsetError
 from regrasp_mjx.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run
@@ -51,6 +51,13 @@ def main(argv: list[str] | None = None) -> int:
         choices=LEARNERS,
         help="ours (default: Gaussian exploration floor, twin critics, target smoothing, actor EMA, cosine LR) "
         "or paper (SPEC's DDPG+BC as the paper ran it)",
+    )
+    p.add_argument(
+        "--task",
+        default=None,
+        choices=sorted(TASKS),
+        help="problem distribution: paper (one goal grasp and needle) or general (any goal grasp in range, needles "
+        "of 4-12 mm; the observation holds both); default: the preset's (general for --preset general, else paper)",
     )
     p.add_argument("--out", required=True, help="run folder: logs, checkpoint, demos, exported policy")
     p.add_argument("--seed", type=int, default=None, help="PRNG seed (default: the preset's, 0)")
@@ -114,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
             overrides["devices"] = args.devices
         if args.shard is not None:
             overrides["shard"] = args.shard
+        if args.task is not None:
+            overrides["env.task"] = TASKS[args.task]
         cfg = make_config(args.preset, args.exploration, args.learner, **overrides)
         gpu_memory.configure(gpu_memory.parse_setting(args.gpu_memory))  # before JAX starts a GPU client
         if args.distributed or args.coordinator:

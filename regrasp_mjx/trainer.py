@@ -22,7 +22,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from regrasp_mjx import distributed
+from regrasp_mjx import distributed, geometry
 from regrasp_mjx.agents.ddpg_bc import checkpoint
 from regrasp_mjx.agents.ddpg_bc.config import (
     TrainConfig,
@@ -84,6 +84,17 @@ class Run:
             print(msg, flush=True)
 
     def _demos(self, demos_dir: Path | None):
+        demos = self._load_or_build_demos(demos_dir)
+        width = geometry.OBS_SIZE_GENERAL if self.cfg.env.task.general else geometry.OBS_SIZE
+        if demos.obs.shape[1] != width:
+            raise DemosError(
+                f"{demos_dir or self.out / 'demos'} holds observations of {demos.obs.shape[1]} numbers, this run's "
+                f"task observes {width}: demonstrations of the paper's task (21) train a paper-task run, those of "
+                "a general task (37; python -m regrasp_mjx.demos --task general) a general one"
+            )
+        return demos
+
+    def _load_or_build_demos(self, demos_dir: Path | None):
         if demos_dir is not None:
             return load_demos(demos_dir)
         path = self.out / "demos"
@@ -98,6 +109,7 @@ class Run:
                 workers=self.cfg.planner_workers or max(1, (os.cpu_count() or 2) - 1),
                 budget_s=self.cfg.planner_budget_s,
                 scene=self.cfg.env.scene,
+                task=self.cfg.env.task,
                 replay_batch=64,
                 quiet=self.quiet,
             )

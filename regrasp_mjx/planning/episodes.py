@@ -12,11 +12,11 @@ regrasp_mjx.demos``) is plain arrays of flat transitions, ``S`` steps over ``D``
 ==================  ========  ==============================================================
 key                 shape     meaning
 ==================  ========  ==============================================================
-obs                 (S, 21)   observation before the step
+obs                 (S, O)    observation before the step (O = 21; 37 for a general task)
 action              (S, 6)    action in [-1, 1]
 reward              (S,)      reward of the step
 done                (S,)      1.0 on the episode's last step (success), else 0.0
-next_obs            (S, 21)   observation after the step
+next_obs            (S, O)    observation after the step
 episode             (S,)      episode number 0..D-1 of the step
 problem_index       (D,)      the problem's index (its PRNG key is fold_in(PRNGKey(seed), i))
 length              (D,)      steps of each episode
@@ -45,7 +45,8 @@ from regrasp_mjx.sampling import Episode
 
 DEMOS_FORMAT = "regrasp_mjx.demos"
 DEMOS_VERSION = 1
-TRANSITION_KEYS = {"obs": (21,), "action": (6,), "reward": (), "done": (), "next_obs": (21,), "episode": ()}
+TRANSITION_KEYS = {"obs": ("O",), "action": (6,), "reward": (), "done": (), "next_obs": ("O",), "episode": ()}
+OBS_SIZES = (21, 37)  # the paper's task, a general one (geometry.OBS_SIZE, OBS_SIZE_GENERAL)
 EPISODE_KEYS = {"problem_index": (), "length": (), "path_length_mm": (), "plan_time_s": ()}
 
 
@@ -225,8 +226,12 @@ def load_demos(path: str | os.PathLike) -> Demos:
             f"{path} lacks {missing or 'its format tag'}; a demonstration set holds {sorted([*TRANSITION_KEYS, *EPISODE_KEYS, 'meta'])}"
         )
     s, d = data["obs"].shape[0], data["length"].shape[0]
+    width = data["obs"].shape[1] if data["obs"].ndim == 2 else -1
+    if width not in OBS_SIZES:
+        raise DemosError(f"{path}: obs has shape {data['obs'].shape}; accepted: (S, O) with O in {OBS_SIZES}")
     for keys, n in ((TRANSITION_KEYS, s), (EPISODE_KEYS, d)):
         for k, shape in keys.items():
+            shape = tuple(width if v == "O" else v for v in shape)
             if data[k].shape != (n, *shape):
                 raise DemosError(f"{path}: {k} has shape {data[k].shape}, expected {(n, *shape)}")
     if (

@@ -54,7 +54,8 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
     ``options``: ``planner`` (a PlannerConfig as a dict), ``scene`` (a SceneConfig as a dict),
     ``seed``, ``clearance_mm`` (the collision margin, default 0) and ``method``: ``"ompl"``
     (default) or ``"straight_line"`` (the baseline). One
-    planner per worker and options, built on first use.
+    planner per worker and options, built on first use. A problem that names its needle
+    (``needle_radius``, ``wire_radius`` in metres) is planned around that one.
     """
     from regrasp_mjx.config import SceneConfig
     from regrasp_mjx.host import HostChecker
@@ -71,6 +72,8 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
             options.get("seed", 0),
         )
     planner = cache[key]
+    base = cache.setdefault(("checker", key), planner.checker)  # the scene's own needle
+    planner.checker = base.for_needle(problem.get("needle_radius"), problem.get("wire_radius"))
     if options.get("method", "ompl") == "straight_line":
         r = straight_line(planner.checker, problem["needle"], problem["start"], problem["goal"], planner.config)
     else:

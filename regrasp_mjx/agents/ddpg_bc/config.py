@@ -6,7 +6,7 @@ import dataclasses
 import math
 
 from regrasp_mjx.agents.dagger import DistillConfig
-from regrasp_mjx.config import ConfigError, EnvConfig
+from regrasp_mjx.config import GENERAL_TASK, ConfigError, EnvConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -269,6 +269,18 @@ PRESETS = {
     # stalled; with both gone the network takes ~6 steps instead of ~9.5 and plans paper300 at 1.000
     # bare on 3 of 3 seeds (experiments/RESULTS.md, "Decaying BC and the action penalty").
     "decay": dataclasses.replace(FAST, bc_decay_epochs=20, action_l2_decay=True),
+    # One network for any goal grasp and needle (ours, issue 15): `decay` on the general task (goal
+    # grasp and needle drawn per problem from config.GENERAL_TASK, the observation holding both), with
+    # twice the epochs for the wider distribution and BC decayed over the same first third. Its
+    # demonstrations come from BIT* (R) on the same ranges.
+    "general": dataclasses.replace(
+        FAST,
+        env=dataclasses.replace(FAST.env, task=GENERAL_TASK),
+        epochs=120,
+        exploration=Exploration(0.3, 0.3 / 300, 0.1, 0.9 / 120),
+        bc_decay_epochs=40,
+        action_l2_decay=True,
+    ),
     # `fast`, then each seed's exported network teaches a 3x256 student by DAgger with lookahead
     # (the shipped 2x256 default was distilled this way from an earlier `fast` network).
     "distilled": dataclasses.replace(FAST, distill=DistillConfig(iterations=20)),
@@ -313,7 +325,7 @@ def scaled_exploration(preset: str, setting: str) -> Exploration:
     if setting not in EXPLORATION:
         raise ConfigError(f"exploration={setting!r} is not accepted: one of {sorted(EXPLORATION)}")
     base, explo = PRESETS[preset], EXPLORATION[setting]
-    if preset in ("fast", "decay", "distilled") and setting != "targeted":  # keep the scaled schedule's span
+    if preset in ("fast", "decay", "distilled", "general") and setting != "targeted":  # keep the scaled schedule's span
         explo = dataclasses.replace(
             base.exploration,
             targeted_eps=explo.targeted_eps,

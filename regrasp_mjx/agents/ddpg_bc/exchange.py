@@ -37,6 +37,8 @@ def _to_episode(problems: Any, rows: np.ndarray) -> Episode:
         goal_quat=take(problems.goal_quat),
         grasp=np.zeros((n, 4)),
         goal_depth=np.zeros(n),
+        needle_radius=take(problems.needle_radius),
+        wire_radius=take(problems.wire_radius),
     )
 
 
@@ -76,14 +78,7 @@ class PlannerExchange:
             for m, ep in enumerate(episodes):
                 if j >= len(chosen[m]):
                     continue
-                job = self.pool.submit(
-                    {
-                        "needle": np.r_[ep.needle_pos[j], ep.needle_quat[j]],
-                        "start": np.r_[ep.start_pos[j], ep.start_quat[j]],
-                        "goal": np.r_[ep.goal_pos[j], ep.goal_quat[j]],
-                    },
-                    payload=(m, jax.tree.map(lambda x, j=j: x[j], ep)),
-                )
+                job = self.pool.submit(ep.problem(j), payload=(m, jax.tree.map(lambda x, j=j: x[j], ep)))
                 if job is None:
                     return
                 meta["planned"][m] += 1
