@@ -22,7 +22,7 @@ assert Path(regrasp_mjx.__file__).resolve().is_relative_to(Path(sys.argv[1]).res
 scene = load_scene()
 episodes, _ = load_testset(PAPER300)
 assert episodes.start_pos.shape == (300, 3)
-assert shipped_policies() == ["decay", "default", "ensemble3", "student_v1"]
+assert shipped_policies() == ["decay", "default", "ensemble3", "general", "student_v1", "student_v2"]
 load_policy()
 print("ok", scene.model.ngeom)
 """
@@ -48,7 +48,9 @@ def test_the_wheel_alone_loads_scene_test_set_and_policies(tmp_path):
         "regrasp_mjx/models/regrasp_scene.xml",
         "regrasp_mjx/models/meshes/needle_tube.stl",
         "regrasp_mjx/data/paper300.npz",
+        "regrasp_mjx/data/general1000.npz",
         "regrasp_mjx/policies/default/policy.npz",
+        "regrasp_mjx/policies/general/policy.npz",
     ):
         assert needed in names, needed
     site = tmp_path / "site"
