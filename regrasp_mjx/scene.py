@@ -31,6 +31,7 @@ REGRASP_JOINT = "regrasp_pose"
 REGRASP_JAWS = ("regrasp_jaw_a", "regrasp_jaw_b")
 _DEFAULT_JAW_HALF_ANGLE = math.radians(10.0)  # what the MJCF file holds
 _DEFAULT_NEEDLE_RADIUS = 0.0054
+_DEFAULT_WIRE_RADIUS_MM = 0.25  # the wire of the MJCF's needle mesh (models/meshes/needle_tube.stl)
 
 DistanceFn = Callable[[jax.Array, jax.Array, jax.Array, jax.Array], jax.Array]
 
@@ -235,7 +236,15 @@ def _apply_config(spec: mujoco.MjSpec, config: SceneConfig) -> None:
             # the chord's sagitta: how far the arc between its ends bulges past it (ends on the arc)
             sagitta = radius - float(np.linalg.norm(ends.mean(0))) if config.conservative_needle else 0.0
             geom.size = [config.wire_radius_mm * 1e-3 + sagitta, 0.0, 0.0]
-    spec.mesh("needle_tube").scale = [scale, scale, scale]
+    if abs(scale - 1.0) > 1e-12 or abs(config.wire_radius_mm - _DEFAULT_WIRE_RADIUS_MM) > 1e-12:
+        # the render mesh of this needle (the file holds the default one): the arc of R, the tube of the wire
+        from regrasp_mjx.needle_mesh import needle_tube
+
+        tube = needle_tube(radius, config.wire_radius_mm * 1e-3)
+        mesh = spec.mesh("needle_tube")
+        mesh.file = ""
+        mesh.uservert = np.asarray(tube.vertices, np.float32).ravel()
+        mesh.userface = np.asarray(tube.faces, np.int32).ravel()
     spec.site("needle_tip").pos = [0.0, 0.0, config.needle_radius_mm * 1e-3]
 
 

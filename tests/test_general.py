@@ -235,3 +235,15 @@ def test_scene_of_another_needle_is_the_scene_itself_for_its_own():
     assert needle_scene(scene, 5.4e-3, 0.25e-3) is scene
     other = needle_scene(scene, 8e-3, None)
     assert other.config == SceneConfig(needle_radius_mm=8.0)
+
+
+def test_the_render_mesh_is_each_needles_own():
+    """The renderer's needle (trimesh, ``SceneRenderer(needle_scene(scene, R, wire))``) has the arc and
+    the wire of the problem's needle; the default one is the MJCF's file mesh."""
+    scene = load_scene()
+    for radius, wire in ((5.4, 0.25), (9.0, 0.35), (4.0, 0.15)):
+        model = needle_scene(scene, radius * 1e-3, wire * 1e-3).render_model
+        mesh = model.geom_dataid[model.geom("needle_visual").id]
+        verts = model.mesh_vert[model.mesh_vertadr[mesh] : model.mesh_vertadr[mesh] + model.mesh_vertnum[mesh]]
+        extent_mm = np.ptp(verts, axis=0) * 1e3  # across the plane, then the arc's width and height
+        np.testing.assert_allclose(extent_mm[[0, 2]], [2 * wire, 2 * radius + 2 * wire], rtol=1e-4)

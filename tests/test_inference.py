@@ -182,6 +182,9 @@ def test_onnx_export_matches_jax(policy, tmp_path):
 
     path = export_onnx(policy, tmp_path / "actor.onnx")
     assert check(policy, path, n=500) < 1e-5
+    general = regrasp_mjx.load_policy("general")  # the general task's 37 inputs
+    path = export_onnx(general, tmp_path / "general.onnx")
+    assert check(general, path, n=500) < 2e-5
 
 
 def test_evaluate_cli_json(tmp_path, capsys):
