@@ -25,7 +25,7 @@ import numpy as np
 from regrasp_mjx.config import env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE, unit_quaternions
-from regrasp_mjx.planner import PLANNERS, make_planner, mean_action, members_apply
+from regrasp_mjx.planner import PLANNERS, make_planner, mean_action, members_apply, unpack
 from regrasp_mjx.policy_file import (
     ACTION_LAYOUT,
     DEFAULT_POLICY,
@@ -255,7 +255,7 @@ class Policy:
         return self._planners[(camera, shield)]
 
     def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
-        out = jax.device_get(out)
+        out = unpack(np.asarray(out), self.contract["env"]["horizon"], camera)
         valid, result, poses, actions = out[:4]
         plan = Plan(
             success=result[:, 1] > 0,
