@@ -22,24 +22,13 @@ import jax
 import numpy as np
 
 from regrasp_mjx.atomic import write_results
-from regrasp_mjx.evaluate import episode_needles, episode_poses
+from regrasp_mjx.evaluate import plan_outcomes
 from regrasp_mjx.policy import load_policy
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import GENERAL1000, PAPER300, load_testset
 
 R_BINS_MM = (4.0, 6.0, 8.0, 10.0, 12.0)
 ALPHA_BINS_RAD = tuple(10 * math.pi / 9 + k * (math.pi / 3) / 4 for k in range(5))  # [10pi/9, 13pi/9] in 4
-
-
-def plan_outcomes(policy, episodes, shield: bool):
-    plan = policy.plan(*episode_poses(episodes), check_grasp=False, shield=shield, **episode_needles(episodes))
-    return {
-        "success": plan.success,
-        "collision": plan.collision | ~plan.start_valid,
-        "time_out": plan.time_out,
-        "path_length_mm": plan.path_length_mm,
-        "steps": plan.steps,
-    }
 
 
 def binned(success: np.ndarray, values: np.ndarray, edges) -> list[float]:

@@ -149,7 +149,7 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
         _, _, result, poses, actions = jax.lax.while_loop(cond, body, (jnp.int32(0), state, result, poses, actions))
         return valid, result, poses, actions
 
-    def pack(*parts):
+    def pack(*parts):  # each [B, ...] flattened to [B, n] (a [B] part to [B, 1])
         return jnp.concatenate([p.reshape(p.shape[0], -1).astype(jnp.float32) for p in parts], axis=1)
 
     def from_camera(weights, c_eg, c_er, c_n, goal_grasp, radii, base_inv=None):
@@ -164,10 +164,10 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
         needle = needle.at[:, 3:].set(geometry.canonical_quat(needle[:, 3:]))
         valid, result, poses, actions = rollout(weights, needle, start, goal, radii, base_inv)
         cam = jax.vmap(lambda c, p: join(geometry.compose(pose(c[None]), pose(p))))(c_eg, poses)
-        return pack(valid[:, None], result, poses, actions, cam)
+        return pack(valid, result, poses, actions, cam)
 
     def ego(weights, needle, start, goal, radii, base_inv=None):
-        return pack(*(x if x.ndim > 1 else x[:, None] for x in rollout(weights, needle, start, goal, radii, base_inv)))
+        return pack(*rollout(weights, needle, start, goal, radii, base_inv))
 
     return jax.jit(from_camera if camera else ego)
 

@@ -125,10 +125,10 @@ def goal_in_needle(task: TaskConfig, goal_depth: jax.Array, radius: float, goal_
     return geometry.grasp_pose(alpha, goal_depth, theta, phi, radius)
 
 
-def _draw_or_fixed(key: jax.Array, rng: tuple[float, float], scale: float = 1.0):
-    """A uniform draw from ``rng`` (times ``scale``), or the fixed value itself where the range is one
-    value: a task without ranges then computes exactly what it did before ranges existed."""
-    return rng[0] * scale if rng[0] == rng[1] else _uniform(key, rng, scale)
+def _draw_or_fixed(key: jax.Array, rng: tuple[float, float]):
+    """A uniform draw from ``rng``, or the fixed value itself where the range is one value: a task
+    without ranges then computes exactly what it did before ranges existed."""
+    return rng[0] if rng[0] == rng[1] else _uniform(key, rng)
 
 
 def draw_episode(key: jax.Array, task: TaskConfig, radius: float, wire: float | None = None) -> Episode:
