@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from regrasp_mjx.atomic import write_results
-from regrasp_mjx.evaluate import plan_outcomes
+from regrasp_mjx.evaluate import plan_testset
 from regrasp_mjx.policy import load_policy
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import GENERAL1000, PAPER300, load_testset
@@ -52,14 +52,14 @@ def main(argv: list[str] | None = None) -> None:
         sets = {"general1000": general, "paper300": paper} if policy.general else {"paper300": paper}
         for sname, episodes in sets.items():
             for shield in (False, True):
-                out = plan_outcomes(policy, episodes, shield)
+                out = plan_testset(policy, episodes, shield)
                 rollout = "shielded" if shield else "bare"
                 rows.append(
                     {"policy": name, "folder": folder or "shipped", "testset": sname, **summarize(out, rollout)}
                 )
                 print(json.dumps(rows[-1]), flush=True)
                 if sname == "general1000" and not shield:
-                    per_problem[name] = np.asarray(out["success"], bool)
+                    per_problem[name] = np.asarray(out.success, bool)
     radius_mm = np.asarray(general.needle_radius) * 1e3
     alpha = np.asarray(general.goal_grasp)[:, 0]
     fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731

@@ -33,7 +33,7 @@ from regrasp_mjx.closed_loop import NeedleNoise, episode_bias, frame_estimate  #
 from regrasp_mjx.env import RegraspEnv  # noqa: E402
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402
 from regrasp_mjx.grasps import GraspLibrary  # noqa: E402
-from regrasp_mjx.planning.episodes import make_replay  # noqa: E402
+from regrasp_mjx.planning.episodes import make_replay, replayed  # noqa: E402
 from regrasp_mjx.policy import load_policy  # noqa: E402
 from regrasp_mjx.sampling import load_testset  # noqa: E402
 
@@ -45,10 +45,7 @@ def open_loop(policy, replay, lib, truth, needle, start, grasp, estimate, projec
     seen_goal = np.stack([_compose(s, g) for s, g in zip(seen, grasp)])
     plan = policy.plan(seen, start, seen_goal, check_grasp=False)
     out = jax.device_get(replay(truth, jnp.asarray(plan.actions, jnp.float32)))
-    done = out["done"] > 0
-    first = np.where(done.any(1), np.argmax(done, 1), -1)
-    ok = (first >= 0) & (out["success"][np.arange(len(first)), np.clip(first, 0, None)] > 0)
-    return float((ok & (first <= plan.steps - 1)).mean())  # past a plan's end the replay runs zeros
+    return float(replayed(out, plan.steps).mean())
 
 
 def main() -> None:

@@ -141,10 +141,7 @@ def make_executor(
 
     def run(weights, needle, start, goal, key, sigma_mm, bias_mm):
         b = needle.shape[0]
-        zeros = jnp.zeros((b, 4))
-        episode = Episode(
-            needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0]
-        )
+        episode = Episode.from_poses(needle, start, goal)
         state = jax.vmap(env.reset_from)(episode)
         valid = state.metrics["reset_valid"] > 0
         biased = episode_bias(jax.random.fold_in(key, horizon + 1), needle, bias_mm)
@@ -219,11 +216,7 @@ def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: flo
     and ``next_ee`` is ``ee``)."""
 
     def one(weights, needle, ee, goal, t):
-        b = needle.shape[0]
-        zeros = jnp.zeros((b, 4))
-        episode = Episode(
-            needle[:, :3], needle[:, 3:], ee[:, :3], ee[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0]
-        )
+        episode = Episode.from_poses(needle, ee, goal)
         state = jax.vmap(env.reset_from)(episode)
         done = _at_goal(env, state, needle, stop_scale)
         a = jnp.where(done[:, None], 0.0, choose_action(env, apply, weights, state, t, shield))

@@ -25,7 +25,7 @@ import numpy as np
 from regrasp_mjx.config import env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE, unit_quaternions
-from regrasp_mjx.planner import PLANNERS, make_planner, mean_action, members_apply, unpack
+from regrasp_mjx.planner import PLANNERS, PlanArrays, make_planner, mean_action, members_apply
 from regrasp_mjx.policy_file import (
     ACTION_LAYOUT,
     DEFAULT_POLICY,
@@ -254,19 +254,18 @@ class Policy:
             self._planners[(camera, shield)] = functools.partial(PLANNERS[key], self._weights)
         return self._planners[(camera, shield)]
 
-    def _finish(self, out, single: bool, camera: bool, nearest) -> Plan:
-        out = unpack(np.asarray(out), self.contract["env"]["horizon"], camera)
-        valid, result, poses, actions = out[:4]
+    def _finish(self, out: PlanArrays, single: bool, nearest) -> Plan:
+        o = out.outcome
         plan = Plan(
-            success=result[:, 1] > 0,
-            collision=result[:, 2] > 0,
-            time_out=result[:, 3] > 0,
-            start_valid=np.asarray(valid),
-            steps=result[:, 4].astype(np.int64),
-            path_length_mm=result[:, 5],
-            poses=np.asarray(poses, np.float64),
-            actions=np.asarray(actions, np.float64),
-            poses_camera=np.asarray(out[4], np.float64) if camera else None,
+            success=o.success,
+            collision=o.collision,
+            time_out=o.time_out,
+            start_valid=o.start_valid,
+            steps=o.steps.astype(np.int64),
+            path_length_mm=o.path_length_mm,
+            poses=np.asarray(out.poses, np.float64),
+            actions=np.asarray(out.actions, np.float64),
+            poses_camera=None if out.poses_camera is None else np.asarray(out.poses_camera, np.float64),
             nearest_grasp_distance=nearest,
         )
         if single:
@@ -501,7 +500,7 @@ class Policy:
         nearest = self._check_grasp(needle) if check_grasp and not self.general else None
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
         out = self._planner(False, shield)(f32(needle), f32(start), f32(goal), f32(radii))
-        return self._finish(out, single, False, nearest)
+        return self._finish(out, single, nearest)
 
     def plan_from_camera(
         self,
@@ -568,7 +567,7 @@ class Policy:
                 base = np.linalg.inv(dvrk.as_matrix(psm["regrasping_base"]))
                 base_inv = f32([base @ dvrk.pose_matrix(e) for e in c_eg])
         out = self._planner(True, shield)(f32(c_eg), f32(c_er), f32(c_n), f32(grasp), f32(radii), base_inv)
-        plan = self._finish(out, single, True, nearest)
+        plan = self._finish(out, single, nearest)
         return plan if psm is None else _with_joints(plan, psm, c_eg, single)
 
     def _default_goal(self, needle: np.ndarray, grasp: np.ndarray, radii: np.ndarray) -> np.ndarray:

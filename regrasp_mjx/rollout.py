@@ -1,83 +1,169 @@
-"""One pass of a deterministic policy over given problems, batched: how each episode ended.
+"""The one rollout: actions stepped through the environment, batched, until every episode has ended.
 
-Used by the learner's per-epoch evaluation and by distillation; ``Policy.plan`` has its own loop
-because it also records the trajectory and may shield steps.
+Every loop that runs whole episodes goes through :func:`rollout`: the learner's per-epoch
+evaluation and distillation's (a network's actions), ``Policy.plan`` (the networks' actions, with
+the collision shield as a per-step hook, recording the trajectory), the replay of planner paths
+(given actions, recording the transitions) and DAgger's rollouts and lookaheads. Each returns one
+:class:`Rollout`: how every episode ended, by name.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.sampling import Episode
+
+# act(state, t) -> actions [B, 6] of a batch of environment states at step t of the rollout
+Act = Callable[[Any, jax.Array], jax.Array]
+# shield(state, t, action, next_state, live) -> (action, next_state): may replace a step's actions
+Shield = Callable[[Any, jax.Array, jax.Array, Any, jax.Array], tuple[jax.Array, Any]]
+# trace(state, action, next_state) -> a pytree of [B, ...] arrays kept for every step
+Trace = Callable[[Any, jax.Array, Any], Any]
+
+
+class Rollout(NamedTuple):
+    """How each episode of a batch ended (``[B]`` arrays, jax or numpy).
+
+    ``start_valid`` false: the start already collided (it then counts as a collision after 0
+    steps). Exactly one of ``success``, ``collision``, ``time_out`` is true for an episode that
+    ended; all are false only when the rollout's step limit came first. ``steps``: actions taken;
+    ``path_length_mm``: the sum of the translation steps; ``discounted_return``: the rewards summed
+    with the rollout's ``gamma``. ``trace``: what the rollout's ``trace`` function kept, time-major
+    ``[T, B, ...]``, zeros from each episode's end on (``None`` without one)."""
+
+    start_valid: Any
+    success: Any
+    collision: Any
+    time_out: Any
+    steps: Any
+    path_length_mm: Any
+    discounted_return: Any
+    trace: Any = None
+
+
+def rollout(
+    env: RegraspEnv,
+    act: Act,
+    start: Any,
+    *,
+    max_steps: int | None = None,
+    gamma: float = 0.99,
+    shield: Shield | None = None,
+    trace: Trace | None = None,
+) -> Rollout:
+    """Steps a batch of environment states ``start`` (``jax.vmap(env.reset_from)(episodes)``, or any
+    states: rows already done end where they are) with ``act`` until each episode has ended or
+    ``max_steps`` (default: the horizon) were taken. An ended episode's state is held, so ``act``
+    and ``shield`` may see it again; only live rows count. Jit-able and vmap-able; the loop stops as
+    soon as every episode has ended."""
+    max_steps = env.config.horizon if max_steps is None else max_steps
+    b = start.done.shape[0]
+    step = jax.vmap(env.step)
+    valid = start.metrics["reset_valid"] > 0
+    done0 = start.done > 0
+    metric = lambda name: done0 & (start.metrics[name] > 0)  # noqa: E731
+    out0 = Rollout(
+        start_valid=valid,
+        success=metric("success") & valid,
+        collision=metric("collision") | ~valid,
+        time_out=metric("time_out") & valid,
+        steps=start.pipeline_state.t.astype(jnp.int32),
+        path_length_mm=start.metrics["path_length_mm"].astype(jnp.float32),
+        discounted_return=jnp.zeros(b, jnp.float32),
+        trace=None,
+    )
+    ended0 = done0 | ~valid
+    buffers = None
+    if trace is not None:
+        example = jax.eval_shape(lambda s: trace(s, jnp.zeros((b, env.action_size)), s), start)
+        buffers = jax.tree.map(lambda x: jnp.zeros((max_steps,) + x.shape, x.dtype), example)
+
+    def cond(c):
+        t, _, ended, _, _ = c
+        return (t < max_steps) & ~jnp.all(ended)
+
+    def body(c):
+        t, state, ended, out, buffers = c
+        live = ~ended
+        a = act(state, t)
+        nxt = step(state, a)
+        if shield is not None:
+            a, nxt = shield(state, t, a, nxt, live)
+        if buffers is not None:
+            kept = trace(state, a, nxt)
+            put = lambda buf, x: buf.at[t].set(jnp.where(_rows(live, x), x, jnp.zeros_like(x)))  # noqa: E731
+            buffers = jax.tree.map(put, buffers, kept)
+        out, now = record_step(out, live, nxt, gamma**t)
+        state = jax.tree.map(lambda x, y: jnp.where(_rows(live, x), x, y), nxt, state)
+        return t + 1, state, ended | now, out, buffers
+
+    carry = (jnp.int32(0), start, ended0, out0, buffers)
+    _, _, _, out, buffers = jax.lax.while_loop(cond, body, carry)
+    return out._replace(trace=buffers)
+
+
+def start_outcome(b: int) -> Rollout:
+    """The outcome of ``b`` episodes that have just begun (valid starts, nothing yet)."""
+    false = jnp.zeros(b, bool)
+    return Rollout(jnp.ones(b, bool), false, false, false, jnp.zeros(b, jnp.int32), jnp.zeros(b), jnp.zeros(b))
+
+
+def record_step(out: Rollout, live: jax.Array, nxt: Any, discount: jax.Array) -> tuple[Rollout, jax.Array]:
+    """``out`` after the step into ``nxt`` of the ``live`` rows (its reward weighted by
+    ``discount``); also which rows ended with it."""
+    now = live & (nxt.done > 0)
+    m = nxt.metrics
+    out = out._replace(
+        success=jnp.where(now, m["success"] > 0, out.success),
+        collision=jnp.where(now, m["collision"] > 0, out.collision),
+        time_out=jnp.where(now, m["time_out"] > 0, out.time_out),
+        steps=jnp.where(live, nxt.pipeline_state.t, out.steps),
+        path_length_mm=jnp.where(live, m["path_length_mm"], out.path_length_mm),
+        discounted_return=out.discounted_return + jnp.where(live, discount * nxt.reward, 0.0),
+    )
+    return out, now
+
+
+def _rows(mask: jax.Array, x: jax.Array) -> jax.Array:
+    """A ``[B]`` mask shaped to broadcast against ``x`` ``[B, ...]``."""
+    return mask.reshape((-1,) + (1,) * (x.ndim - 1))
 
 
 def evaluate_actor(
-    env: RegraspEnv, act: Callable[[jax.Array], jax.Array], episodes: Episode, gamma: float = 0.99
-) -> dict[str, jax.Array]:
-    """Rolls ``act(obs[B, 21]) -> action[B, 6]`` out from the problems until each episode ends
-    (or the horizon). Per problem: ``success``, ``collision``, ``time_out`` (0/1), ``path_length_mm``,
-    ``steps`` (at the end), ``return`` (discounted by ``gamma``), and the first observation
-    ``obs0``."""
-    state = jax.vmap(env.reset_from)(episodes)
-    n = episodes.needle_pos.shape[0]
-
-    def step(carry, t):
-        state, result, ret = carry
-        nxt = jax.vmap(env.step)(state, act(state.obs))
-        live = result[:, 0] == 0
-        ret = ret + jnp.where(live, gamma**t * nxt.reward, 0.0)
-        new = jnp.stack(
-            [
-                nxt.done,
-                nxt.metrics["success"],
-                nxt.metrics["collision"],
-                nxt.metrics["time_out"],
-                nxt.metrics["path_length_mm"],
-                nxt.pipeline_state.t.astype(jnp.float32),
-            ],
-            axis=1,
-        )
-        result = jnp.where((live & (nxt.done > 0))[:, None], new, result)
-        state = jax.tree.map(lambda a, b: jnp.where(live.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), nxt, state)
-        return (state, result, ret), None
-
-    carry0 = (state, jnp.zeros((n, 6)), jnp.zeros(n))
-    (_, result, ret), _ = jax.lax.scan(step, carry0, jnp.arange(env.config.horizon, dtype=jnp.float32))
-    return {
-        "success": result[:, 1],
-        "collision": result[:, 2],
-        "time_out": result[:, 3],
-        "path_length_mm": result[:, 4],
-        "steps": result[:, 5],
-        "return": ret,
-        "obs0": state.obs,
-    }
+    env: RegraspEnv, act: Callable[[jax.Array], jax.Array], episodes: Any, gamma: float = 0.99
+) -> Rollout:
+    """A deterministic network ``act(obs[B, O]) -> action[B, 6]`` rolled out from test-set rows."""
+    start = jax.vmap(env.reset_from)(episodes)
+    return rollout(env, lambda state, t: act(state.obs), start, gamma=gamma)
 
 
-def summarize(result: dict[str, Any], rollout: str) -> dict[str, Any]:
-    """Rates and means of one pass over a test set; ``rollout`` names how it was planned
-    (``bare``: the network alone, as the paper; ``shielded``: through the collision shield)."""
-    r = {k: np.asarray(v) for k, v in result.items()}
-    ok = r["success"] > 0
+def summarize(result: Any, rollout_name: str, q_start: Any = None) -> dict[str, Any]:
+    """Rates and means of one pass over a test set. ``result``: a :class:`Rollout` or anything with
+    its ``success``, ``collision``, ``time_out``, ``path_length_mm`` and ``steps`` (a ``Plan``);
+    ``rollout_name`` says how it was planned (``bare``: the network alone, as the paper;
+    ``shielded``: through the collision shield). With ``q_start`` (the critic's estimate at each
+    start), also its mean over-estimation of the return the rollout got."""
+    get = lambda name: np.asarray(getattr(result, name))  # noqa: E731
+    ok = get("success") > 0
     out = {
-        "rollout": rollout,
+        "rollout": rollout_name,
         "problems": int(ok.size),
         "success_rate": float(ok.mean()),
-        "collision_rate": float(r["collision"].mean()),
-        "time_out_rate": float(r["time_out"].mean()),
-        "path_length_mm": float(r["path_length_mm"][ok].mean()) if ok.any() else None,
-        "steps": float(r["steps"][ok].mean()) if ok.any() else None,
+        "collision_rate": float((get("collision") > 0).mean()),
+        "time_out_rate": float((get("time_out") > 0).mean()),
+        "path_length_mm": float(get("path_length_mm")[ok].mean()) if ok.any() else None,
+        "steps": float(get("steps")[ok].mean()) if ok.any() else None,
     }
-    if "q_start" in r:  # the critic's estimate at the starts against the return the rollouts got
-        bias = r["q_start"] - r["return_start"]
-        out["q_start"] = float(r["q_start"].mean())
-        out["return_start"] = float(r["return_start"].mean())
+    if q_start is not None:  # the critic's estimate at the starts against the return the rollouts got
+        q, ret = np.asarray(q_start), get("discounted_return")
+        bias = q - ret
+        out["q_start"] = float(q.mean())
+        out["return_start"] = float(ret.mean())
         out["q_bias"] = float(bias.mean())
         out["q_bias_failed"] = float(bias[~ok].mean()) if (~ok).any() else None
     return out

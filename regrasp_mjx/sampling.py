@@ -66,6 +66,19 @@ class Episode:
     def __len__(self) -> int:
         return int(self.needle_pos.shape[0]) if self.needle_pos.ndim == 2 else 1
 
+    @classmethod
+    def from_poses(
+        cls, needle: jax.Array, start: jax.Array, goal: jax.Array, radii: jax.Array | None = None
+    ) -> Episode:
+        """A batch of problems from ``[B, 7]`` needle, start and goal poses (the grasps unknown:
+        zeros), on needles ``radii`` ``[B, 2]`` (radius, wire radius [m]; None: the scene's)."""
+        zeros = jnp.zeros((needle.shape[0], 4))
+        return cls(
+            needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0],
+            needle_radius=None if radii is None else radii[:, 0],
+            wire_radius=None if radii is None else radii[:, 1],
+        )  # fmt: skip
+
     def row(self, i: int) -> Episode:
         """The i-th problem of a batch."""
         return jax.tree.map(lambda x: x[i], self)

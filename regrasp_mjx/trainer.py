@@ -205,7 +205,7 @@ class Run:
                     e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
                     t_it = time.perf_counter()
                     ts, metrics, outcome, problems = learner.iteration(ts, e_r)
-                    outcome = distributed.to_host(outcome)  # [seed, env, 5]; waits for the device
+                    outcome = distributed.to_host(outcome)  # Rollout of [seed, env]; waits for the device
                     if compile_s is None:
                         compile_s = time.perf_counter() - t_it
                         self.log(
@@ -219,7 +219,7 @@ class Run:
                     if exchange is not None:  # every process draws the same choices from the same generator
                         chosen = []
                         for m in range(seeds):
-                            failed = np.flatnonzero(outcome[m, :, 1] == 0)
+                            failed = np.flatnonzero(~outcome.success[m])
                             chosen.append(failed[rng.random(len(failed)) < e_t[m]])
                         if any(len(rows) for rows in chosen):
                             exchange.submit(distributed.to_host(problems), chosen, meta)  # to_host: every process
@@ -229,7 +229,7 @@ class Run:
                 eval_s = time.perf_counter() - eval_s
                 epoch_s = time.perf_counter() - t_epoch
                 mean = {k: np.mean([x[k] for x in metrics_acc], axis=0) for k in metrics_acc[0]}  # [seed]
-                out = np.concatenate(outcomes, axis=1)
+                out = jax.tree.map(lambda *x: np.concatenate(x, axis=1), *outcomes)
                 e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos]).T
                 iter_s = max(iter_s, 1e-9)
                 per_s = timed / iter_s if timed else float("nan")  # iterations per second
@@ -244,8 +244,8 @@ class Run:
                             "rollout": "bare",  # test and validation: the network alone, no shield
                             "test": evs[m],
                             "validation": vas[m],
-                            "train_success": float(out[m, :, 1].mean()),
-                            "train_collision": float(out[m, :, 2].mean()),
+                            "train_success": float(out.success[m].mean()),
+                            "train_collision": float(out.collision[m].mean()),
                             "return": float(mean["rollout_reward"][m]),
                             "critic_loss": float(mean["critic_loss"][m]),
                             "actor_loss": float(mean["actor_loss"][m]),
@@ -290,8 +290,9 @@ class Run:
         actor = learner.policy_params(ts)
         ev_all = distributed.to_host(learner.evaluate(actor, ts.normalizer, test))
         va_all = distributed.to_host(learner.evaluate_q(actor, ts.normalizer, val, ts.critic))
-        evs = [summarize({k: v[m] for k, v in ev_all.items()}, "bare") for m in range(members)]
-        vas = [summarize({k: v[m] for k, v in va_all.items()}, "bare") for m in range(members)]
+        member = lambda tree, m: jax.tree.map(lambda x: x[m], tree)  # noqa: E731
+        evs = [summarize(member(ev_all[0], m), "bare") for m in range(members)]
+        vas = [summarize(member(va_all[0], m), "bare", q_start=va_all[1][m]) for m in range(members)]
         best = [m for m, va in enumerate(vas) if va["success_rate"] >= meta["best_val"][m]]
         host = self._host_policy(ts) if best else None
         for m in best:  # export the best by validation

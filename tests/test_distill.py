@@ -62,7 +62,7 @@ def test_a_small_student_learns_the_teacher(setup):
     distiller = Distiller(env, teacher.members_fn(), cfg)
     ds = distiller.init()
     val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), make_testset(64, 5, teacher.env_config))
-    success = lambda ds: float(jnp.mean(evaluate_actor(env, lambda o: distiller.act(ds, o), val)["success"]))  # noqa: E731
+    success = lambda ds: float(jnp.mean(evaluate_actor(env, lambda o: distiller.act(ds, o), val).success))  # noqa: E731
     before = success(ds)
     for it in range(cfg.iterations):
         ds, m = distiller.iteration(ds, it == 0)

@@ -261,12 +261,12 @@ def test_a_tiny_problem_is_learned_without_retracing(easy_env, easy_demos):
     learner = Learner(cfg, easy_env)
     ts = learner.init(easy_demos[1])
     val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), make_testset(48, 99, EASY))
-    before = float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)["success"]))
+    before = float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)[0].success))
     best = 0.0
     for it in range(40):
         ts, metrics, _, _ = learner.iteration(ts, jnp.float32(EXPLORATION["ddpg_bc"].at(it)[0]))
         if it % 10 == 9:
-            best = max(best, float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)["success"])))
+            best = max(best, float(np.mean(learner.evaluate(ts.actor, ts.normalizer, val)[0].success)))
     assert learner.trace_count == 1, "the iteration program was traced more than once"
     assert before < 0.3 and best >= 0.6, (before, best)  # seen: 0.0 -> 0.73
     assert np.isfinite(float(metrics["critic_loss"][0]))

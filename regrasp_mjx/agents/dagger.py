@@ -34,6 +34,7 @@ from flax import struct
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.rollout import rollout
 from regrasp_mjx.shield import shield_candidates
 
 MembersFn = Callable[[jax.Array], list]  # obs [B, 21] -> each teacher member's actions [B, 6]
@@ -118,19 +119,12 @@ def teacher_actions(env: RegraspEnv, members: MembersFn, state: Any, key: jax.Ar
     first = step(jax.tree.map(tile, state), cands.reshape(k * b, -1))
     free = first.metrics["collision"] == 0
 
-    def cond(c):
-        i, _, live, _ = c
-        return (i < lookahead) & jnp.any(live)
-
-    def body(c):
-        i, st, live, ok = c
+    def policy(st, t):
         acts = members(st.obs)
-        nxt = step(st, sum(acts) / len(acts))
-        ok = ok | (live & (nxt.metrics["success"] > 0))
-        return i + 1, nxt, live & (nxt.done == 0), ok
+        return sum(acts) / len(acts)
 
-    live0 = first.done == 0
-    _, _, _, ok = jax.lax.while_loop(cond, body, (jnp.int32(0), first, live0, first.metrics["success"] > 0))
+    # the policy's rollout after each candidate (a candidate that ends the episode ends it there)
+    ok = rollout(env, policy, first, max_steps=lookahead).success
     ok, free = ok.reshape(k, b), free.reshape(k, b)
     pick = jnp.where(ok.any(0), jnp.argmax(ok, 0), jnp.where(free.any(0), jnp.argmax(free, 0), 0))
     return cands[pick, jnp.arange(b)], pick != 0, ok.any(0)
@@ -184,13 +178,10 @@ class Distiller:
                 return sum(own) / len(own)
             return self.act(ds, obs)
 
-        def roll(state, _):
-            nxt = jax.vmap(env.step)(state, policy(state.obs))
-            live = state.done == 0
-            keep = lambda a, b: jnp.where(live.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-            return jax.tree.map(keep, nxt, state), (state, live)
-
-        last, (visited, live) = jax.lax.scan(roll, first, None, length=horizon)
+        # the rollout keeps each visited state: time-major [horizon, problems], live rows before their end
+        roll = rollout(env, lambda state, t: policy(state.obs), first, trace=lambda state, a, nxt: state)
+        visited = roll.trace
+        live = jnp.arange(horizon)[:, None] < (roll.steps * roll.start_valid)[None, :]
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), visited)
         live = live.reshape(-1)
         # label_states slots: the visited states first (in random order), then unvisited ones, weight 0
@@ -223,8 +214,8 @@ class Distiller:
         metrics = {
             "loss": jnp.mean(loss),
             "loss_last": loss[-1],
-            "rollout_success": jnp.mean(last.metrics["success"]),
-            "rollout_collision": jnp.mean(last.metrics["collision"]),
+            "rollout_success": jnp.mean(roll.success),
+            "rollout_collision": jnp.mean(roll.collision),
             "states_visited": jnp.sum(live.astype(jnp.float32)),
             "states_labelled": jnp.sum(valid),
             "overridden": jnp.sum(valid * overridden) / n_valid,

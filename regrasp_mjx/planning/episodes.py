@@ -41,6 +41,7 @@ import numpy as np
 from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import quat_conj, quat_mul, quat_to_rotvec
+from regrasp_mjx.rollout import Rollout, rollout
 from regrasp_mjx.sampling import Episode
 
 DEMOS_FORMAT = "regrasp_mjx.demos"
@@ -71,50 +72,24 @@ def path_to_actions(poses: np.ndarray, max_dp: float, max_drot: float) -> np.nda
 
 
 def make_replay(env: RegraspEnv):
-    """A jitted ``replay(episodes, actions[B, H, 6]) -> dict`` over a batch, H = the horizon.
+    """A jitted ``replay(episodes, actions[B, H, 6]) -> Rollout`` over a batch, H = the horizon:
+    the actions stepped open loop from the episodes' starts. Its ``trace`` holds per step ``obs``,
+    ``next_obs``, ``reward`` and ``done`` (``[H, B, ...]``); see :func:`replayed` for which
+    replays are demonstrations."""
 
-    Returns per step ``obs``, ``next_obs``, ``reward``, ``done``, ``success`` (B, H, ...). Steps
-    after an episode ended are computed and must be ignored (see :func:`demo_outcome`).
-    """
+    def replay(episodes: Episode, actions: jax.Array) -> Rollout:
+        keep = lambda state, a, nxt: {"obs": state.obs, "next_obs": nxt.obs, "reward": nxt.reward, "done": nxt.done}  # noqa: E731
+        return rollout(env, lambda state, t: actions[:, t], jax.vmap(env.reset_from)(episodes), trace=keep)
 
-    def one(episode: Episode, actions: jax.Array):
-        state = env.reset_from(episode)
-
-        def body(state, action):
-            nxt = env.step(state, action)
-            return nxt, (
-                state.obs,
-                nxt.obs,
-                nxt.reward,
-                nxt.done,
-                nxt.metrics["success"],
-                nxt.metrics["path_length_mm"],
-            )
-
-        _, (obs, next_obs, reward, done, success, path_mm) = jax.lax.scan(body, state, actions)
-        return {
-            "obs": obs,
-            "next_obs": next_obs,
-            "reward": reward,
-            "done": done,
-            "success": success,
-            "path_mm": path_mm,
-        }
-
-    return jax.jit(jax.vmap(one))
+    return jax.jit(replay)
 
 
-def demo_outcome(out: dict[str, np.ndarray], lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Which replays succeed, and their lengths: ``(ok[B], steps[B])``.
-
-    An episode succeeds when its first ``done`` is a success at or before its last action; it then
-    ends there (the goal tolerance is often met a step or two before the path's last pose).
-    """
-    done = np.asarray(out["done"]) > 0
-    first = np.where(done.any(axis=1), np.argmax(done, axis=1), -1)
-    rows = np.arange(len(lengths))
-    ok = (first >= 0) & (first <= lengths - 1) & (np.asarray(out["success"])[rows, np.clip(first, 0, None)] > 0)
-    return ok, np.where(ok, first + 1, 0)
+def replayed(out: Rollout, lengths: np.ndarray) -> np.ndarray:
+    """Which replays of paths of ``lengths`` actions are demonstrations: those that succeed at or
+    before their last action (the goal tolerance is often met a step or two before the path's last
+    pose; the episode then ends there, after ``out.steps`` actions). Past its end a path's actions
+    are zero, which cannot reach the goal the last pose missed."""
+    return np.asarray(out.success) & (np.asarray(out.steps) <= np.asarray(lengths))
 
 
 def replay_paths(
@@ -138,20 +113,21 @@ def replay_paths(
             padded[j, : lengths[i]] = actions[i]
         take = np.concatenate([rows, np.full(batch - len(rows), rows[0])])  # pad the batch: one compile
         eps = jax.tree.map(lambda x, take=take: jnp.asarray(np.asarray(x)[take], jnp.float32), episodes)
-        out = jax.tree.map(np.asarray, replay(eps, jnp.asarray(padded)))
-        good, steps = demo_outcome(out, lengths[take])
+        out = jax.device_get(replay(eps, jnp.asarray(padded)))
+        good = replayed(out, lengths[take])
+        trace = {k: np.swapaxes(v, 0, 1) for k, v in out.trace.items()}  # [batch, H, ...]
         for j, i in enumerate(rows):
             if not good[j]:
                 continue
             ok[i] = True
-            n = steps[j]
+            n = out.steps[j]
             out_rows[i] = {
-                "obs": out["obs"][j, :n],
+                "obs": trace["obs"][j, :n],
                 "action": padded[j, :n],
-                "reward": out["reward"][j, :n],
-                "done": out["done"][j, :n],
-                "next_obs": out["next_obs"][j, :n],
-                "path_length_mm": float(out["path_mm"][j, n - 1]),
+                "reward": trace["reward"][j, :n],
+                "done": trace["done"][j, :n],
+                "next_obs": trace["next_obs"][j, :n],
+                "path_length_mm": float(out.path_length_mm[j]),
             }
     return ok, out_rows
 

@@ -51,7 +51,7 @@ from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.rollout import evaluate_actor
+from regrasp_mjx.rollout import Rollout, record_step, rollout, start_outcome
 from regrasp_mjx.sampling import Episode
 
 TRANSITION = ("obs", "action", "reward", "next_obs", "terminal")
@@ -284,7 +284,8 @@ class Learner:
         )
 
     def attach_demo_buffer(self, num_demo_transitions: int) -> None:
-        """Rebuilds the demonstration buffer's functions (for a state loaded from a checkpoint)."""
+        """Builds the demonstration buffer's functions for ``num_demo_transitions`` items (``init``
+        calls it; a checkpoint restores into the state that ``init`` built, so its buffer matches)."""
         self.demo_buffer = fbx.make_item_buffer(
             max_length=num_demo_transitions,
             min_length=1,
@@ -349,25 +350,14 @@ class Learner:
                 "terminal": terminal,
             }
             # The first episode of each environment decides Algorithm 1's "failed episode".
-            ended = (outcome[:, 0] == 0) & (nxt.done > 0)
-            new = jnp.stack(
-                [
-                    jnp.ones_like(nxt.done),
-                    nxt.metrics["success"],
-                    nxt.metrics["collision"],
-                    nxt.metrics["path_length_mm"],
-                    nxt.pipeline_state.t.astype(jnp.float32),
-                ],
-                axis=1,
-            )
-            outcome = jnp.where(ended[:, None], new, outcome)
+            first_live = ~(outcome.success | outcome.collision | outcome.time_out)
+            outcome, _ = record_step(outcome, first_live, nxt, cfg.gamma**state.pipeline_state.t)
             reset = nxt.done > 0
             state = jax.tree.map(lambda f, x: jnp.where(reset.reshape((-1,) + (1,) * (x.ndim - 1)), f, x), first, nxt)
             return (state, outcome), (transition, nxt.reward)
 
-        outcome0 = jnp.zeros((n, 5))
         (_, outcome), (transitions, rewards) = jax.lax.scan(
-            step, (first, outcome0), jax.random.split(k_steps, cfg.env.horizon)
+            step, (first, start_outcome(n)), jax.random.split(k_steps, cfg.env.horizon)
         )
         return outcome, transitions, rewards
 
@@ -457,7 +447,8 @@ class Learner:
         return ts, self._pmean(metrics), outcome
 
     def _iteration(self, ts: TrainingState, random_eps: jax.Array):
-        """All members' iterations as one program: ``(state, metrics[S], outcome[S, N, 5], problems)``,
+        """All members' iterations as one program: ``(state, metrics[S], outcome, problems)``, ``outcome``
+        the :class:`~regrasp_mjx.rollout.Rollout` of each environment's first episode (``[S, N]``),
         environments (outcomes and problems: axis 1) split over the devices; ``random_eps`` is each
         member's E_R, ``[S]`` (or one for all).
 
@@ -506,18 +497,17 @@ class Learner:
         return self._shard_map(own, (specs, P(), P()), specs)(ts, member, chunk)
 
     # ---- evaluation ---------------------------------------------------------------------------
-    def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode, critic: Any = None) -> dict[str, jax.Array]:
-        """Deterministic policy on given problems, one pass: success, collision, time-out, path.
+    def evaluate_one(self, actor: Any, normalizer: Any, episodes: Episode, critic: Any = None) -> tuple[Rollout, Any]:
+        """Deterministic policy on given problems, one pass: ``(rollout, q_start)``.
 
-        With ``critic``, also the critic's estimate at each start, ``Q(s_0, pi(s_0))`` (the first
-        critic), and the discounted return the rollout actually got: their difference is the
-        critic's over-estimation on the policy's own starts (time-outs bootstrap in training, so
-        theirs reads low by at most ``gamma^horizon``)."""
+        With ``critic``, ``q_start`` is the critic's estimate at each start, ``Q(s_0, pi(s_0))``
+        (the first critic), to set against the discounted return the rollout actually got: their
+        difference is the critic's over-estimation on the policy's own starts (time-outs bootstrap
+        in training, so theirs reads low by at most ``gamma^horizon``); without, ``None``."""
         policy = functools.partial(self.nets.policy, actor, normalizer)
-        out = evaluate_actor(self.env, policy, episodes, self.config.gamma)
-        obs0, ret = out.pop("obs0"), out.pop("return")
-        if critic is not None:
-            q0 = self.nets.q(critic, normalizer, obs0, policy(obs0))
-            out["q_start"] = q0 if q0.ndim == 1 else q0[0]
-            out["return_start"] = ret
-        return out
+        start = jax.vmap(self.env.reset_from)(episodes)
+        out = rollout(self.env, lambda state, t: policy(state.obs), start, gamma=self.config.gamma)
+        if critic is None:
+            return out, None
+        q0 = self.nets.q(critic, normalizer, start.obs, policy(start.obs))
+        return out, q0 if q0.ndim == 1 else q0[0]
