@@ -87,6 +87,48 @@ def test_scripted_approach_succeeds_with_plus_one_on_its_last_step(env, jit_env,
     assert np.all(rewards[first_done[lost], np.flatnonzero(lost)] == pytest.approx(-1.0))
 
 
+def test_rollout_ends_each_episode_as_a_hand_stepped_loop_does(env, jit_env, paper_testset):
+    from regrasp_mjx.rollout import rollout
+
+    _, reset_from, step = jit_env
+    act = _toward_goal(env)
+    rows, k = _rows(paper_testset, range(64)), 6  # k steps: some episodes end within them, some do not
+    start = reset_from(rows)
+    # the rows' own starts, and the same problems started on the grasping tool (a colliding start)
+    bad = start.pipeline_state.replace(ee_pos=jnp.zeros((64, 3)))
+    starts = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), start, reset_from(rows.replace(start_pos=bad.ee_pos)))
+    roll = jax.jit(
+        lambda s: rollout(
+            env, lambda st, t: act(st.pipeline_state), s, max_steps=k, gamma=0.9, trace=lambda s, a, n: n.reward
+        )
+    )
+    out = jax.tree.map(np.asarray, roll(starts))
+
+    state, rewards, dones, metrics = start, [], [], []
+    for _ in range(k):  # by hand: every row stepped k times, ends read off afterwards
+        state = step(state, act(state.pipeline_state))
+        rewards.append(np.asarray(state.reward))
+        dones.append(np.asarray(state.done) > 0)
+        metrics.append({k: np.asarray(state.metrics[k]) > 0 for k in ("success", "collision", "time_out")})
+    rewards, dones = np.stack(rewards), np.stack(dones)
+    ended = dones.any(axis=0)
+    first = np.where(ended, np.argmax(dones, axis=0), k - 1)
+    cols = np.arange(64)
+    assert ended.sum() >= 5 and (~ended).sum() >= 1, "the check needs episodes that end and one that does not"
+    for name in ("success", "collision", "time_out"):
+        expect = ended & np.stack([m[name] for m in metrics])[first, cols]
+        np.testing.assert_array_equal(out.__getattribute__(name)[:64], expect, err_msg=name)
+    np.testing.assert_array_equal(out.steps[:64], first + 1)  # k (the limit) where none ended
+    upto = np.arange(k)[:, None] <= first[None, :]
+    np.testing.assert_allclose(
+        out.discounted_return[:64], (0.9 ** np.arange(k)[:, None] * rewards * upto).sum(0), rtol=1e-5
+    )
+    np.testing.assert_array_equal(out.trace[:, :64], np.where(upto, rewards, 0.0))  # zeros after the end
+    # a colliding start: ended before any step, as a collision
+    assert not out.start_valid[64:].any() and out.collision[64:].all() and not out.success[64:].any()
+    assert (out.steps[64:] == 0).all() and (out.trace[:, 64:] == 0).all() and (out.discounted_return[64:] == 0).all()
+
+
 def test_a_step_that_would_jump_through_the_wire_is_caught(paper_testset):
     # Steps of up to 2.5 mm: the tool at the goal (wire between the jaws) moves 2.5 mm along -y_e.
     # At the end pose jaw a has passed the wire (free); halfway it sits on the wire.
