@@ -43,22 +43,24 @@ def mean_action(actions: list[jax.Array]) -> jax.Array:
 
 
 class Planner:
-    """A jitted planning program and how to read its output: calling it returns a :class:`Plan
-    arrays <PlanArrays>` of numpy arrays. The program packs everything into one float32 array
+    """A jitted planning program and how to read its output: calling it returns
+    :class:`PlanArrays` of numpy arrays. The program packs everything into one float32 array
     ``[B, n]`` (one transfer to the host costs a fifth of several on a CPU, ~20 against ~100 us);
-    the layout to unpack it is read off the program once, at the first call."""
+    the layout to unpack it is recorded while the program is traced."""
 
     def __init__(self, program):
-        self._program = program
-        self._packed = jax.jit(lambda *args: pack(program(*args)))
         self._layout = None
 
+        def packed(*args):
+            out = program(*args)
+            # runs only while tracing; every batch size has the same per-query layout
+            self._layout = jax.tree.map(lambda x: (x.shape[1:], x.dtype), out)
+            return pack(out)
+
+        self._packed = jax.jit(packed)
+
     def __call__(self, *args) -> PlanArrays:
-        packed = np.asarray(self._packed(*args))
-        if self._layout is None:
-            shapes = jax.eval_shape(self._program, *args)
-            self._layout = jax.tree.map(lambda x: (x.shape[1:], x.dtype), shapes)
-        return unpack(packed, self._layout)
+        return unpack(np.asarray(self._packed(*args)), self._layout)
 
 
 class PlanArrays(NamedTuple):

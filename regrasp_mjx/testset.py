@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -22,14 +23,20 @@ from regrasp_mjx.sampling import Episode, load_testset, sample_episode, save_tes
 from regrasp_mjx.scene import load_scene
 
 
+@functools.lru_cache(maxsize=8)
+def _sampler(config: EnvConfig):
+    """The jitted, batched problem sampler of an environment config, built once per config (a
+    trainer draws its validation problems with it every run; tracing it takes seconds)."""
+    radius, wire = config.scene.needle_radius_mm * 1e-3, config.scene.wire_radius_mm * 1e-3
+    distances = load_scene(config.scene).distance_fn()
+    return jax.jit(jax.vmap(lambda k: sample_episode(k, config.task, radius, distances, wire)))
+
+
 def make_testset(n: int, seed: int, config: EnvConfig = EnvConfig(), batch: int = 1024) -> Episode:
     """``n`` problems from the paper's distributions; raises if any could not be made collision-free."""
     if not isinstance(n, int) or n < 1:
         raise ConfigError(f"n={n!r} is not accepted: a positive number of problems")
-    scene = load_scene(config.scene)
-    radius, wire = config.scene.needle_radius_mm * 1e-3, config.scene.wire_radius_mm * 1e-3
-    distances = scene.distance_fn()
-    draw = jax.jit(jax.vmap(lambda k: sample_episode(k, config.task, radius, distances, wire)))
+    draw = _sampler(config)
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     parts, valid = [], []
     for i in range(0, n, batch):

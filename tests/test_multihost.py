@@ -110,7 +110,7 @@ def _launch(folder: Path, out: Path, devices: int, process_id: int | None = None
     env = {
         **os.environ,
         "JAX_PLATFORMS": "cpu",
-        "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}",
+        "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}".strip(),
         "PYTHONPATH": str(ROOT),
     }
     args = [sys.executable, __file__, str(folder), str(out), str(-1 if process_id is None else process_id), str(port)]
@@ -127,6 +127,7 @@ def _wait(proc, name: str) -> None:
     assert proc.returncode == 0, f"{name} failed:\n{log[-3000:]}"
 
 
+@pytest.mark.alone  # the two processes must reach their first collective within gloo's 30 s
 def test_two_processes_match_one_process_of_four_devices(tmp_path):
     _write_inputs(tmp_path)
     port = _free_port()
