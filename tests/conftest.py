@@ -2,12 +2,13 @@
 MJX programs on a 2-core CPU takes seconds; doing it once keeps the suite fast).
 
 The suite runs on two pytest-xdist workers, one test file each (``-n 2 --dist loadfile`` in
-pyproject.toml), sharing one persistent compilation cache. Tests marked ``alone`` run while no
-other test runs (see :func:`pytest_runtest_protocol`).
+pyproject.toml), sharing one persistent compilation cache; the :func:`alone` fixture runs a
+test's part while no other test runs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import shutil
@@ -36,24 +37,58 @@ from regrasp_mjx.config import EnvConfig  # noqa: E402
 from regrasp_mjx.env import RegraspEnv  # noqa: E402
 from regrasp_mjx.sampling import load_testset  # noqa: E402
 
+# The files that take longest on two busy cores (seconds, from --durations), started first so that
+# the run does not end on one of them while the other worker idles; the rest follow in their order.
+# The multihost test leads: its part that runs alone (first) then waits only for one of the learner
+# file's quick first tests.
+SLOW_FIRST = (
+    "tests/test_multihost.py",  # ~140
+    "tests/test_learner.py",  # ~430
+    "tests/test_distill.py",  # ~180
+    "tests/test_sharding.py",  # ~130
+    "notebooks/01_environment.ipynb",  # ~85
+    "tests/test_inference.py",  # ~135
+    "tests/test_env.py",  # ~130
+    "tests/test_general.py",  # ~120
+    "notebooks/04_policy.ipynb",  # ~65
+)
 
-def pytest_configure(config):
-    config.addinivalue_line(
-        "markers",
-        "alone: runs while no other test runs (the other worker waits); for tests whose processes "
-        "must meet within a timeout (gloo gives up connecting after 30 s)",
-    )
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))  # stable
+
+
+_LOCK: dict = {}  # the run's lock file, as the test running in this process holds it
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    """Every test (notebooks too) holds a shared lock on one file of the run while it runs, a test
-    marked ``alone`` an exclusive one: it waits for the other worker's current test, which then
-    waits for it. Without xdist the lock is this process's own and never waits."""
-    alone = item.get_closest_marker("alone") is not None
+    """Every test (notebooks too) holds a shared lock on one file of the run while it runs, so that
+    the :func:`alone` fixture can wait for the other worker's test to end."""
     with open(SHARED / "alone.lock", "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        fcntl.flock(f, fcntl.LOCK_SH)
+        _LOCK["file"] = f
         yield
+
+
+@pytest.fixture
+def alone():
+    """``with alone(): ...`` runs its body while no other test runs: it waits for the other worker's
+    current test to end, and the other worker's next test waits for the body. For processes that
+    must meet within a timeout (gloo gives up connecting after 30 s; two busy cores can make one
+    process compile that much slower than its peer). Without xdist it never waits."""
+
+    @contextlib.contextmanager
+    def hold():
+        f = _LOCK["file"]
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_SH)
+
+    return hold
 
 
 def pytest_unconfigure(config):

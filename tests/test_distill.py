@@ -55,9 +55,10 @@ def test_teacher_keeps_the_policy_where_it_succeeds_and_repairs_where_it_collide
 
 def test_a_small_student_learns_the_teacher(setup):
     teacher, env, _ = setup
+    # 64 problems visit ~600 states; 640 label slots take them all (more slots only label empty ones)
     cfg = DistillConfig(
-        hidden=(64, 64), iterations=3, problems=64, label_states=1024, updates=300, batch_size=256, lr=3e-3,
-        lookahead=30, validation_size=64,
+        hidden=(64, 64), iterations=3, problems=64, label_states=640, updates=300, batch_size=256, lr=3e-3,
+        lookahead=20, validation_size=64,
     )  # fmt: skip
     distiller = Distiller(env, teacher.members_fn(), cfg)
     ds = distiller.init()
@@ -69,7 +70,7 @@ def test_a_small_student_learns_the_teacher(setup):
         if it == 0:  # the teacher's own rollouts: every visited state labelled, all reach the goal
             assert float(m["states_labelled"]) == float(m["states_visited"]) > 0
             assert float(m["rollout_success"]) >= 0.9
-    assert before < 0.2 and success(ds) >= 0.6, (before, success(ds))  # seen 0.0 -> 0.86
+    assert before < 0.2 and success(ds) >= 0.6, (before, success(ds))  # seen 0.0 -> 0.83
     assert float(m["loss_last"]) < 0.1
 
 

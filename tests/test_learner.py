@@ -274,7 +274,7 @@ def test_a_tiny_problem_is_learned_without_retracing(easy_env, easy_demos):
 
 def test_seeds_axis_runs_independent_learners(easy_env, easy_demos):
     """Seed s + 1 of a two-seed program is the one-seed run with seed s + 1."""
-    cfg = _tiny_config(updates_per_iteration=5)
+    cfg = _tiny_config()  # the programs of the tiny problem's test (one seed) and of the resume test (two)
     pair = Learner(dataclasses.replace(cfg, seed=3, num_seeds=2), easy_env)
     alone = Learner(dataclasses.replace(cfg, seed=4), easy_env)
     ts_pair, ts_alone = pair.init(easy_demos[1]), alone.init(easy_demos[1])
@@ -360,7 +360,7 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
     from regrasp_mjx.sampling import save_testset
 
     save_testset(testset, make_testset(16, 3, EASY), {"seed": 3})
-    cfg = _tiny_config(iterations_per_epoch=2, updates_per_iteration=10, validation_size=16, num_seeds=2)
+    cfg = _tiny_config(iterations_per_epoch=2, validation_size=16, num_seeds=2)
 
     def run(out, epochs, resume=False):
         return Run(dataclasses.replace(cfg, epochs=epochs), out, tmp_path / "demos", testset, quiet=True).train(

@@ -127,13 +127,13 @@ def _wait(proc, name: str) -> None:
     assert proc.returncode == 0, f"{name} failed:\n{log[-3000:]}"
 
 
-@pytest.mark.alone  # the two processes must reach their first collective within gloo's 30 s
-def test_two_processes_match_one_process_of_four_devices(tmp_path):
+def test_two_processes_match_one_process_of_four_devices(tmp_path, alone):
     _write_inputs(tmp_path)
-    port = _free_port()
-    procs = [_launch(tmp_path, tmp_path / "two", 2, i, port) for i in (0, 1)]
-    for i, proc in enumerate(procs):
-        _wait(proc, f"process {i}")
+    with alone():  # the two processes must reach their first collective within 30 s of each other
+        port = _free_port()
+        procs = [_launch(tmp_path, tmp_path / "two", 2, i, port) for i in (0, 1)]
+        for i, proc in enumerate(procs):
+            _wait(proc, f"process {i}")
     _wait(_launch(tmp_path, tmp_path / "one", 4), "the single process")
 
     two, one = tmp_path / "two", tmp_path / "one"
