@@ -1,8 +1,10 @@
 """Chooses the closed loop's settings (warm-up frames, stop tolerance) on validation problems of
-their own seed, never on paper300: fused closed loop of the shipped policy at frame noise 0.1, 0.25
-and 0.5 mm; the setting with the best mean success over the three is ``Policy.execute``'s default.
+their own seed, never on paper300: the closed loop of a policy (default: the shipped one) at frame
+noise 0.1, 0.25 and 0.5 mm (and any ``SIGMA:BIAS`` pairs of ``--noises``); the setting with the best
+mean success over them is ``Policy.execute``'s default.
 
     python experiments/closed_loop_select.py --n 1000 --seed 7000017 --out experiments/results/closed_loop
+    python experiments/closed_loop_select.py --policy runs/x/policy --noises 0.1,0.25,0.5,0.25:0.25 --frames each
 """
 
 from __future__ import annotations
@@ -24,37 +26,37 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, default=1000)
     p.add_argument("--seed", type=int, default=7000017)
-    p.add_argument("--sigmas", default="0.1,0.25,0.5")
+    p.add_argument("--noises", default="0.1,0.25,0.5", help="frame noise SIGMA or SIGMA:BIAS in mm, comma-separated")
+    p.add_argument("--policy", default=None, help="policy folder or shipped name (default: the shipped one)")
+    p.add_argument("--frames", default="fused", choices=("fused", "each"), help="fused frames, or each frame alone")
+    p.add_argument("--name", default="select")
     p.add_argument("--warmups", default="1,5,10")
     p.add_argument("--stops", default="1,0.7,0.5")
     p.add_argument("--out", default=None)
     args = p.parse_args()
-    policy = load_policy()
+    policy = load_policy(args.policy)
     needle, start, goal = episode_poses(make_testset(args.n, args.seed, policy.env_config))
-    sigmas = [float(s) for s in args.sigmas.split(",")]
+    noises = [NeedleNoise(*(float(x) for x in s.split(":"))) for s in args.noises.split(",")]
+    warmups = (int(w) for w in args.warmups.split(",")) if args.frames == "fused" else (1,)
     rows = []
-    for warmup, stop in itertools.product(
-        (int(w) for w in args.warmups.split(",")), (float(s) for s in args.stops.split(","))
-    ):
-        success = [
-            float(
-                policy.execute(needle, start, goal, NeedleNoise(s), warmup_frames=warmup, stop_tolerance=stop, seed=1)[
-                    "success"
-                ].mean()
-            )
-            for s in sigmas
-        ]
+    for warmup, stop in itertools.product(warmups, (float(s) for s in args.stops.split(","))):
+        run = lambda noise, warmup=warmup, stop=stop: policy.execute(  # noqa: E731
+            needle, start, goal, noise, frames=args.frames, warmup_frames=warmup, stop_tolerance=stop, seed=1
+        )
+        success = [float(run(noise)["success"].mean()) for noise in noises]
         rows.append(
             {"warmup_frames": warmup, "stop_tolerance": stop, "success": success, "mean": float(np.mean(success))}
         )
         print(json.dumps(rows[-1]), flush=True)
     best = max(rows, key=lambda r: r["mean"])
     lines = [
-        f"Fused closed loop, shipped policy, {args.n} validation problems (seed {args.seed}); success at frame "
-        f"noise {', '.join(map(str, sigmas))} mm.",
+        f"Closed loop ({args.frames} frames), policy {args.policy or 'shipped'}, {args.n} validation problems (seed "
+        f"{args.seed}); success at frame noise sigma (mm) and bias (mm).",
         "",
-        "| warm-up frames | stop tolerance | " + " | ".join(f"sigma {s}" for s in sigmas) + " | mean |",
-        "| ---: | ---: |" + " ---: |" * (len(sigmas) + 1),
+        "| warm-up frames | stop tolerance | "
+        + " | ".join(f"sigma {n.sigma_mm:g} bias {n.bias_mm:g}" for n in noises)
+        + " | mean |",
+        "| ---: | ---: |" + " ---: |" * (len(noises) + 1),
     ]
     for r in rows:
         mark = "**" if r is best else ""
@@ -64,7 +66,9 @@ def main() -> None:
             + f" | {mark}{r['mean']:.3f}{mark} |"
         )
     print("\n".join(lines))
-    write_results(args.out, "select", lines, {"rows": rows, "best": best})
+    write_results(
+        args.out, args.name, lines, {"policy": args.policy, "frames": args.frames, "rows": rows, "best": best}
+    )
 
 
 if __name__ == "__main__":

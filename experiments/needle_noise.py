@@ -9,7 +9,7 @@ about a random axis). Success and collisions are judged on the true needle.
 - ``open``: one frame, one plan (``Policy.plan`` with the goal grasp on the estimate), its actions
   executed against the true needle (``projection``: the estimate first replaced by the nearest pose
   of the valid-grasp library).
-- ``closed``: ``Policy.execute`` with ``fuse=False, warmup_frames=1, stop_tolerance=1``: each step
+- ``closed``: ``Policy.execute`` with ``frames="each", warmup_frames=1, stop_tolerance=1``: each step
   the policy acts on that step's frame and stops when that frame says the goal is reached.
 - ``closed, fused``: ``Policy.execute`` with its defaults: the frames so far averaged, 10 frames
   before the first step, stop when the fused estimate is within 0.7 of the success tolerances.
@@ -83,7 +83,7 @@ def main() -> None:
                     collision = None
                 else:
                     kwargs = (
-                        {} if mode == "closed, fused" else {"fuse": False, "warmup_frames": 1, "stop_tolerance": 1.0}
+                        {} if mode == "closed, fused" else {"frames": "each", "warmup_frames": 1, "stop_tolerance": 1.0}
                     )
                     r = policy.execute(needle, start, goal, NeedleNoise(sigma, bias), seed=args.seed, **kwargs)
                     success, collision = float(r["success"].mean()), float(r["collision"].mean())

@@ -24,7 +24,10 @@ import jax
 import jax.numpy as jnp
 
 from regrasp_mjx import geometry
+from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.planner import mean_action
+from regrasp_mjx.rollout import rollout
 from regrasp_mjx.sampling import Episode
 from regrasp_mjx.shield import shield_candidates, step_key
 
@@ -43,7 +46,7 @@ class NeedleNoise:
         for name in ("sigma_mm", "bias_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 10.0):
-                raise ValueError(f"{name}={v!r} is not accepted: a noise level in [0, 10] mm")
+                raise ConfigError(f"{name}={v!r} is not accepted: a noise level in [0, 10] mm")
 
 
 def _rotate(axis_key: jax.Array, angle: jax.Array, quat: jax.Array) -> jax.Array:
@@ -82,9 +85,37 @@ def mean_pose(total: jax.Array, count: jax.Array) -> jax.Array:
     return jnp.concatenate([total[..., :3] / count, quat], -1)
 
 
+FRAMES = ("one", "each", "fused")  # open loop; closed loop on each frame; closed loop on the fused frames
+
+
+def needle_estimate(k_bias: jax.Array, k_frame: jax.Array, needle: jax.Array, sigma_mm, bias_mm) -> jax.Array:
+    """One frame's estimate of needle poses ``[B, 7]``: this episode's bias (``k_bias``, fixed per
+    episode), then this frame's noise (``k_frame``)."""
+    return frame_estimate(k_frame, episode_bias(k_bias, needle, bias_mm), sigma_mm)
+
+
+def seen_from(es, needle: jax.Array):
+    """``es`` (batched :class:`~regrasp_mjx.env.EpisodeState`) as the estimate ``needle`` ``[B, 7]``
+    shows it: the needle there, and the goal end-effector with it (the goal is a grasp on the
+    needle, so a lab places it on the estimated needle; only a general task observes it)."""
+    goal = geometry.compose((needle[:, :3], needle[:, 3:]), geometry.inverse((es.goal_needle_pos, es.goal_needle_quat)))
+    return es.replace(needle_pos=needle[:, :3], needle_quat=needle[:, 3:], goal_pos=goal[0], goal_quat=goal[1])
+
+
+def noisy_observation(env: RegraspEnv, es, keys: jax.Array, sigma_mm: jax.Array, bias_mm: jax.Array) -> jax.Array:
+    """What a policy sees at batched states ``es`` when each row's needle is estimated with its own
+    noise: ``keys`` ``[B, 2]`` per row (its bias key is ``keys``' first split, fixed for the
+    episode; its frame key at step ``t`` folds ``es.t`` in), ``sigma_mm`` and ``bias_mm`` ``[B]``.
+    A pure function of the state, so a rollout's act and trace see the same frame."""
+    split = jax.vmap(jax.random.split)(keys)
+    k_frame = jax.vmap(jax.random.fold_in)(split[:, 1], es.t)
+    needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
+    seen = jax.vmap(needle_estimate)(split[:, 0], k_frame, needle[:, None], sigma_mm, bias_mm)[:, 0]
+    return jax.vmap(env.observe)(seen_from(es, seen))
+
+
 def _with_needle(state, needle: jax.Array):
-    es = state.pipeline_state.replace(needle_pos=needle[:, :3], needle_quat=needle[:, 3:])
-    return state.replace(pipeline_state=es)
+    return state.replace(pipeline_state=seen_from(state.pipeline_state, needle))
 
 
 def _at_goal(env: RegraspEnv, state, needle: jax.Array, scale: float = 1.0) -> jax.Array:
@@ -100,8 +131,6 @@ def _at_goal(env: RegraspEnv, state, needle: jax.Array, scale: float = 1.0) -> j
 def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array, shield: bool):
     """The policy's action on ``state`` (whose needle is the estimate) and, with ``shield``, the
     first of the shield's alternatives that the estimate says is free where the action is not."""
-    from regrasp_mjx.policy import mean_action
-
     step = jax.vmap(env.step)
     members = apply(weights, state.obs)
     a = mean_action(members)
@@ -119,34 +148,54 @@ def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array
     return jax.lax.cond(jnp.any(collides), safer, lambda: a)
 
 
+def evaluate_noisy(env: RegraspEnv, act: Callable, episodes: Episode, key: jax.Array, noise_mm: float, bias_mm: float):
+    """A network ``act(obs) -> action`` rolled out from test-set rows, acting each step on a new
+    frame of its needle estimate (no fusing, no shield: as DAgger and the learner roll out under
+    noise), with sigma and bias drawn per row from U[0, ``noise_mm``] and U[0, ``bias_mm``] by
+    ``key``; judged on the true needle. Returns the :class:`~regrasp_mjx.rollout.Rollout`."""
+    start = jax.vmap(env.reset_from)(episodes)
+    b = start.done.shape[0]
+    k_rows, k_sigma, k_bias = jax.random.split(key, 3)
+    keys = jax.random.split(k_rows, b)
+    sigma = jax.random.uniform(k_sigma, (b,), maxval=noise_mm)
+    bias = jax.random.uniform(k_bias, (b,), maxval=bias_mm)
+    return rollout(env, lambda state, t: act(noisy_observation(env, state.pipeline_state, keys, sigma, bias)), start)
+
+
 def make_executor(
     env: RegraspEnv,
     apply: Callable,
     shield: bool,
-    fused: bool,
+    frames: str = "fused",
     shield_env: RegraspEnv | None = None,
     stop_scale: float = 1.0,
     warmup: int = 1,
 ):
-    """``run(weights, needle, start, goal, key, sigma_mm, bias_mm) -> dict`` (jitted): the closed
-    loop in simulation for ``[B, 7]`` true needle, start and goal poses (e_g frame). ``shield_env``
-    (default ``env``) is what the shield checks its alternatives with, against the estimated
-    needle: one with a clearance margin keeps that much away from the estimate. Returns per
-    row: ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on the
-    true needle), ``time_out`` (no stop within the horizon), ``stopped`` (the estimate said the goal
-    was reached), ``steps`` and ``poses`` ``[B, horizon + 1, 7]``."""
+    """``run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None) -> dict`` (jitted):
+    regrasping in simulation for ``[B, 7]`` true needle, start and goal poses (e_g frame; ``radii``
+    ``[B, 2]``: each needle's radius and wire radius in metres, for a task that varies needles).
+    Each step the policy acts on an estimate of the needle: with ``frames="one"`` the first frame
+    held for the whole episode (a plan made once, executed open loop), ``"each"`` that step's
+    frame, ``"fused"`` the mean of the frames so far (``warmup`` of them before the first step).
+    ``shield_env`` (default ``env``) is what the shield checks its alternatives with, against the
+    estimated needle: one with a clearance margin keeps that much away from the estimate. Returns
+    per row: ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on
+    the true needle), ``time_out`` (no stop within the horizon), ``stopped`` (the estimate said the
+    goal was reached), ``steps`` and ``poses`` ``[B, horizon + 1, 7]``."""
+    if frames not in FRAMES:
+        raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
     horizon = env.config.horizon
     step = jax.vmap(env.step)
     shield_env = env if shield_env is None else shield_env
+    fused = frames == "fused"
 
-    def run(weights, needle, start, goal, key, sigma_mm, bias_mm):
+    def run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None):
         b = needle.shape[0]
-        episode = Episode.from_poses(needle, start, goal)
+        episode = Episode.from_poses(needle, start, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
         valid = state.metrics["reset_valid"] > 0
         biased = episode_bias(jax.random.fold_in(key, horizon + 1), needle, bias_mm)
-        pose0 = start
-        poses = jnp.repeat(pose0[:, None], horizon + 1, axis=1)
+        poses = jnp.repeat(start[:, None], horizon + 1, axis=1)
         # [ended, success, collision, time_out, stopped, steps]
         result = jnp.zeros((b, 6)).at[:, 0].set(~valid).at[:, 2].set(~valid)
         total = jnp.zeros((b, 7))
@@ -162,7 +211,7 @@ def make_executor(
 
         def body(c):
             t, state, total, result, poses = c
-            estimate = frame_estimate(jax.random.fold_in(key, t), biased, sigma_mm)
+            estimate = frame_estimate(jax.random.fold_in(key, 0 if frames == "one" else t), biased, sigma_mm)
             total = fuse(total, estimate, biased)
             seen = mean_pose(total, (t + 1 + seen0).astype(jnp.float32)) if fused else estimate
             seen_state = _with_needle(state, seen)
@@ -210,13 +259,14 @@ def make_executor(
 
 
 def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: float = 1.0):
-    """``step(weights, needle, ee, goal, t) -> (action, next_ee, at_goal)`` (jitted, ``[B, 7]``
-    poses in e_g): one closed-loop step from the current estimates. ``at_goal`` (within
+    """``step(weights, needle, ee, goal, t, radii=None) -> (action, next_ee, at_goal)`` (jitted,
+    ``[B, 7]`` poses in e_g; ``radii`` as :func:`make_executor`'s): one closed-loop step from the
+    current estimates. ``at_goal`` (within
     ``stop_scale`` of the success tolerances on the estimate) rows should stop (their action is zero
     and ``next_ee`` is ``ee``)."""
 
-    def one(weights, needle, ee, goal, t):
-        episode = Episode.from_poses(needle, ee, goal)
+    def one(weights, needle, ee, goal, t, radii=None):
+        episode = Episode.from_poses(needle, ee, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
         done = _at_goal(env, state, needle, stop_scale)
         a = jnp.where(done[:, None], 0.0, choose_action(env, apply, weights, state, t, shield))

@@ -81,9 +81,11 @@ def forward_kinematics(q, upto: int = 6) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True)
 class IKResult:
-    """``q``: the joints (6); ``reachable``: within every joint limit; ``violations``: the names of
-    the joints outside their limits (empty when reachable); ``error``: the residual of FK(q) against
-    the asked pose (metres, radians), near zero for every pose the arm's geometry can realise."""
+    """``q``: the joints (6); ``reachable``: every joint within its limit and FK(q) within
+    :data:`IK_POSITION_TOLERANCE` / :data:`IK_ROTATION_TOLERANCE` of the asked pose;
+    ``violations``: the names of the joints outside their limits; ``position_error`` (m) and
+    ``rotation_error`` (rad): the residual of FK(q) against the asked pose, near zero for every
+    pose the arm's geometry can realise."""
 
     q: np.ndarray
     reachable: bool
@@ -104,11 +106,104 @@ def as_matrix(pose) -> np.ndarray:
     return pose
 
 
+# what a solution of the closed form may miss the asked pose by and still count as reaching it
+IK_POSITION_TOLERANCE = 1e-6  # m
+IK_ROTATION_TOLERANCE = 1e-5  # rad
+JAX_LIMIT_SLACK = 1e-6  # rad or m past a limit that the float32 check still accepts
+
+
+def _dh_batch(alpha: float, a: float, theta, d, xp):
+    """:func:`_dh` for a batch of joint values ``theta``, ``d`` ``[K]`` (numpy or jax.numpy ``xp``)."""
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    ct, st = xp.cos(theta), xp.sin(theta)
+    zero = xp.zeros_like(ct)
+    d = d + zero
+    rows = (
+        (ct, -st, zero, zero + a),
+        (st * ca, ct * ca, zero - sa, -d * sa),
+        (st * sa, ct * sa, zero + ca, d * ca),
+        (zero, zero, zero, zero + 1.0),
+    )
+    return xp.stack([xp.stack(r, -1) for r in rows], -2)
+
+
+def _fk_batch(q, xp):
+    """Tool-tip poses ``[K, 4, 4]`` of joint vectors ``q`` ``[K, 6]`` (:func:`forward_kinematics`)."""
+    t = None
+    for i, (alpha, a, d, offset, kind) in enumerate(DH):
+        theta, dd = (q[:, i] + offset, d) if kind == "revolute" else (q[:, i] * 0.0 + offset, q[:, i] + d)
+        m = _dh_batch(alpha, a, theta, dd, xp)
+        t = m if t is None else t @ m
+    return t @ xp.asarray(TOOLTIP_OFFSET)
+
+
+def _ik_candidates(p, rot, xp):
+    """The closed form's six candidate joint vectors ``[6, 6]`` for a tool-tip position ``p`` and rotation
+    ``rot`` (the roll nearest zero): one of them reaches the pose wherever the arm can.
+
+    The wrist link (pitch axis to yaw axis) is perpendicular to the yaw axis x, and the shaft
+    through the RCM (the origin) projects onto the plane through p normal to x along that link's
+    line; so the pitch-axis point lies ``WRIST_LINK`` from p along that line, on one side or the
+    other (the projection can lie beyond the pitch point when the pitch point is behind the RCM),
+    and the shaft points from the RCM through the pitch point, or away from it when the pitch point
+    lies behind the RCM (insertion below ``-PITCH_FROM_RCM`` = 15.6 mm). Each of the four choices
+    gives the outer joints, and the wrist angles follow from the remaining rotation; two more cover
+    the pitch point at the RCM itself; forward kinematics tells which choices reach the pose."""
+    x = rot[:, 0]
+    towards = xp.dot(p, x) * x - p
+    unit = towards / xp.maximum(xp.linalg.norm(towards), 1e-12)
+    shafts = []  # (insertion direction, insertion)
+    for link in (1.0, -1.0):
+        pitch_point = p + link * WRIST_LINK * unit
+        dist = xp.maximum(xp.linalg.norm(pitch_point), 1e-12)
+        shafts += [(side * pitch_point / dist, side * dist - PITCH_FROM_RCM) for side in (1.0, -1.0)]
+    # the pitch axis at the RCM (a singularity: the shaft may turn about the pitch axis while the
+    # wrist pitch turns back): the straight-wrist member of that family, the shaft along the link
+    along = p / xp.maximum(xp.linalg.norm(p), 1e-12)
+    shafts += [(side * along, -PITCH_FROM_RCM + 0.0 * p[0]) for side in (1.0, -1.0)]
+    qs = []
+    for shaft, q3 in shafts:
+        # z3 = (sin q1 cos q2, -sin q2, -cos q1 cos q2) for this DH (cos q2 > 0 within the pitch limits)
+        q2 = xp.arcsin(xp.clip(-shaft[1], -1.0, 1.0))
+        q1 = xp.arctan2(shaft[0], -shaft[2])
+        s1, c1, s2, c2 = xp.sin(q1), xp.cos(q1), xp.sin(q2), xp.cos(q2)
+        zero = s1 * 0.0
+        r03 = xp.stack(
+            [
+                xp.stack([-s1 * s2, -c1, s1 * c2]),
+                xp.stack([-c2, zero, -s2]),
+                xp.stack([s2 * c1, -s1, -c1 * c2]),
+            ]
+        )  # forward_kinematics(upto=3)'s rotation
+        m = r03.T @ rot  # the tool tip's rotation in joint 3's frame
+        # columns of m (derived from the DH above): x = (-c4 c5, -s4 c5, s5), row 3 = (s5, -s6 c5, c5 c6)
+        q5 = xp.arcsin(xp.clip(m[2, 0], -1.0, 1.0))
+        q4 = xp.arctan2(-m[1, 0], -m[0, 0])
+        q6 = xp.arctan2(-m[2, 1], m[2, 2])
+        qs.append(xp.stack([q1, q2, q3, q4, q5, q6]))
+    return xp.stack(qs)
+
+
+def _residuals(q, t, xp):
+    """Position (m) and rotation (rad) residuals ``[K]`` of joint vectors ``q`` ``[K, 6]`` against
+    the pose ``t`` (4x4)."""
+    back = _fk_batch(q, xp)
+    pos = xp.linalg.norm(back[:, :3, 3] - t[:3, 3], axis=-1)
+    rel = xp.swapaxes(back[:, :3, :3], -1, -2) @ t[:3, :3]
+    skew = xp.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
+    trace = rel[:, 0, 0] + rel[:, 1, 1] + rel[:, 2, 2]
+    rot = xp.arctan2(xp.linalg.norm(skew, axis=-1) / 2.0, (trace - 1.0) / 2.0)  # accurate near 0
+    return pos, rot
+
+
 def inverse_kinematics(pose, q_ref=None) -> IKResult:
     """Joints that put the tool tip at ``pose`` (4x4 or 7-vector, in the PSM base frame), with a
-    verdict: out-of-limit joints are reported, never clipped. ``q_ref`` picks, of the roll angles
-    ``q4 + 2 pi k`` (the roll range spans 520 degrees), the one nearest its roll (default 0), so a
-    trajectory solved pose by pose stays continuous.
+    verdict: out-of-limit joints are reported, never clipped, and so is a pose the arm's geometry
+    cannot realise (its residual then stays above :data:`IK_POSITION_TOLERANCE` /
+    :data:`IK_ROTATION_TOLERANCE`, and ``reachable`` is false). Over the whole insertion range,
+    both sides of the pitch axis crossing the RCM. ``q_ref`` picks, of the roll angles ``q4 + 2 pi
+    k`` (the roll range spans 520 degrees), the one within the limits nearest its roll (default 0),
+    so a trajectory solved pose by pose stays continuous.
 
     Raises:
       ValueError: a malformed pose, or one whose wrist-link direction is undefined (the yaw axis
@@ -116,41 +211,30 @@ def inverse_kinematics(pose, q_ref=None) -> IKResult:
     """
     t = as_matrix(pose)
     p, x = t[:3, 3], t[:3, 0]
-    # The wrist link (pitch axis to yaw axis) is perpendicular to the yaw axis x, and the shaft
-    # through the RCM (the origin) projects onto the plane through p normal to x along that link:
-    # so the link points from p towards the origin's projection, and the pitch-axis point is
-    # WRIST_LINK back along it.
-    towards = p.dot(x) * x - p
-    norm = float(np.linalg.norm(towards))
-    if norm < 1e-9:
+    if np.linalg.norm(p.dot(x) * x - p) < 1e-9:
         raise ValueError("pose has its yaw axis through the remote centre of motion: the wrist is undefined")
-    pitch_point = p + WRIST_LINK * towards / norm
-    r = float(np.linalg.norm(pitch_point))
-    shaft = pitch_point / r  # the insertion direction (z of joint 3's frame)
-    q3 = r - PITCH_FROM_RCM
-    # z3 = (sin q1 cos q2, -sin q2, -cos q1 cos q2) for this DH (cos q2 > 0 within the pitch limits)
-    q2 = math.asin(float(np.clip(-shaft[1], -1.0, 1.0)))
-    q1 = math.atan2(float(shaft[0]), float(-shaft[2]))
-    r03 = forward_kinematics(np.array([q1, q2, q3, 0.0, 0.0, 0.0]), upto=3)[:3, :3]
-    m = r03.T @ t[:3, :3]  # the tool tip's rotation in joint 3's frame
-    # columns of m (derived from the DH above): x = (-c4 c5, -s4 c5, s5), row 3 = (s5, -s6 c5, c5 c6)
-    q5 = math.asin(float(np.clip(m[2, 0], -1.0, 1.0)))
-    q4 = math.atan2(float(-m[1, 0]), float(-m[0, 0]))
-    q6 = math.atan2(float(-m[2, 1]), float(m[2, 2]))
+    cands = _ik_candidates(p, t[:3, :3], np)
+    pos, rot = _residuals(cands, t, np)
+    roll = cands[:, 3:4] + 2.0 * math.pi * np.array([0.0, -1.0, 1.0])  # some turn of the roll may fit
+    outside = (cands < Q_MIN - 1e-12) | (cands > Q_MAX + 1e-12)
+    outside[:, 3] = ~np.any((roll >= Q_MIN[3]) & (roll <= Q_MAX[3]), axis=1)
+    solves = (pos < 1e-9) & (rot < 1e-8)
+    # a solution within the limits first, then the solution with the fewest joints outside, then the closest miss
+    order = np.lexsort((pos + rot, outside.sum(1), ~solves))
+    q = cands[order[0]].copy()
     ref = 0.0 if q_ref is None else float(np.asarray(q_ref, np.float64)[3])
-    q4 += 2.0 * math.pi * round((ref - q4) / (2.0 * math.pi))
-    q = np.array([q1, q2, q3, q4, q5, q6])
-    back = forward_kinematics(q)
-    rot = back[:3, :3].T @ t[:3, :3]
-    skew = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
-    rot_err = math.atan2(float(np.linalg.norm(skew)) / 2.0, (float(np.trace(rot)) - 1.0) / 2.0)  # accurate near 0
+    rolls = q[3] + 2.0 * math.pi * (round((ref - q[3]) / (2.0 * math.pi)) + np.array([0, -1, 1]))
+    ok = (rolls >= Q_MIN[3]) & (rolls <= Q_MAX[3])
+    q[3] = rolls[np.argmax(ok)] if ok.any() else rolls[0]  # the nearest within the limits
+    position_error, rotation_error = (float(v[0]) for v in _residuals(q[None], t, np))
     out = (q < Q_MIN - 1e-12) | (q > Q_MAX + 1e-12)
+    realised = position_error < IK_POSITION_TOLERANCE and rotation_error < IK_ROTATION_TOLERANCE
     return IKResult(
         q=q,
-        reachable=not out.any(),
+        reachable=bool(realised and not out.any()),
         violations=tuple(n for n, o in zip(JOINT_NAMES, out) if o),
-        position_error=float(np.linalg.norm(back[:3, 3] - t[:3, 3])),
-        rotation_error=rot_err,
+        position_error=position_error,
+        rotation_error=rotation_error,
     )
 
 
@@ -171,11 +255,14 @@ def pose_matrix(pose) -> np.ndarray:
 @dataclasses.dataclass(frozen=True)
 class JointTrajectory:
     """A plan's poses as PSM joints: ``q`` ``[T, 6]``, ``reachable`` ``[T]`` (every joint within its
-    limits), ``violations`` (per pose, the joints outside), and ``all_reachable``."""
+    limits and the pose realised, :class:`IKResult`), ``violations`` (per pose, the joints outside),
+    the residuals ``position_error`` and ``rotation_error`` ``[T]`` (m, rad), and ``all_reachable``."""
 
     q: np.ndarray
     reachable: np.ndarray
     violations: tuple[tuple[str, ...], ...]
+    position_error: np.ndarray
+    rotation_error: np.ndarray
 
     @property
     def all_reachable(self) -> bool:
@@ -193,14 +280,17 @@ def joint_trajectory(base, poses, q_ref=None) -> JointTrajectory:
     the camera frame); each pose's roll is taken nearest the previous pose's (the first: ``q_ref``)."""
     base_inv = np.linalg.inv(as_matrix(base))
     poses = np.asarray(poses, np.float64).reshape(-1, 7)
-    qs, ok, bad, ref = [], [], [], q_ref
+    results, ref = [], q_ref
     for pose in poses:
-        r = inverse_kinematics(base_inv @ pose_matrix(pose), ref)
-        qs.append(r.q)
-        ok.append(r.reachable)
-        bad.append(r.violations)
-        ref = r.q
-    return JointTrajectory(np.stack(qs), np.array(ok), tuple(bad))
+        results.append(inverse_kinematics(base_inv @ pose_matrix(pose), ref))
+        ref = results[-1].q
+    return JointTrajectory(
+        np.stack([r.q for r in results]),
+        np.array([r.reachable for r in results]),
+        tuple(r.violations for r in results),
+        np.array([r.position_error for r in results]),
+        np.array([r.rotation_error for r in results]),
+    )
 
 
 def average_pose(poses) -> np.ndarray:
@@ -223,9 +313,10 @@ def base_behind(tool_pose, distance: float = 0.12) -> np.ndarray:
 
 def within_limits_jax(base_inv, pos, quat):
     """JAX: whether the PSM whose base frame's inverse is ``base_inv`` (``[4, 4]``, in the poses'
-    frame) reaches tool-tip poses ``pos [3]``, ``quat [4]`` (wxyz) within every joint limit. The
-    same closed form as :func:`inverse_kinematics` (the roll taken nearest zero, where its +-260
-    degree range matters least), for checks inside jitted planners; vmap for batches."""
+    frame) reaches tool-tip poses ``pos [3]``, ``quat [4]`` (wxyz) within every joint limit: the
+    verdict of :func:`inverse_kinematics` (the same closed form and residual test; the roll
+    within its +-260 degree range whenever some turn of it is), for checks inside jitted planners;
+    vmap for batches."""
     import jax.numpy as jnp
 
     w, x, y, z = quat[0], quat[1], quat[2], quat[3]
@@ -236,21 +327,17 @@ def within_limits_jax(base_inv, pos, quat):
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
         ]
     )
-    r = base_inv[:3, :3] @ rot
-    p = base_inv[:3, :3] @ pos + base_inv[:3, 3]
-    xa = r[:, 0]
-    towards = jnp.dot(p, xa) * xa - p
-    pitch_point = p + WRIST_LINK * towards / jnp.maximum(jnp.linalg.norm(towards), 1e-12)
-    dist = jnp.linalg.norm(pitch_point)
-    shaft = pitch_point / dist
-    q3 = dist - PITCH_FROM_RCM
-    q2 = jnp.arcsin(jnp.clip(-shaft[1], -1.0, 1.0))
-    q1 = jnp.arctan2(shaft[0], -shaft[2])
-    s1, c1, s2, c2 = jnp.sin(q1), jnp.cos(q1), jnp.sin(q2), jnp.cos(q2)
-    r03 = jnp.array([[-s1 * s2, -c1, s1 * c2], [-c2, 0.0, -s2], [s2 * c1, -s1, -c1 * c2]])  # forward_kinematics(upto=3)
-    m = r03.T @ r
-    q5 = jnp.arcsin(jnp.clip(m[2, 0], -1.0, 1.0))
-    q4 = jnp.arctan2(-m[1, 0], -m[0, 0])
-    q6 = jnp.arctan2(-m[2, 1], m[2, 2])
-    q = jnp.stack([q1, q2, q3, q4, q5, q6])
-    return jnp.all((q >= jnp.asarray(Q_MIN)) & (q <= jnp.asarray(Q_MAX)))
+    t = jnp.eye(4).at[:3, :3].set(base_inv[:3, :3] @ rot).at[:3, 3].set(base_inv[:3, :3] @ pos + base_inv[:3, 3])
+    cands = _ik_candidates(t[:3, 3], t[:3, :3], jnp)
+    pos_err, rot_err = _residuals(cands, t, jnp)
+    # float32 on a GPU: the residual test is looser than the float64 host's (tens of nm, 1e-5 rad)
+    solves = (pos_err < 1e-6) & (rot_err < 1e-4)
+    # float32 puts a joint exactly at its limit up to ~1e-7 past it: the limits get that much slack
+    lo, hi = jnp.asarray(Q_MIN) - JAX_LIMIT_SLACK, jnp.asarray(Q_MAX) + JAX_LIMIT_SLACK
+    roll_ok = jnp.any(
+        (cands[:, 3:4] + 2 * jnp.pi * jnp.array([0.0, -1.0, 1.0]) >= lo[3])
+        & (cands[:, 3:4] + 2 * jnp.pi * jnp.array([0.0, -1.0, 1.0]) <= hi[3]),
+        axis=1,
+    )
+    others = jnp.all((cands >= lo) & (cands <= hi) | (jnp.arange(6) == 3), axis=1)
+    return jnp.any(solves & others & roll_ok)

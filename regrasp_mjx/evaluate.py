@@ -22,30 +22,14 @@ import time
 import jax
 import numpy as np
 
+from regrasp_mjx import robustness
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError, load_policy, shipped_policies
+from regrasp_mjx.robustness import check_condition
 from regrasp_mjx.rollout import summarize
-from regrasp_mjx.sampling import PAPER300, TestsetError, load_testset
+from regrasp_mjx.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
 
 DEFAULT_TESTSET = PAPER300
-
-
-def episode_poses(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Needle, start and goal poses ``[N, 7]`` of test-set rows (the inputs of ``Policy.plan``)."""
-    cat = lambda p, q: np.concatenate([p, q], axis=1)  # noqa: E731
-    return (
-        cat(ep.needle_pos, ep.needle_quat),
-        cat(ep.start_pos, ep.start_quat),
-        cat(ep.goal_pos, ep.goal_quat),
-    )
-
-
-def episode_needles(ep) -> dict[str, np.ndarray]:
-    """The needles of test-set rows as ``Policy.plan`` takes them (``needle_radius_mm``, ``wire_radius_mm``)."""
-    return {
-        "needle_radius_mm": np.asarray(ep.needle_radius, np.float64) * 1e3,
-        "wire_radius_mm": np.asarray(ep.wire_radius, np.float64) * 1e3,
-    }
 
 
 def plan_testset(policy, episodes, shield: bool):
@@ -120,16 +104,43 @@ def evaluate(
     }
 
 
+def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Every numeric option checked before any work: ``p.error`` (one line, exit 2) names the bad value."""
+    for name, lo in (("queries", 0), ("repeats", 0), ("batch_size", 1)):
+        v = getattr(args, name)
+        if v is not None and v < lo:
+            p.error(f"--{name.replace('_', '-')} {v} is not accepted: an integer >= {lo}")
+    try:
+        check_condition(args.noise_mm, args.bias_mm, args.clearance_mm or 0.0)
+    except ConfigError as err:
+        p.error(
+            str(err)
+            .replace("noise_mm=", "--noise-mm ")
+            .replace("bias_mm=", "--bias-mm ")
+            .replace("clearance_mm=", "--clearance-mm ")
+        )
+    if args.per_frame and not args.closed_loop:
+        p.error("--per-frame is not accepted without --closed-loop")
+    if args.robustness and (args.noise_mm or args.bias_mm or args.closed_loop or args.clearance_mm is not None):
+        p.error(
+            "--robustness runs its own conditions; it is not accepted with --noise-mm, --bias-mm, --clearance-mm or --closed-loop"
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m regrasp_mjx.evaluate", description=__doc__.splitlines()[0])
     p.add_argument(
         "--policy",
         default=None,
-        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY})",
+        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY.name})",
     )
-    p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="test set .npz (default paper300)")
-    p.add_argument("--queries", type=int, default=None, help="time only the first N single queries")
-    p.add_argument("--repeats", type=int, default=5, help="repeats of the batched call")
+    p.add_argument(
+        "--testset",
+        default="paper300",
+        help=f"test set: a shipped name ({', '.join(TESTSETS)}) or an .npz file (default paper300)",
+    )
+    p.add_argument("--queries", type=int, default=None, help="time only the first N single queries (0: none)")
+    p.add_argument("--repeats", type=int, default=5, help="repeats of the batched call (0: no throughput timing)")
     p.add_argument(
         "--batch-size", type=int, default=None, help="queries per batched call (test set repeated; default its size)"
     )
@@ -138,11 +149,38 @@ def main(argv: list[str] | None = None) -> int:
         "--clearance-mm",
         type=float,
         default=None,
-        help="collision margin: a pose collides closer than this to the needle or the other tool "
+        help="collision margin in [0, 1] mm: a pose collides closer than this to the needle or the other tool "
         "(default: the policy's own, 0 for the shipped ones)",
     )
+    p.add_argument(
+        "--noise-mm",
+        type=float,
+        default=0.0,
+        help="needle-estimate noise per camera frame, mm per axis (rotation 5 x as many degrees), in [0, 10]; "
+        "success and collisions are judged on the true needle",
+    )
+    p.add_argument(
+        "--bias-mm",
+        type=float,
+        default=0.0,
+        help="needle-estimate bias fixed per episode, mm (5 x as many degrees), in [0, 10]",
+    )
+    p.add_argument(
+        "--closed-loop",
+        action="store_true",
+        help="re-plan every step from the fused estimate (default with noise: plan once from one frame, open loop)",
+    )
+    p.add_argument("--per-frame", action="store_true", help="with --closed-loop: act on each frame alone, no fusing")
+    p.add_argument(
+        "--robustness",
+        action="store_true",
+        help="the robustness table: exact, noise 0.1/0.25/0.5 mm, bias 0.25 + noise 0.25 mm, margins 0.1/0.2 mm; "
+        "open loop, per-frame and fused closed loop",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the needle-estimate noise")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
+    _check_args(p, args)
     try:
         policy = load_policy(args.policy)
         if args.clearance_mm is not None:
@@ -151,8 +189,42 @@ def main(argv: list[str] | None = None) -> int:
     except (PolicyError, TestsetError, ConfigError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    name = args.policy or DEFAULT_POLICY.name
+    if args.robustness:
+        rows = robustness.table(policy, episodes, seed=args.seed, log=None if args.json else print)
+        if args.json:
+            print(
+                json.dumps(
+                    {
+                        "policy": name,
+                        "policy_hash": robustness.policy_hash(args.policy),
+                        "testset": args.testset,
+                        "rows": rows,
+                    }
+                )
+            )
+        else:
+            print(f"{name} on {args.testset}, shielded, judged on the true needle:")
+            print("\n".join(robustness.markdown(rows)))
+        return 0
+    if args.noise_mm or args.bias_mm or args.closed_loop:
+        mode = ("per-frame" if args.per_frame else "fused") if args.closed_loop else "open"
+        condition = robustness.Condition("given", args.noise_mm, args.bias_mm, policy.env_config.clearance_mm)
+        r = robustness.measure(policy, episodes, condition, mode, args.seed, shield=not args.no_shield)
+        r.update(policy=name, testset=args.testset)
+        if args.json:
+            print(json.dumps(r))
+        else:
+            print(
+                f"{name} on {args.testset} ({r['problems_valid']} of {r['problems']} problems keep the margin; {mode}, needle noise {r['sigma_mm']:g} mm, bias "
+                f"{r['bias_mm']:g} mm, clearance margin {r['clearance_mm']:g} mm, shield {'on' if r['shield'] else 'off'}; "
+                f"judged on the true needle)\n"
+                f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}"
+                f"  stopped short of the true goal {r['wrong_stop_rate']:.3f}"
+            )
+        return 0
     r = evaluate(policy, episodes, args.queries, args.repeats, args.batch_size, shield=not args.no_shield)
-    r["policy"] = str(args.policy or DEFAULT_POLICY)
+    r["policy"] = name
     r["clearance_mm"] = policy.env_config.clearance_mm
     r["testset"] = args.testset
     if args.json:

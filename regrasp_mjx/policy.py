@@ -12,6 +12,7 @@ import copy
 import dataclasses
 import functools
 import json
+import math
 import os
 import types
 import warnings
@@ -22,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx.config import env_config_from_dict
+from regrasp_mjx.config import ConfigError, env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE, unit_quaternions
 from regrasp_mjx.planner import PLANNERS, PlanArrays, make_planner, mean_action, members_apply
@@ -156,6 +157,10 @@ class Plan:
         return poses[: int(self.steps) + 1]
 
 
+# the closed loop's settings where a policy file names none (chosen for `student_v1` on validation)
+CLOSED_LOOP_STOP, CLOSED_LOOP_WARMUP = 0.7, 10
+
+
 @dataclasses.dataclass(frozen=True)
 class Policy:
     """A loaded policy: ``act(obs[..., 21]) -> action[..., 6]`` and ``plan`` (jitted, deterministic)."""
@@ -274,12 +279,12 @@ class Policy:
 
     # ---- closed loop ----------------------------------------------------------------------
     def _closed_loop(
-        self, kind: str, shield: bool, fused: bool = False, margin_mm: float = 0.0, stop: float = 1.0, warmup: int = 1
+        self, kind: str, shield: bool, frames: str = "fused", margin_mm: float = 0.0, stop: float = 1.0, warmup: int = 1
     ):
         from regrasp_mjx import closed_loop
         from regrasp_mjx.env import RegraspEnv
 
-        setting = (kind, shield, fused, margin_mm, stop, warmup)
+        setting = (kind, shield, frames, margin_mm, stop, warmup)
         if setting not in self._planners:
             key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
             key += setting
@@ -288,26 +293,29 @@ class Policy:
                 guard = RegraspEnv(dataclasses.replace(self.env_config, clearance_mm=margin_mm)) if margin_mm else env
                 apply = members_apply(tuple(self.contract["network"]["hidden"]))
                 PLANNERS[key] = (
-                    closed_loop.make_executor(env, apply, shield, fused, guard, stop, warmup)
+                    closed_loop.make_executor(env, apply, shield, frames, guard, stop, warmup)
                     if kind == "execute"
                     else closed_loop.make_stepper(guard, apply, shield, stop)
                 )
             self._planners[setting] = functools.partial(PLANNERS[key], self._weights)
         return self._planners[setting]
 
-    def _estimate_inputs(self, needle: Any, ee_name: str, ee: Any, goal: Any, goal_depth_mm: Any):
+    def _estimate_inputs(self, needle: Any, ee_name: str, ee: Any, goal: Any, task: dict[str, Any]):
         """Checked ``[B, 7]`` needle, end-effector and goal poses (the goal grasp on ``needle`` by
-        default) and whether one query was given, for the closed-loop entry points."""
+        default), each needle's radii ``[B, 2]`` (m) and whether one query was given, for the
+        closed-loop entry points; ``task``: :meth:`plan`'s goal-grasp and needle keywords."""
         needle, ee = check_poses("needle", needle), check_poses(ee_name, ee)
         single = needle.ndim == 1
         needle, ee = np.atleast_2d(needle), np.atleast_2d(ee)
-        if self.general:
-            raise PolicyError(
-                "the closed loop (execute, closed_loop_step) takes a paper-task policy; this one is general"
-            )
+        if needle.shape != ee.shape:
+            raise PoseError(f"needle {needle.shape} and {ee_name} {ee.shape} poses differ in batch size")
+        grasp, radii = self._task_inputs(len(needle), **task)
         if goal is None:
-            goal = self._default_goal(needle, *self._task_inputs(len(needle), goal_depth_mm=goal_depth_mm))
-        return needle, ee, np.atleast_2d(check_poses("goal", goal)), single
+            goal = self._default_goal(needle, grasp, radii)
+        goal = np.atleast_2d(check_poses("goal", goal))
+        if goal.shape != needle.shape:
+            raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
+        return needle, ee, goal, radii, single
 
     def closed_loop_step(
         self,
@@ -318,7 +326,8 @@ class Policy:
         t: int = 0,
         shield: bool = True,
         shield_margin_mm: float = 0.0,
-        stop_tolerance: float = 0.7,
+        stop_tolerance: float | None = None,
+        **task: Any,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One closed-loop step from the current estimates (e_g frame, 7-vectors or ``[B, 7]``): the
         latest (or fused) needle estimate and the regrasping end-effector's current pose. Returns
@@ -327,11 +336,16 @@ class Policy:
         ``ee``). ``t`` is the step index (it seeds the shield's alternatives, as in :meth:`plan`);
         the shield checks the alternatives against the estimated needle, keeping
         ``shield_margin_mm`` from it (room for the estimate's error). ``at_goal`` holds within
-        ``stop_tolerance`` of the success tolerances, as in :meth:`execute`."""
-        needle, ee, goal, single = self._estimate_inputs(needle, "ee", ee, goal, goal_depth_mm)
+        ``stop_tolerance`` of the success tolerances (None: the policy's own,
+        :attr:`closed_loop_defaults`), as in :meth:`execute`. ``task``: the goal grasp and needle
+        keywords of :meth:`plan` (``goal_alpha_rad``, ``needle_radius_mm``, ...)."""
+        stop_tolerance = self.closed_loop_defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
+        needle, ee, goal, radii, single = self._estimate_inputs(
+            needle, "ee", ee, goal, {"goal_depth_mm": goal_depth_mm, **task}
+        )
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
         step = self._closed_loop("step", shield, margin_mm=float(shield_margin_mm), stop=float(stop_tolerance))
-        a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t)))
+        a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii)))
         a, nxt, done = np.asarray(a, np.float64), np.asarray(nxt, np.float64), np.asarray(done)
         return (a[0], nxt[0], done[0]) if single else (a, nxt, done)
 
@@ -341,37 +355,64 @@ class Policy:
         start: Any,
         goal: Any = None,
         noise: Any = None,
-        fuse: bool = True,
+        frames: str = "fused",
         shield: bool = True,
         seed: int = 0,
         goal_depth_mm: Any = None,
         shield_margin_mm: float = 0.0,
-        stop_tolerance: float = 0.7,
-        warmup_frames: int = 10,
+        stop_tolerance: float | None = None,
+        warmup_frames: int | None = None,
+        **task: Any,
     ) -> dict[str, np.ndarray]:
-        """Simulates the closed loop (:mod:`regrasp_mjx.closed_loop`) on true needle, start and goal
-        poses ``[B, 7]`` (e_g frame): each step a new noisy needle estimate (``noise``, a
-        :class:`~regrasp_mjx.closed_loop.NeedleNoise`; default none), fused over the frames so far
-        with ``fuse``, the policy acting on it, stopping when the estimate says the goal is reached;
-        success and collisions judged on the true needle. ``shield_margin_mm``: the shield keeps
-        this clearance from the estimated needle (room for the estimate's error);
-        ``stop_tolerance``: stop when the estimate is within this fraction of the success
-        tolerances (below 1: room for the estimate's error at the goal); ``warmup_frames``: with
-        ``fuse``, frames fused before the first step (the tool holds still meanwhile). The defaults
-        (fused, 10 frames, 0.7) were chosen on validation problems of their own seed
-        (experiments/closed_loop_select.py); ``fuse=False, stop_tolerance=1`` with no noise
-        reproduces :meth:`plan` exactly. Returns numpy arrays per row:
-        ``success``, ``collision``, ``time_out``, ``stopped``, ``steps``, ``start_valid``, ``poses``."""
-        from regrasp_mjx.closed_loop import NeedleNoise
+        """Simulates regrasping under needle-pose noise (:mod:`regrasp_mjx.closed_loop`) on true
+        needle, start and goal poses ``[B, 7]`` (e_g frame): each step the policy acts on an
+        estimate of the needle (``noise``, a :class:`~regrasp_mjx.closed_loop.NeedleNoise`; default
+        none) and stops when the estimate says the goal is reached; success and collisions are
+        judged on the true needle. ``frames``: ``"fused"`` (the mean of the frames so far, the
+        default), ``"each"`` (that step's frame alone) or ``"one"`` (the first frame for the whole
+        episode: a plan made once, executed open loop). ``shield_margin_mm``: the shield keeps this
+        clearance from the estimated needle (room for the estimate's error); ``stop_tolerance``:
+        stop when the estimate is within this fraction of the success tolerances (below 1: room
+        for the estimate's error at the goal); ``warmup_frames``: with ``"fused"``, frames fused
+        before the first step (the tool holds still meanwhile). Their defaults (None) are the
+        policy's own (:attr:`closed_loop_defaults`: chosen for it on validation problems of their
+        own seed by experiments/closed_loop_select.py; 10 frames and 0.7 where its file names
+        none); ``frames="one", stop_tolerance=1`` with no noise
+        reproduces :meth:`plan` exactly. ``task``: the goal grasp and needle keywords of
+        :meth:`plan` (a general policy's ranges). Returns numpy arrays per row: ``success``,
+        ``collision``, ``time_out``, ``stopped``, ``steps``, ``start_valid``, ``poses``."""
+        from regrasp_mjx.closed_loop import FRAMES, NeedleNoise
 
         noise = NeedleNoise() if noise is None else noise
-        needle, start, goal, _ = self._estimate_inputs(needle, "start", start, goal, goal_depth_mm)
-        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
-        run = self._closed_loop(
-            "execute", shield, bool(fuse), float(shield_margin_mm), float(stop_tolerance), int(warmup_frames)
+        defaults = self.closed_loop_defaults
+        stop_tolerance = defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
+        warmup_frames = defaults["warmup_frames"] if warmup_frames is None else warmup_frames
+        if frames not in FRAMES:
+            raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
+        if not (isinstance(warmup_frames, int) and warmup_frames >= 1):
+            raise ConfigError(f"warmup_frames={warmup_frames!r} is not accepted: an integer >= 1")
+        if not (math.isfinite(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
+            raise ConfigError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
+        needle, start, goal, radii, _ = self._estimate_inputs(
+            needle, "start", start, goal, {"goal_depth_mm": goal_depth_mm, **task}
         )
-        out = run(f32(needle), f32(start), f32(goal), jax.random.PRNGKey(seed), f32(noise.sigma_mm), f32(noise.bias_mm))
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+        warmup = int(warmup_frames) if frames == "fused" else 1
+        run = self._closed_loop("execute", shield, frames, float(shield_margin_mm), float(stop_tolerance), warmup)
+        key = jax.random.PRNGKey(seed)
+        out = run(f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii))
         return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
+
+    @property
+    def closed_loop_defaults(self) -> dict[str, Any]:
+        """The closed loop's settings for this policy (:meth:`execute`, :meth:`closed_loop_step`):
+        ``stop_tolerance`` and ``warmup_frames`` from its file's ``closed_loop`` entry (chosen for
+        it on validation problems), else 0.7 and 10 (chosen so for an earlier default)."""
+        given = self.contract.get("closed_loop") or {}
+        return {
+            "stop_tolerance": float(given.get("stop_tolerance", CLOSED_LOOP_STOP)),
+            "warmup_frames": int(given.get("warmup_frames", CLOSED_LOOP_WARMUP)),
+        }
 
     @property
     def general(self) -> bool:

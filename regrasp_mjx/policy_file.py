@@ -145,7 +145,8 @@ def resolve(path: str | os.PathLike | None) -> Path:
     if isinstance(path, str) and path in shipped_policies() and not Path(path).exists():
         return SHIPPED / path
     path = Path(path)
-    return path if path.is_dir() else path.parent
+    # a policy.json or policy.npz names its folder; anything else is taken as the folder itself
+    return path.parent if path.name in ("policy.json", "policy.npz") else path
 
 
 def read_policy(path: str | os.PathLike | None = None) -> tuple[dict[str, Any], Any, Any]:
@@ -154,6 +155,11 @@ def read_policy(path: str | os.PathLike | None = None) -> tuple[dict[str, Any], 
     :class:`PolicyError` says what is wrong."""
     folder = resolve(path)
     js, npz = folder / "policy.json", folder / "policy.npz"
+    if not folder.is_dir():
+        given = str(path)
+        named = os.sep not in given and "." not in given  # a bare word: meant as a shipped name
+        what = f"no shipped policy is named {given!r}" if named else f"policy folder not found: {given}"
+        raise PolicyError(f"{what}; accepted: a shipped name ({', '.join(shipped_policies())}) or a policy folder")
     for f in (js, npz):
         if not f.is_file():
             raise PolicyError(f"policy file not found: {f}")

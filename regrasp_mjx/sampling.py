@@ -31,6 +31,7 @@ PAPER300 = Path(__file__).resolve().parent / "data" / "paper300.npz"
 # The general task's test set (issue 15): 1000 problems from config.GENERAL_TASK's full ranges, seed 2026,
 # `python -m regrasp_mjx.testset --task general --n 1000 --seed 2026` (experiments/testsets links to it).
 GENERAL1000 = Path(__file__).resolve().parent / "data" / "general1000.npz"
+TESTSETS = {"paper300": PAPER300, "general1000": GENERAL1000}  # the shipped test sets, by name
 
 TESTSET_FORMAT = "regrasp_mjx.testset"
 TESTSET_VERSION = 1
@@ -262,8 +263,35 @@ def save_testset(path: str | os.PathLike, episodes: Episode, meta: dict[str, Any
     return path
 
 
+def episode_poses(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Needle, start and goal poses ``[N, 7]`` of test-set rows (the inputs of ``Policy.plan``)."""
+    cat = lambda p, q: np.concatenate([p, q], axis=1)  # noqa: E731
+    return (
+        cat(ep.needle_pos, ep.needle_quat),
+        cat(ep.start_pos, ep.start_quat),
+        cat(ep.goal_pos, ep.goal_quat),
+    )
+
+
+def episode_needles(ep) -> dict[str, np.ndarray]:
+    """The needles of test-set rows as ``Policy.plan`` takes them (``needle_radius_mm``, ``wire_radius_mm``)."""
+    return {
+        "needle_radius_mm": np.asarray(ep.needle_radius, np.float64) * 1e3,
+        "wire_radius_mm": np.asarray(ep.wire_radius, np.float64) * 1e3,
+    }
+
+
+def testset_path(name_or_path: str | os.PathLike) -> Path:
+    """The file of a shipped test set named in :data:`TESTSETS` (a name that is no existing path),
+    else ``name_or_path``."""
+    if str(name_or_path) in TESTSETS and not Path(name_or_path).exists():
+        return TESTSETS[str(name_or_path)]
+    return Path(name_or_path)
+
+
 def load_testset(path: str | os.PathLike) -> tuple[Episode, dict[str, Any]]:
-    """Reads and validates a test-set file written by :func:`save_testset`.
+    """Reads and validates a test-set file written by :func:`save_testset`, or a shipped one by
+    name (:data:`TESTSETS`: ``paper300``, ``general1000``).
 
     Returns:
       ``(episodes, meta)``: numpy arrays (float64) with a leading row axis, and the JSON metadata.
@@ -272,13 +300,20 @@ def load_testset(path: str | os.PathLike) -> tuple[Episode, dict[str, Any]]:
       TestsetError: missing file, missing keys, wrong shapes, NaN/inf, non-unit quaternions
         (beyond ``geometry.QUAT_NORM_TOLERANCE``; within it they are normalised).
     """
-    path = Path(path)
+    path = testset_path(path)
     if not path.is_file():
-        raise TestsetError(f"test-set file not found: {path} (make one with `python -m regrasp_mjx.testset`)")
+        raise TestsetError(
+            f"test-set file not found: {path}; accepted: a shipped name ({', '.join(TESTSETS)}) or an .npz "
+            "file (make one with `python -m regrasp_mjx.testset`)"
+        )
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic[:2] != b"PK":  # np.load would read other files as pickles and blame that
+        raise TestsetError(f"{path} is not an .npz test-set file (it does not start as a zip archive does)")
     try:
         with np.load(path, allow_pickle=False) as f:
             data = {k: f[k] for k in f.files}
-    except Exception as err:  # zip, header or pickle errors all mean the same to the user
+    except Exception as err:  # zip or header errors all mean the same to the user
         raise TestsetError(f"{path} is not a readable .npz test-set file: {err}") from err
     if "meta" in data and "goal_depth" in data:
         _fill_added_fields(data, path)

@@ -101,7 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--process-id", type=int, default=None, help="this process's index, 0..N-1 (with --coordinator)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint")
     p.add_argument("--demos", default=None, help="a demonstration folder (default: build OUT/demos)")
-    p.add_argument("--testset", default=str(DEFAULT_TESTSET), help="evaluation test set (.npz)")
+    p.add_argument(
+        "--testset", default=str(DEFAULT_TESTSET), help="evaluation test set: paper300, general1000 or an .npz file"
+    )
     p.add_argument(
         "--set",
         action="append",

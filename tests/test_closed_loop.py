@@ -28,7 +28,7 @@ def test_zero_noise_closed_loop_equals_plan(policy, paper_testset):
     episodes, _ = paper_testset
     needle, start, goal = (x[:24] for x in episode_poses(episodes))
     plan = policy.plan(needle, start, goal, check_grasp=False)
-    run = policy.execute(needle, start, goal, fuse=False, warmup_frames=1, stop_tolerance=1.0)
+    run = policy.execute(needle, start, goal, frames="one", warmup_frames=1, stop_tolerance=1.0)
     np.testing.assert_array_equal(run["success"], plan.success)
     np.testing.assert_array_equal(run["steps"], plan.steps)
     np.testing.assert_allclose(run["poses"], plan.poses, atol=1e-5)
@@ -66,5 +66,5 @@ def test_stopping_uses_only_the_estimate(policy, paper_testset):
     assert not at_goal and np.abs(action).max() > 0 and not np.array_equal(nxt, goal)
     # In simulation, a stop on a biased estimate is judged on the true needle.
     needle, start, goal = (x[:16] for x in episode_poses(episodes))
-    run = policy.execute(needle, start, goal, NeedleNoise(0.0, 1.5), fuse=False, warmup_frames=1, stop_tolerance=1.0)
+    run = policy.execute(needle, start, goal, NeedleNoise(0.0, 1.5), frames="each", warmup_frames=1, stop_tolerance=1.0)
     assert (run["success"] <= run["stopped"]).all() and (run["stopped"] & ~run["success"]).any()

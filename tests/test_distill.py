@@ -84,3 +84,29 @@ def test_distill_config_errors():
     assert DistillConfig(iterations=0).iterations == 0  # a training config without the stage
     with pytest.raises(ConfigError, match="at least 1"):
         Distiller(RegraspEnv(), lambda obs: [obs[..., :6]], DistillConfig(iterations=0))
+
+
+def test_noisy_distillation_labels_true_states_for_noisy_observations(setup):
+    """Under needle noise the student's rollouts act on, and the buffer stores, observations of an
+    estimate; noise-free the stored observations are the true ones."""
+    teacher, env, _ = setup
+    # 16 problems visit at most 16 x 100 states: 1600 label slots store every visited state
+    kw = dict(hidden=(32,), iterations=1, problems=16, label_states=1600, updates=2, batch_size=32, lookahead=5)
+    for noise in (0.0, 0.5):
+        distiller = Distiller(env, teacher.members_fn(), DistillConfig(**kw, obs_noise_mm=noise, obs_bias_mm=noise))
+        ds0 = distiller.init()
+        k_reset = jax.random.split(ds0.key, 5)[1]  # as the iteration draws its problems
+        start = np.asarray(jax.vmap(env.reset)(jax.random.split(k_reset, 16)).obs)
+        ds, m = distiller.iteration(ds0, True)
+        assert float(m["states_labelled"]) > 0 and distiller.noisy == (noise > 0)
+        stored = np.asarray(ds.buffer.experience["obs"][0, : int(m["states_labelled"])])
+        found = np.isclose(start[:, None, :], stored[None, :, :], atol=1e-6).all(-1).any(1)  # [16]
+        # noise-free every start is stored as it is; noisy none is (its needle columns are the estimate's) ...
+        assert found.all() if noise == 0 else not found.any()
+        if noise:  # ... while its tool columns (the e_g frame's other tool) are the truth's
+            tools = np.isclose(start[:, None, 7:14], stored[None, :, 7:14], atol=1e-6).all(-1).any(1)
+            assert tools.all()
+    with pytest.raises(ConfigError, match=r"distill.obs_noise_mm=-1 is not accepted"):
+        DistillConfig(obs_noise_mm=-1)
+    with pytest.raises(ConfigError, match=r"distill.goal_tolerance=0 is not accepted"):
+        DistillConfig(goal_tolerance=0)

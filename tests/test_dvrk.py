@@ -78,3 +78,82 @@ def test_roll_follows_the_reference_and_trajectories_stay_continuous():
     assert traj.all_reachable
     np.testing.assert_allclose(traj.q[0], [0, 0, 0.12 - dvrk.PITCH_FROM_RCM, 0, 0, 0], atol=1e-9)  # neutral
     assert np.all(np.abs(np.diff(traj.q, axis=0)).max(0) < 0.02)
+
+
+def _quat(m):
+    """wxyz of a rotation matrix (for the JAX check's inputs)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(m).as_quat()[..., [3, 0, 1, 2]]
+
+
+def _edge_joints():
+    """The limits' edges: insertion at its minimum, 0.1 mm, the pitch axis at the RCM, its maximum;
+    outer pitch, wrist pitch and wrist yaw at their limits; roll at +-260 degrees."""
+    base = np.array([0.2, -0.1, 0.1, 0.3, 0.2, -0.3])
+    edges = []
+    for i, values in (
+        (2, [dvrk.Q_MIN[2], 1e-4, -dvrk.PITCH_FROM_RCM, dvrk.Q_MAX[2]]),
+        (1, [dvrk.Q_MIN[1], dvrk.Q_MAX[1]]),
+        (4, [dvrk.Q_MIN[4], dvrk.Q_MAX[4]]),
+        (5, [dvrk.Q_MIN[5], dvrk.Q_MAX[5]]),
+        (3, [dvrk.Q_MIN[3], dvrk.Q_MAX[3]]),
+    ):
+        for v in values:
+            for q3 in (0.0, 1e-4, 0.01, 0.12):  # every edge also at small insertions
+                q = base.copy()
+                q[2] = q3
+                q[i] = v
+                edges.append(q)
+    return np.array(edges)
+
+
+def test_ik_round_trip_over_the_whole_insertion_range_and_the_jax_verdict_agrees():
+    """FK -> IK -> FK for 10,000 joint vectors drawn within the json's limits and the edges: every
+    residual below 1e-6 m / 1e-5 rad, every verdict reachable, on both sides of the pitch axis
+    crossing the RCM (insertion 15.6 mm); the jitted check used by the shield says the same."""
+    import jax
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(7)
+    qs = np.concatenate([rng.uniform(dvrk.Q_MIN, dvrk.Q_MAX, size=(10_000, 6)), _edge_joints()])
+    assert (qs[:, 2] < -dvrk.PITCH_FROM_RCM).sum() > 500  # the pitch axis behind the RCM is well covered
+    poses = np.array([dvrk.forward_kinematics(q) for q in qs])
+    for q, pose in zip(qs, poses):
+        r = dvrk.inverse_kinematics(pose, q_ref=q)
+        assert r.position_error < 1e-6 and r.rotation_error < 1e-5, (q, r)
+        assert r.reachable and r.violations == (), q
+        np.testing.assert_allclose(dvrk.forward_kinematics(r.q), pose, atol=1e-9)
+    check = jax.jit(jax.vmap(dvrk.within_limits_jax, in_axes=(None, 0, 0)))
+    verdict = np.asarray(
+        check(jnp.eye(4), jnp.asarray(poses[:, :3, 3], jnp.float32), jnp.asarray(_quat(poses[:, :3, :3]), jnp.float32))
+    )
+    assert verdict.all()
+
+
+def test_poses_out_of_reach_are_refused_by_both_checks():
+    import jax
+    import jax.numpy as jnp
+
+    qs = np.array(
+        [
+            [0.3, 0.2, 0.1, 0.4, 1.5, -0.2],  # wrist pitch 86 degrees: beyond the LND's 80
+            [0.0, 0.0, 0.30, 0.0, 0.0, 0.0],  # inserted 300 mm: beyond the 240 mm stroke
+            [0.1, 0.0, 0.05, 0.0, 0.0, 1.45],  # wrist yaw beyond its limit
+            [0.1, 1.0, 0.05, 0.0, 0.0, 0.0],  # outer pitch 57 degrees: beyond 53
+        ]
+    )
+    poses = np.array([dvrk.forward_kinematics(q) for q in qs])
+    for pose in poses:
+        r = dvrk.inverse_kinematics(pose)
+        assert not r.reachable and r.violations and r.position_error < 1e-9
+    check = jax.vmap(dvrk.within_limits_jax, in_axes=(None, 0, 0))
+    verdict = check(
+        jnp.eye(4), jnp.asarray(poses[:, :3, 3], jnp.float32), jnp.asarray(_quat(poses[:, :3, :3]), jnp.float32)
+    )
+    assert not np.asarray(verdict).any()
+    # a pose the arm cannot realise at all (the wrist link cannot span it): a residual, not reachable
+    far = dvrk.forward_kinematics(np.array([0.0, 0.0, 0.1, 0.0, 0.0, 0.0]))
+    far[:3, 3] += [0.0, 0.0, 0.001]  # the tip moved along the shaft but the wrist kept: no joints do this
+    r = dvrk.inverse_kinematics(far @ np.diag([1.0, 1.0, 1.0, 1.0]))
+    assert r.reachable == (r.position_error < dvrk.IK_POSITION_TOLERANCE)

@@ -32,6 +32,7 @@ from brax.training.acme import running_statistics, specs
 from flax import struct
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
+from regrasp_mjx.closed_loop import noisy_observation
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.rollout import rollout
@@ -57,6 +58,16 @@ class DistillConfig:
       lookahead: steps of the teacher's rollouts that judge an action.
       correction_weight: loss weight of states where the teacher overrides its policy (1 = plain MSE).
       seed: PRNG seed; validation_size: problems (of their own seed) that pick the exported iteration.
+      obs_noise_mm, obs_bias_mm: needle-pose noise the student learns to act under (0 = off): its
+        rollouts act on, and the buffer stores, observations of a needle estimate
+        (:func:`regrasp_mjx.closed_loop.noisy_observation`: a new frame each step, sigma drawn per
+        problem from U[0, obs_noise_mm], a bias of U[0, obs_bias_mm] fixed per episode), while the
+        teacher labels the true state (privileged: it sees the needle exactly). With noise the
+        exported iteration is the one best on validation problems under the same noise.
+      goal_tolerance: the student learns to reach the goal within this fraction of the success
+        tolerances (the teacher's lookahead and the rollouts end there; ours: below 1 it aims deeper
+        into the goal, where a closed loop that stops inside 0.7 of the tolerances on a noisy
+        estimate goes on acting); its policy file keeps the task's own tolerances.
     """
 
     hidden: tuple[int, ...] = (256, 256, 256)
@@ -72,8 +83,17 @@ class DistillConfig:
     correction_weight: float = 1.0
     seed: int = 0
     validation_size: int = 1000
+    obs_noise_mm: float = 0.0
+    obs_bias_mm: float = 0.0
+    goal_tolerance: float = 1.0
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.goal_tolerance, (int, float)) and 0.1 <= self.goal_tolerance <= 1.0):
+            raise ConfigError(f"distill.goal_tolerance={self.goal_tolerance!r} is not accepted: a fraction in [0.1, 1]")
+        for name in ("obs_noise_mm", "obs_bias_mm"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 <= v <= 5):
+                raise ConfigError(f"distill.{name}={v!r} is not accepted: a noise level in [0, 5] mm")
         if not (isinstance(self.iterations, int) and self.iterations >= 0):
             raise ConfigError(f"distill.iterations={self.iterations!r} is not accepted: an integer >= 0")
         for name in ("problems", "label_states", "updates", "batch_size", "buffer_size", "lookahead"):
@@ -137,6 +157,7 @@ class Distiller:
         if config.iterations < 1:
             raise ConfigError(f"distill.iterations={config.iterations} is not accepted here: at least 1")
         self.env, self.members, self.config = env, members, config
+        self.noisy = config.obs_noise_mm > 0 or config.obs_bias_mm > 0
         self.nets = make_networks(env.action_size, config.hidden)
         total = config.iterations * config.updates
         lr = optax.cosine_decay_schedule(config.lr, decay_steps=total, alpha=config.lr_decay_to)
@@ -178,23 +199,35 @@ class Distiller:
                 return sum(own) / len(own)
             return self.act(ds, obs)
 
-        # the rollout keeps each visited state: time-major [horizon, problems], live rows before their end
-        roll = rollout(env, lambda state, t: policy(state.obs), first, trace=lambda state, a, nxt: state)
-        visited = roll.trace
+        if self.noisy:  # each problem's noise level, bias and frames (folded off: noise-free runs keep their streams)
+            k_rows, k_sigma, k_bias = jax.random.split(jax.random.fold_in(ds.key, 17), 3)
+            rows = jax.random.split(k_rows, cfg.problems)
+            sigma = jax.random.uniform(k_sigma, (cfg.problems,), maxval=cfg.obs_noise_mm)
+            bias = jax.random.uniform(k_bias, (cfg.problems,), maxval=cfg.obs_bias_mm)
+            seen = lambda state: noisy_observation(env, state.pipeline_state, rows, sigma, bias)  # noqa: E731
+        else:
+            seen = lambda state: state.obs  # noqa: E731
+
+        # the rollout keeps each visited state and what the student saw there: time-major
+        # [horizon, problems], live rows before their end
+        roll = rollout(
+            env, lambda state, t: policy(seen(state)), first, trace=lambda state, a, nxt: (state, seen(state))
+        )
+        visited, seen_obs = roll.trace
         live = jnp.arange(horizon)[:, None] < (roll.steps * roll.start_valid)[None, :]
-        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), visited)
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), (visited, seen_obs))
         live = live.reshape(-1)
         # label_states slots: the visited states first (in random order), then unvisited ones, weight 0
         order = jax.random.permutation(k_order, live.shape[0])
         order = order[jnp.argsort(~live[order], stable=True)][: cfg.label_states]
-        states = jax.tree.map(lambda x: x[order], flat)
+        states, obs = jax.tree.map(lambda x: x[order], flat)
         valid = live[order].astype(jnp.float32)
         labels, overridden, reaches = teacher_actions(env, self.members, states, k_label, cfg.lookahead)
         weight = valid * jnp.where(overridden, cfg.correction_weight, 1.0)
         normalizer = ds.normalizer
         if teacher_rollout:  # the first iteration fixes the student's normaliser
-            normalizer = running_statistics.update(normalizer, states.obs, weights=valid)
-        buffer = self.buffer.add(ds.buffer, {"obs": states.obs, "action": labels, "weight": weight})
+            normalizer = running_statistics.update(normalizer, obs, weights=valid)
+        buffer = self.buffer.add(ds.buffer, {"obs": obs, "action": labels, "weight": weight})
         ds = ds.replace(normalizer=normalizer, buffer=buffer, key=key)
 
         def update(ds, k):

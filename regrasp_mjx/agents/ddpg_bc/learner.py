@@ -323,7 +323,7 @@ class Learner:
             needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
             biased = jax.vmap(closed_loop.episode_bias)(jax.random.split(k_bias, n), needle, bias)
             seen = jax.vmap(closed_loop.frame_estimate)(jax.random.split(k, n), biased, sigma)
-            return jax.vmap(env.observe)(es.replace(needle_pos=seen[:, :3], needle_quat=seen[:, 3:]))
+            return jax.vmap(env.observe)(closed_loop.seen_from(es, seen))
 
         def step(carry, k):
             state, outcome = carry
