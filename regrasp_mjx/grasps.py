@@ -86,11 +86,21 @@ class GraspLibrary:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--n", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=7)
-    p.add_argument("--out", default=str(DEFAULT_LIBRARY))
+    p = argparse.ArgumentParser(prog="python -m regrasp_mjx.grasps", description=__doc__.splitlines()[0])
+    p.add_argument("--n", type=int, default=1000, help="needle poses of valid grasps (default 1000)")
+    p.add_argument("--seed", type=int, default=7, help="PRNG seed (the shipped library: 7)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help=f"output .npz (the shipped library is {DEFAULT_LIBRARY.relative_to(DEFAULT_LIBRARY.parents[2])}; "
+        "name it to replace it)",
+    )
     args = p.parse_args(argv)
+    if args.n < 1:
+        p.error(f"--n {args.n} is not accepted: an integer >= 1")
+    out = Path(args.out)
+    if out.exists() and not out.is_file() or not out.parent.is_dir():
+        p.error(f"--out {out} is not accepted: a file path in an existing folder")
     lib = GraspLibrary.make(args.n, args.seed)
     lib.save(args.out)
     fresh = GraspLibrary.make(1000, args.seed + 1)  # how far new draws lie from the library

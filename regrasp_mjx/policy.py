@@ -149,6 +149,12 @@ class Plan:
     joints: Any = None
     grasping_joints: Any = None
 
+    def __repr__(self) -> str:
+        ok = np.atleast_1d(self.success)
+        if ok.size == 1 and np.ndim(self.success) == 0:
+            return f"Plan(success={bool(self.success)}, steps={int(self.steps)}, path_length_mm={float(self.path_length_mm):.2f})"
+        return f"Plan({ok.size} queries: success {ok.mean():.3f}, collision {np.mean(self.collision):.3f})"
+
     def trajectory(self, frame: str = "eg") -> np.ndarray:
         """The valid poses of a single plan (``steps + 1`` rows), in ``eg`` or ``camera`` frame."""
         poses = self.poses if frame == "eg" else self.poses_camera
@@ -156,6 +162,8 @@ class Plan:
             raise ValueError(f"trajectory() takes one plan with {frame} poses; index a batch first")
         return poses[: int(self.steps) + 1]
 
+
+START_WARN_MM = 60.0  # a start this far from its needle is no regrasping problem we trained on
 
 # the closed loop's settings where a policy file names none (chosen for `student_v1` on validation)
 CLOSED_LOOP_STOP, CLOSED_LOOP_WARMUP = 0.7, 10
@@ -190,6 +198,11 @@ class Policy:
         object.__setattr__(self, "_actor", act)
         object.__setattr__(self, "_act", jax.jit(act))
         object.__setattr__(self, "_planners", {})  # (camera, shield) -> the shared program, weights bound
+
+    def __repr__(self) -> str:
+        net = "x".join(str(h) for h in self.contract["network"]["hidden"])
+        ens = f"{self.members} x " if self.members > 1 else ""
+        return f"Policy({ens}{net}, {self.obs_size} inputs, {'general' if self.general else 'paper'} task)"
 
     @property
     def members(self) -> int:
@@ -539,6 +552,7 @@ class Policy:
         if goal.shape != needle.shape:
             raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
         nearest = self._check_grasp(needle) if check_grasp and not self.general else None
+        _check_start_distance(needle, start)
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
         out = self._planner(False, shield)(f32(needle), f32(start), f32(goal), f32(radii))
         return self._finish(out, single, nearest)
@@ -635,6 +649,19 @@ class Policy:
                 stacklevel=3,
             )
         return dist
+
+
+def _check_start_distance(needle: np.ndarray, start: np.ndarray) -> None:
+    """Warns about starts implausibly far from their needle (e.g. given in millimetres, not metres):
+    every trained start lies within about 30 mm of it."""
+    dist = np.linalg.norm(start[:, :3] - needle[:, :3], axis=1) * 1e3
+    far = dist > START_WARN_MM
+    if np.any(far):
+        warnings.warn(
+            f"start {int(np.argmax(far))} is {float(dist[far][0]):.4g} mm from its needle (beyond {START_WARN_MM:g} mm, "
+            "where no start was trained): poses are in metres; check the units and the frame",
+            stacklevel=3,
+        )
 
 
 def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:

@@ -92,8 +92,12 @@ def train_args(args: argparse.Namespace, point: dict[str, Any], out: Path) -> li
 
 def command(folder: Path, argv: list[str]) -> list[str]:
     """The process that trains one point: resuming from its checkpoint when it has one."""
-    resume = ["--resume"] if status(folder) == "resume" else []
-    return [sys.executable, "-m", "regrasp_mjx.train", *argv, *resume]
+    from regrasp_mjx.train import run_outputs  # noqa: PLC0415 - the CLI module, imported only to build a command
+
+    state = status(folder)
+    # a point that never reached a checkpoint starts anew: its partial outputs are cleared
+    again = ["--resume"] if state == "resume" else (["--overwrite"] if run_outputs(folder) else [])
+    return [sys.executable, "-m", "regrasp_mjx.train", *argv, *again]
 
 
 def status(folder: Path) -> str:

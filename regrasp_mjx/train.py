@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import warnings
 from pathlib import Path
@@ -34,6 +35,48 @@ from regrasp_mjx.sampling import TestsetError
 from regrasp_mjx.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run
 
 __all__ = ["DEFAULT_TESTSET", "VALIDATION_SEED", "Run", "main"]
+
+
+# what a training run writes into OUT (besides files of others, e.g. a sweep's stdout)
+RUN_OUTPUTS = ("log.jsonl", "checkpoint", "policy", "policy_last", "final_eval.json", "demos", "student")
+
+
+def run_outputs(out: Path) -> list[Path]:
+    """An earlier run's outputs in ``out``: its files and folders, its seeds' and settings' folders
+    (those holding ``seed*``) and its TensorBoard files."""
+    if not out.is_dir():
+        return []
+    found = []
+    for entry in sorted(out.iterdir()):
+        name = entry.name
+        if (
+            name in RUN_OUTPUTS
+            or name.startswith(("seed", "events.out.tfevents"))
+            or (entry.is_dir() and any(entry.glob("seed*")))
+        ):
+            found.append(entry)
+    return found
+
+
+def check_out(out: Path, resume: bool, overwrite: bool) -> str | None:
+    """Why ``out`` cannot take this run (None when it can); checked before any work."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out} is a file; accepted: a folder (new, empty or an earlier run's with --resume)"
+    parent = next((p for p in (out, *out.parents) if p.exists()), Path("."))
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        return f"--out {out}: {parent} is not a writable folder; accepted: a folder this user can write"
+    if resume and overwrite:
+        return "--resume and --overwrite are not accepted together: continue the run or clear it"
+    if resume and not (out / "checkpoint" / "meta.json").is_file():
+        return f"--resume: {out / 'checkpoint'} holds no checkpoint; accepted: a run folder with one (drop --resume to start anew)"
+    earlier = run_outputs(out)
+    if earlier and not resume and not overwrite:
+        names = ", ".join(e.name for e in earlier[:5]) + (", ..." if len(earlier) > 5 else "")
+        return (
+            f"--out {out} holds an earlier run ({names}); accepted: --resume to continue it, --overwrite to clear "
+            "it and start anew, or another --out"
+        )
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -100,6 +143,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--num-processes", type=int, default=None, help="processes in the run (with --coordinator)")
     p.add_argument("--process-id", type=int, default=None, help="this process's index, 0..N-1 (with --coordinator)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint")
+    p.add_argument(
+        "--overwrite", action="store_true", help="clear an earlier run's outputs in OUT first (default: refuse them)"
+    )
     p.add_argument("--demos", default=None, help="a demonstration folder (default: build OUT/demos)")
     p.add_argument(
         "--testset", default=str(DEFAULT_TESTSET), help="evaluation test set: paper300, general1000 or an .npz file"
@@ -113,6 +159,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    out = Path(args.out)
+    problem = check_out(out, args.resume, args.overwrite)
+    if problem:
+        p.error(problem)
     try:
         overrides = parse_overrides(args.set)
         if args.seed is not None:
@@ -131,7 +181,9 @@ def main(argv: list[str] | None = None) -> int:
             distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         if args.grow_batch:
             cfg = grow_with_devices(cfg, cfg.devices or len(jax.devices()))
-        out = Path(args.out)
+        if args.overwrite and distributed.is_main():
+            for entry in run_outputs(out):
+                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
         out.mkdir(parents=True, exist_ok=True)
         if jax.default_backend() == "cpu" and args.preset != "smoke":
             warnings.warn("training on the CPU: no GPU is visible to JAX; this preset expects one", stacklevel=1)

@@ -16,6 +16,7 @@ import json
 import math
 import os
 import time
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -181,6 +182,8 @@ class Run:
             ts = learner.place(ts)
             self.log(f"resumed from {self.ckpt} at epoch {meta['epoch']}")
             self._truncate_log(meta["epoch"])
+        # one id per run, kept across resumes (a checkpoint from before run ids gets one now)
+        meta.setdefault("run_id", uuid.uuid4().hex[:12])
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
         # numpy, not device arrays: in a distributed run a host value given to a jitted program is
@@ -237,6 +240,7 @@ class Run:
                 for m in range(seeds):
                     rows.append(
                         {
+                            "run_id": meta["run_id"],
                             "epoch": epoch + 1,
                             "setting": cfg.member_setting(m)[0] or None,
                             "seed": cfg.member_seed(m),

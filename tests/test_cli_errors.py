@@ -1,0 +1,77 @@
+"""Bad input to the training CLI: one line naming the value and what is accepted, exit code 2, no
+traceback, nothing on disk changed; a finished run is never mixed with a new one."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from regrasp_mjx import train
+
+
+def _tree(folder: Path) -> dict[str, float]:
+    return {str(p.relative_to(folder)): p.stat().st_mtime for p in sorted(folder.rglob("*"))}
+
+
+@pytest.fixture()
+def workdir(tmp_path):
+    (tmp_path / "afile").write_text("not a folder\n")
+    run = tmp_path / "done"
+    (run / "seed0").mkdir(parents=True)
+    (run / "log.jsonl").write_text(json.dumps({"epoch": 1}) + "\n")
+    return tmp_path
+
+
+CASES = [
+    (["--out", "{w}/afile"], "is a file; accepted: a folder"),
+    (["--out", "{w}/afile/sub"], "is not a writable folder"),
+    (["--out", "{w}/new", "--resume"], "holds no checkpoint; accepted: a run folder with one"),
+    (["--out", "{w}/done"], "holds an earlier run (log.jsonl, seed0); accepted: --resume to continue it, --overwrite"),
+    (["--out", "{w}/done", "--resume"], "holds no checkpoint"),
+    (["--out", "{w}/x", "--resume", "--overwrite"], "--resume and --overwrite are not accepted together"),
+    (["--out", "{w}/x", "--preset", "huge"], "argument --preset: invalid choice: 'huge'"),
+    (["--out", "{w}/x", "--set", "num_envs=0"], "num_envs=0 is not accepted: an integer >= 1"),
+    (["--out", "{w}/x", "--set", "obs_noise_mm=-1"], "obs_noise_mm=-1 is not accepted"),
+    (["--out", "{w}/x", "--set", "distill.goal_tolerance=2"], "distill.goal_tolerance=2 is not accepted"),
+    (["--out", "{w}/x", "--testset", "paper3000"], "test-set file not found: paper3000; accepted: a shipped name"),
+]
+
+
+@pytest.mark.parametrize("argv, fragment", CASES)
+def test_train_refuses_bad_input_and_changes_nothing(workdir, argv, fragment, capsys):
+    before = _tree(workdir)
+    with pytest.raises(SystemExit) as exit_:
+        code = train.main([a.format(w=workdir) for a in argv])
+        raise SystemExit(code)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert fragment in err and "Traceback" not in err, err
+    after = _tree(workdir)
+    assert after == before or set(after) - set(before) <= {"x"}, set(after) ^ set(before)  # at most the empty folder
+
+
+def test_run_outputs_are_what_a_run_wrote(tmp_path):
+    (tmp_path / "sweep_stdout.txt").write_text("")
+    assert train.run_outputs(tmp_path) == []  # another tool's file is no run
+    (tmp_path / "mixed" / "seed0").mkdir(parents=True)
+    (tmp_path / "events.out.tfevents.1").write_text("")
+    assert [p.name for p in train.run_outputs(tmp_path)] == ["events.out.tfevents.1", "mixed"]
+
+
+def test_the_documented_grasp_library_command_reproduces_the_shipped_file(tmp_path):
+    """docs/inference.md: `python -m regrasp_mjx.grasps --n 1000 --seed 7 --out ...` rebuilds the
+    shipped library exactly (with the current scene); without --out it writes nothing."""
+    import numpy as np
+
+    from regrasp_mjx import grasps
+
+    grasps.main(["--n", "1000", "--seed", "7", "--out", str(tmp_path / "g.npz")])
+    with np.load(tmp_path / "g.npz") as new, np.load(grasps.DEFAULT_LIBRARY) as shipped:
+        assert sorted(new.files) == sorted(shipped.files)
+        for k in new.files:
+            np.testing.assert_array_equal(new[k], shipped[k])
+    with pytest.raises(SystemExit) as exit_:
+        grasps.main(["--n", "10"])  # no --out: refused, the package's copy untouched
+    assert exit_.value.code == 2
