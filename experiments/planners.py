@@ -30,10 +30,11 @@ from regrasp_mjx.planning.pool import PlannerPool
 from regrasp_mjx.sampling import load_testset
 from regrasp_mjx.scene import load_scene
 
-SHORT = {"PRMstar": "PRM*", "RRTstar": "RRT*", "BFMTstar": "BFMT*", "BITstar": "BIT*"}
+SHORT = {"PRMstar": "PRM*", "RRTstar": "RRT*", "BFMTstar": "BFMT*", "BITstar": "BIT*", "RRTConnect": "RRT-Connect"}
 
 
-def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed: int) -> list[dict]:
+def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed: int, **planner) -> list[dict]:
+    """Plans every clear problem once per row; ``planner``: further :class:`PlannerConfig` fields."""
     scene = SceneConfig(jaw_angle_deg=jaw_angle)
     checker = HostChecker(load_scene(scene))
     valid = [
@@ -44,8 +45,8 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
         )
     ]
     out = []
-    for method, planner, direction in rows:
-        cfg = PlannerConfig(planner=planner, direction=direction, budget_s=budget)
+    for method, planner_name, direction in rows:
+        cfg = PlannerConfig(planner=planner_name, direction=direction, budget_s=budget, **planner)
         options = {
             "method": method,
             "planner": dataclasses.asdict(cfg),
@@ -60,11 +61,15 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
         solved = [r.result for r in results if r.ok and r.result["solved"]]
         times_ok = np.array([r["plan_time_s"] for r in solved])
         times_all = np.array([r.result["plan_time_s"] if r.ok else 3 * budget for r in results])
-        name = "straight line" if method == "straight_line" else f"{SHORT[planner]} ({direction[0].upper()})"
+        name = "straight line" if method == "straight_line" else f"{SHORT[planner_name]} ({direction[0].upper()})"
+        if method == "ompl" and cfg.simplify_s == 0:
+            name += ", no shortcutting"
         row = {
             "algorithm": name,
             "jaw_angle_deg": jaw_angle,
             "budget_s": budget if method == "ompl" else None,
+            "simplify_s": cfg.simplify_s if method == "ompl" else None,
+            "range_mm": cfg.rrt_range_mm if method == "ompl" and planner_name in ("RRTstar", "RRTConnect") else None,
             "problems": len(valid),
             "success_rate": len(solved) / max(1, len(valid)),
             "plan_time_mean_s": float(times_ok.mean()) if len(solved) else None,
@@ -84,7 +89,7 @@ def _fmt(v, spec):
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--testset", default="experiments/testsets/paper300.npz")
+    p.add_argument("--testset", default="paper300", help="a shipped name (paper300, general1000) or an .npz")
     p.add_argument("--budget-s", type=float, default=10.0)
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     p.add_argument("--seed", type=int, default=0)
@@ -98,6 +103,18 @@ def main() -> None:
         "every planner both ways, then the straight line and BIT* (R) at --wide-jaw-deg)",
     )
     p.add_argument("--name", default="planners", help="output file names NAME.md and NAME.csv")
+    p.add_argument(
+        "--range-mm",
+        type=float,
+        default=PlannerConfig.rrt_range_mm,
+        help="RRT* and RRT-Connect's longest extension, mm (default %(default)s)",
+    )
+    p.add_argument(
+        "--simplify-s",
+        type=float,
+        default=PlannerConfig.simplify_s,
+        help="shortcutting of a found path, s, inside the timed budget; 0 turns it off (default %(default)s)",
+    )
     args = p.parse_args()
     episodes, meta = load_testset(args.testset)
     if args.limit:
@@ -109,7 +126,8 @@ def main() -> None:
     if args.rows:
         wanted = [r.strip() for r in args.rows.split(",")]
         chosen = [r for r in chosen if (r[0] if r[0] == "straight_line" else f"{r[1]}:{r[2]}") in wanted]
-    rows = run_rows(episodes, chosen, 20.0, args.budget_s, args.workers, args.seed)
+    tuned = {"rrt_range_mm": args.range_mm, "simplify_s": args.simplify_s}
+    rows = run_rows(episodes, chosen, 20.0, args.budget_s, args.workers, args.seed, **tuned)
     if not args.rows:
         rows += run_rows(
             episodes,
@@ -118,6 +136,7 @@ def main() -> None:
             args.budget_s,
             args.workers,
             args.seed,
+            **tuned,
         )
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.workers} planner processes"
     try:
@@ -135,7 +154,8 @@ def main() -> None:
         w.writerows(rows)
     lines = [
         f"Test set `{args.testset}` ({len(episodes.needle_pos)} problems, seed {meta.get('seed')}); "
-        f"budget {args.budget_s:g} s per plan, first solution + 0.2 s shortcutting; {machine}.",
+        f"budget {args.budget_s:g} s per plan, first solution + {args.simplify_s:g} s shortcutting; RRT range "
+        f"{args.range_mm:g} mm; {machine}.",
         "",
         "| algorithm | jaws | success rate | planning time mean (s) | median (s) | mean incl. failures (s) | path length (mm) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",

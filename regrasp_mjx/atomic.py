@@ -26,6 +26,21 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], Any]) -> 
         raise
 
 
+def output_file_problem(path: str | os.PathLike, suffix: str | None = None) -> str | None:
+    """Why ``path`` cannot be written as a file by :func:`atomic_write` (None when it can): CLIs
+    check their ``--out`` before any work, so a bad path costs no minutes of computing."""
+    path = Path(path)
+    if suffix is not None and path.suffix != suffix:
+        return f"--out {path} is not accepted: a file path ending in {suffix}"
+    if path.is_dir():
+        return f"--out {path} is a folder; accepted: a file path ({suffix or 'any name'}) in a writable folder"
+    # atomic_write creates missing folders: the nearest existing one must be a folder we can write
+    parent = next((p for p in path.parents if p.exists()), Path("."))
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        return f"--out {path}: {parent} is not a writable folder; accepted: a file path in a folder this user can write"
+    return None
+
+
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:
     atomic_write(path, lambda f: f.write(json.dumps(obj, indent=indent).encode()))
 

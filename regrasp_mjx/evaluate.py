@@ -8,7 +8,9 @@ policy out, as training evaluates it). Success, collision and time-out rates of 
 test set (no retries); planning time of
 one query at a time (compiled and warmed up first; the wall time from the poses to the whole
 trajectory, numpy in and out), mean and median; batched throughput (all queries in one call,
-repeated, plans/s); path length in mm over the successes. Planning runs on JAX's default device:
+repeated, plans/s); path length in mm over the successes; starts that collide before any step
+(``invalid_starts``) and starts implausibly far from their needle (``far_starts``: beyond
+``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about. Planning runs on JAX's default device:
 ``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate`` times one CPU core.
 """
 
@@ -24,7 +26,7 @@ import numpy as np
 
 from regrasp_mjx import robustness
 from regrasp_mjx.config import ConfigError
-from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError, load_policy, shipped_policies
+from regrasp_mjx.policy import DEFAULT_POLICY, START_WARN_MM, PolicyError, far_starts, load_policy, shipped_policies
 from regrasp_mjx.robustness import check_condition
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
@@ -90,6 +92,7 @@ def evaluate(
         "collision_rate": float((plan.collision | ~plan.start_valid).mean()),
         "time_out_rate": float(plan.time_out.mean()),
         "invalid_starts": int((~plan.start_valid).sum()),
+        "far_starts": int(far_starts(needle, start).sum()),
         "path_length_mm": float(plan.path_length_mm[ok].mean()) if ok.any() else None,
         "steps_mean": float(plan.steps[ok].mean()) if ok.any() else None,
         "planning_time_ms_mean": 1e3 * float(np.mean(times)) if times else None,
@@ -243,6 +246,12 @@ def main(argv: list[str] | None = None) -> int:
         )
         + (f"  batched: {r['batch_plans_per_s']:,.0f} plans/s (batch {r['batch_size']})\n" if args.repeats else "")
         + f"  path length {path}"
+        + (
+            f"\n  warning: {r['far_starts']} starts lie beyond {START_WARN_MM:g} mm of their needle (no start was trained "
+            "there): check the test set's units (metres) and frame"
+            if r["far_starts"]
+            else ""
+        )
     )
     return 0
 

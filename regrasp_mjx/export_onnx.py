@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import atomic_write
+from regrasp_mjx.atomic import atomic_write, output_file_problem
 from regrasp_mjx.policy import DEFAULT_POLICY, Policy, PolicyError, load_policy, shipped_policies
 
 
@@ -64,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="the .onnx file to write")
     p.add_argument("--no-check", action="store_true", help="skip the ONNX Runtime comparison")
     args = p.parse_args(argv)
+    problem = output_file_problem(args.out, ".onnx")
+    if problem:
+        p.error(problem)
     try:
         policy = load_policy(args.policy)
     except PolicyError as err:

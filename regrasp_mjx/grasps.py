@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from regrasp_mjx.atomic import output_file_problem
+
 DEFAULT_LIBRARY = Path(__file__).resolve().parent / "data" / "grasps1000.npz"
 ANGLE_WEIGHT_DEG = 5.0  # degrees that weigh as much as one millimetre
 
@@ -98,9 +100,9 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.n < 1:
         p.error(f"--n {args.n} is not accepted: an integer >= 1")
-    out = Path(args.out)
-    if out.exists() and not out.is_file() or not out.parent.is_dir():
-        p.error(f"--out {out} is not accepted: a file path in an existing folder")
+    problem = output_file_problem(args.out, ".npz")
+    if problem:
+        p.error(problem)
     lib = GraspLibrary.make(args.n, args.seed)
     lib.save(args.out)
     fresh = GraspLibrary.make(1000, args.seed + 1)  # how far new draws lie from the library

@@ -128,7 +128,9 @@ class Plan:
         end-effector frame e_g, the start first; ``horizon + 1`` rows, rows after ``steps`` repeat
         the last pose.
       actions: ``horizon`` rows in [-1, 1]; rows from ``steps`` on are zero.
-      poses_camera: the same poses in the camera frame (only from :meth:`Policy.plan_from_camera`).
+      poses_camera: the same poses in the camera frame (only from :meth:`Policy.plan_from_camera`),
+        the same shape as ``poses`` (``horizon + 1`` rows, padded with the last pose): the
+        trajectory itself is ``trajectory("camera")``, ``steps + 1`` rows.
       nearest_grasp_distance: distance of the needle pose to the nearest of the valid-grasp library
         (``regrasp_mjx.grasps``; mm + deg / 5), when checked.
       joints: with ``plan_from_camera(..., psm=...)``, the regrasping PSM's
@@ -651,11 +653,16 @@ class Policy:
         return dist
 
 
+def far_starts(needle: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Which starts ``[n, 7]`` lie implausibly far from their needles ``[n, 7]`` (beyond
+    :data:`START_WARN_MM`; every trained start lies within about 30 mm): a bool ``[n]``."""
+    return np.linalg.norm(np.asarray(start)[:, :3] - np.asarray(needle)[:, :3], axis=1) * 1e3 > START_WARN_MM
+
+
 def _check_start_distance(needle: np.ndarray, start: np.ndarray) -> None:
-    """Warns about starts implausibly far from their needle (e.g. given in millimetres, not metres):
-    every trained start lies within about 30 mm of it."""
+    """Warns about starts implausibly far from their needle (e.g. given in millimetres, not metres)."""
+    far = far_starts(needle, start)
     dist = np.linalg.norm(start[:, :3] - needle[:, :3], axis=1) * 1e3
-    far = dist > START_WARN_MM
     if np.any(far):
         warnings.warn(
             f"start {int(np.argmax(far))} is {float(dist[far][0]):.4g} mm from its needle (beyond {START_WARN_MM:g} mm, "

@@ -132,8 +132,9 @@ class Scene:
     def needle_sagitta(self) -> float:
         """The most a point of the needle's true arc lies off its capsule chord [m]: ``R (1 - cos(h))``
         for a chord of half-angle h. With ``SceneConfig.conservative_needle`` the chords' radius is
-        the wire radius plus this, so they contain the true wire (the model's clearance is at most
-        this much below the true one, never above)."""
+        the wire radius plus this, so they contain the true wire: the model's clearance is never
+        above the true one and at most twice this below it (the inner side of a chord's middle;
+        measured in tests/test_clearance.py)."""
         radius = self.config.needle_radius_mm * 1e-3
         return max(radius - float(np.linalg.norm((c.p0 + c.p1) / 2.0)) for c in self.needle_capsules)
 

@@ -18,6 +18,7 @@ from importlib import metadata
 import jax
 import numpy as np
 
+from regrasp_mjx.atomic import output_file_problem
 from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.sampling import Episode, load_testset, sample_episode, save_testset
 from regrasp_mjx.scene import load_scene
@@ -80,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
         help="problem distribution: paper (default) or general (any goal grasp in range, needles of 4-12 mm)",
     )
     args = parser.parse_args(argv)
+    if args.n < 1:
+        parser.error(f"--n {args.n} is not accepted: an integer >= 1")
+    problem = output_file_problem(args.out, ".npz")
+    if problem:
+        parser.error(problem)
     try:
         config = EnvConfig(scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg), task=TASKS[args.task])
         t0 = time.perf_counter()

@@ -76,7 +76,7 @@ def test_the_decay_recipes_network_plans_bare_without_a_collision(problems):
 
 
 # Rows of paper300 where the shipped network's bare rollout collides (both of its failures).
-COLLIDING_ROWS = [111, 290]
+COLLIDING_ROWS = [161, 296]
 
 
 def test_shield_turns_the_colliding_test_problems_into_collision_free_plans(policy):
@@ -198,6 +198,14 @@ def test_evaluate_cli_json(tmp_path, capsys):
     assert r["problems"] == 12 and 0.0 <= r["success_rate"] <= 1.0
     assert r["success_rate"] + r["collision_rate"] + r["time_out_rate"] == pytest.approx(1.0)
     assert r["planning_time_ms_median"] > 0 and r["batch_plans_per_s"] > 0 and r["ensemble"] == 1
+    assert r["far_starts"] == 0
+    # starts given in millimetres: counted and named, not only a time-out among others
+    episodes = make_testset(12, 5)
+    episodes = episodes.replace(start_pos=episodes.start_pos * np.where(np.arange(12) < 2, 1000.0, 1.0)[:, None])
+    save_testset(tmp_path / "mm.npz", episodes, {"seed": 5})
+    with pytest.warns(UserWarning, match="from its needle"):
+        assert evaluate.main(["--testset", str(tmp_path / "mm.npz"), "--repeats", "0", "--queries", "0"]) == 0
+    assert "warning: 2 starts lie beyond 60 mm of their needle" in capsys.readouterr().out
     assert evaluate.main(["--testset", str(tmp_path / "missing.npz")]) == 2
     assert "test-set file not found" in capsys.readouterr().err
 
@@ -224,7 +232,16 @@ def test_shipped_policies_by_name_and_one_compiled_planner_per_network_shape(pol
     from regrasp_mjx import planner as planner_module
     from regrasp_mjx.policy import PolicyError, shipped_policies
 
-    assert shipped_policies() == ["decay", "default", "ensemble3", "general", "student_v1", "student_v2"]
+    assert shipped_policies() == [
+        "decay",
+        "default",
+        "ensemble3",
+        "exact",
+        "general",
+        "general_v1",
+        "student_v1",
+        "student_v2",
+    ]
     ensemble = load_policy("ensemble3")  # the earlier default: three networks, stored as float16
     assert ensemble.members == 3 and ensemble.contract["network"]["weights_dtype"] == "float16"
     assert all(x.dtype == np.float32 for x in __import__("jax").tree_util.tree_leaves(ensemble.actor_params))

@@ -283,8 +283,13 @@ def test_seeds_axis_runs_independent_learners(easy_env, easy_demos):
         ts_alone, m_alone, _, _ = alone.iteration(ts_alone, jnp.float32(0.3))
     assert not np.allclose(m_pair["critic_loss"][0], m_pair["critic_loss"][1])  # the seeds differ
     np.testing.assert_allclose(m_pair["critic_loss"][1], m_alone["critic_loss"][0], rtol=1e-4)
+    # The batched (two-seed) and the single program round differently (XLA's CPU dot kernels), and
+    # Adam's first steps turn near-zero gradients' rounding into lr-sized moves: so the same seed
+    # must agree a hundred times closer than the other seed does, not bit for bit.
     for a, b in zip(jax.tree_util.tree_leaves(ts_pair.actor), jax.tree_util.tree_leaves(ts_alone.actor)):
-        np.testing.assert_allclose(np.asarray(a[1]), np.asarray(b[0]), rtol=1e-4, atol=1e-6)
+        same = np.abs(np.asarray(a[1]) - np.asarray(b[0])).max()
+        other = np.abs(np.asarray(a[0]) - np.asarray(b[0])).max()
+        assert same < 1e-3 * max(1.0, float(np.abs(np.asarray(b[0])).max())) and same < 0.01 * other, (same, other)
 
 
 def test_actor_ema_and_cosine_learning_rate(easy_env, easy_demos):

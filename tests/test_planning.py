@@ -74,6 +74,25 @@ def test_planned_paths_are_collision_free_when_rechecked_densely(paper_testset, 
         assert checker.path_clearance(needle, result.poses) >= 0.0
 
 
+@pytest.mark.parametrize("direction", ["forward", "reverse"])
+def test_rrt_connect_plans_start_to_goal_around_the_needle(paper_testset, direction):
+    """The classical anchor of Table II (ours, not the paper's): its first path, shortcut or not,
+    runs start to goal and keeps off the needle when re-checked densely (with a 50 um margin)."""
+    episodes, _ = paper_testset
+    checker = HostChecker()
+    for simplify in (0.0, 0.2):
+        cfg = PlannerConfig(planner="RRTConnect", direction=direction, budget_s=5.0, simplify_s=simplify)
+        planner = OmplPlanner(cfg, HostChecker(clearance=5e-5), seed=2)
+        for i in range(3):
+            needle, start, goal = _problem(episodes, i)
+            result = planner.plan(needle, start, goal)
+            assert result.solved, result.error
+            np.testing.assert_allclose(result.poses[0], start, atol=1e-9)
+            np.testing.assert_allclose(result.poses[-1], goal, atol=1e-9)
+            assert _dense_free(checker, needle, result.poses)
+            assert result.path_length_mm >= np.linalg.norm(goal[:3] - start[:3]) * 1e3 - 1e-9
+
+
 def test_a_demonstration_replays_to_success_with_plus_one_last(env, paper_testset, bit_reverse_plans):
     episodes, _ = paper_testset
     rows = [i for i, _ in bit_reverse_plans]

@@ -54,7 +54,7 @@ def test_missing_file(tmp_path):
 def test_not_an_npz(tmp_path):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip file")
-    with pytest.raises(TestsetError, match="not a readable .npz"):
+    with pytest.raises(TestsetError, match="is not an .npz test-set file"):
         load_testset(bad)
 
 

@@ -23,7 +23,7 @@ from regrasp_mjx.config import ConfigError
 from regrasp_mjx.geometry import unit_quaternions
 from regrasp_mjx.host import HostChecker
 
-PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar")
+PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar", "RRTConnect")
 DIRECTIONS = ("forward", "reverse")
 
 
@@ -32,7 +32,8 @@ class PlannerConfig:
     """How a plan is made.
 
     Attributes:
-      planner: one of PRMstar, RRTstar, BFMTstar, BITstar.
+      planner: one of PRMstar, RRTstar, BFMTstar, BITstar (the paper's four) or RRTConnect (ours:
+        the fast classical anchor; not asymptotically optimal, it returns its first path).
       direction: ``forward`` (start -> goal) or ``reverse`` (goal -> start, path reversed after).
       budget_s: planning time limit; planning stops at the first exact solution or the limit.
       simplify_s: shortcutting of the found path (counted in the planning time); 0 turns it off.
@@ -40,7 +41,8 @@ class PlannerConfig:
       rotation_weight_mm: metres of translation one radian of rotation counts as in OMPL's SE(3)
         distance; the jaw length, so that a distance bounds the motion of any jaw point.
       check_step_mm: largest motion of any tool point between two checked states.
-      rrt_range_mm: RRT*'s longest extension (OMPL's "range"), in the weighted SE(3) distance.
+      rrt_range_mm: RRT*'s and RRT-Connect's longest extension (OMPL's "range"), in the weighted
+        SE(3) distance.
     """
 
     planner: str = "BITstar"
@@ -172,7 +174,7 @@ class OmplPlanner:
         objective.setCostThreshold(ob.Cost(math.inf))
         setup.setOptimizationObjective(objective)
         planner = getattr(og, "BFMT" if cfg.planner == "BFMTstar" else cfg.planner)(si)
-        if cfg.planner == "RRTstar":
+        if cfg.planner in ("RRTstar", "RRTConnect"):
             # OMPL's default range (a fifth of the space's extent, ~10 mm here) makes almost every
             # extension near the needle collide; a few millimetres lets the tree into the funnel.
             planner.setRange(cfg.rrt_range_mm * 1e-3)

@@ -1,0 +1,162 @@
+"""One query at a time on one CPU core: the policy against RRT-Connect, timed side by side.
+
+Every method plans the same queries in the same process, pinned to one core, in alternating order
+(each repeat rotates which method goes first, so drift of the machine falls on all of them), and
+the script prints each method's median per repeat, the median over all, and the ratio to the first
+method. Methods: the shipped policy through ``Policy.plan`` (shielded, the JAX path: one compiled
+rollout per query, numpy in and out) and OMPL RRT-Connect (forward and reverse, with and without
+0.2 s of shortcutting, range ``--range-mm``; collision checks with CPU MuJoCo, the same model).
+Problems that collide at the start or goal under the host checker are left out for every method.
+
+    python experiments/bench_plan.py --core 0 --out experiments/results/bench_plan
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+# One core, before JAX starts its thread pools: what one query costs where nothing else runs.
+if __name__ == "__main__":
+    _core = argparse.ArgumentParser(add_help=False)
+    _core.add_argument("--core", type=int, default=0)
+    os.sched_setaffinity(0, {_core.parse_known_args()[0].core})
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import json
+import platform
+import time
+from datetime import date
+
+import jax
+import numpy as np
+
+from regrasp_mjx.atomic import write_results
+from regrasp_mjx.host import HostChecker
+from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig
+from regrasp_mjx.policy import load_policy
+from regrasp_mjx.robustness import policy_hash
+from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
+
+
+def machine() -> str:
+    try:
+        cpu = open("/proc/cpuinfo").read().split("model name")[1].split(":")[1].split("\n")[0].strip()
+    except (OSError, IndexError):
+        cpu = platform.processor() or platform.machine()
+    return f"{cpu} ({platform.node()}, {os.cpu_count()} cores)"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--core", type=int, default=0, help="the CPU core this process is pinned to (default 0)")
+    p.add_argument("--policy", default=None, help="a shipped name or policy folder (default: the shipped default)")
+    p.add_argument("--testset", default="paper300", help="a shipped name or .npz (default paper300)")
+    p.add_argument("--queries", type=int, default=100, help="queries per method and repeat (default 100)")
+    p.add_argument("--repeats", type=int, default=5, help="rounds over all methods (default 5)")
+    p.add_argument("--range-mm", type=float, default=PlannerConfig.rrt_range_mm, help="RRT-Connect's range, mm")
+    p.add_argument("--seed", type=int, default=0, help="OMPL's seed")
+    p.add_argument("--out", default=None, help="folder for bench_plan.md and bench_plan.json")
+    args = p.parse_args()
+    if args.queries < 1 or args.repeats < 1:
+        p.error("--queries and --repeats are accepted as integers >= 1")
+    policy = load_policy(args.policy)
+    episodes, _ = load_testset(args.testset)
+    needle, start, goal = episode_poses(episodes)
+    needles = episode_needles(episodes)
+    checker = HostChecker()
+    clear = [
+        i
+        for i in range(len(needle))
+        if checker.for_needle(episodes.needle_radius[i], episodes.wire_radius[i]).clear_problems(
+            needle[i], start[i], goal[i]
+        )
+    ][: args.queries]
+
+    def policy_query(i):
+        plan = policy.plan(needle[i], start[i], goal[i], check_grasp=False, **{k: v[i] for k, v in needles.items()})
+        return bool(plan.success), float(plan.path_length_mm)
+
+    def rrt(direction, simplify):
+        cfg = PlannerConfig("RRTConnect", direction, budget_s=10.0, simplify_s=simplify, rrt_range_mm=args.range_mm)
+        planner = OmplPlanner(cfg, HostChecker(), seed=args.seed)
+
+        def query(i):
+            planner.checker = checker.for_needle(episodes.needle_radius[i], episodes.wire_radius[i])
+            r = planner.plan(needle[i], start[i], goal[i])
+            return r.solved, r.path_length_mm
+
+        return query
+
+    name = args.policy or "default"
+    methods = {
+        f"policy `{name}`, shielded (JAX path)": policy_query,
+        "RRT-Connect (F)": rrt("forward", 0.0),
+        "RRT-Connect (R)": rrt("reverse", 0.0),
+        "RRT-Connect (F) + 0.2 s shortcutting": rrt("forward", 0.2),
+        "RRT-Connect (R) + 0.2 s shortcutting": rrt("reverse", 0.2),
+    }
+    for query in methods.values():  # compile and warm up outside the timing
+        query(clear[0])
+    times = {m: [] for m in methods}
+    outcome = {m: [] for m in methods}
+    order = list(methods)
+    for r in range(args.repeats):
+        for m in order[r % len(order) :] + order[: r % len(order)]:
+            per_query = []
+            for i in clear:
+                t0 = time.perf_counter()
+                ok, length = methods[m](i)
+                per_query.append(time.perf_counter() - t0)
+                if r == 0:
+                    outcome[m].append((ok, length))
+            times[m].append(per_query)
+            print(json.dumps({"repeat": r, "method": m, "median_ms": 1e3 * float(np.median(per_query))}), flush=True)
+    first = float(np.median(times[order[0]]))
+    rows = []
+    for m in order:
+        t = np.asarray(times[m])
+        ok = np.array([o for o, _ in outcome[m]])
+        rows.append(
+            {
+                "method": m,
+                "success_rate": float(ok.mean()),
+                "path_length_mm": float(np.mean([length for o, length in outcome[m] if o])) if ok.any() else None,
+                "median_ms": 1e3 * float(np.median(t)),
+                "mean_ms": 1e3 * float(t.mean()),
+                "median_ms_per_repeat": [round(1e3 * float(np.median(x)), 4) for x in t],
+                "ratio_to_first": float(np.median(t)) / first,
+            }
+        )
+    meta = {
+        "machine": machine(),
+        "core": args.core,
+        "date": date.today().isoformat(),
+        "policy": name,
+        "policy_hash": policy_hash(args.policy),
+        "testset": args.testset,
+        "queries": len(clear),
+        "repeats": args.repeats,
+        "range_mm": args.range_mm,
+        "jax": jax.__version__,
+    }
+    lines = [
+        f"{meta['machine']}, pinned to core {args.core}; {meta['date']}; policy `{name}` (hash "
+        f"{meta['policy_hash']}); {len(clear)} queries of {args.testset} per method and repeat, {args.repeats} "
+        f"repeats in rotating order; RRT-Connect range {args.range_mm:g} mm, 10 s budget.",
+        "",
+        "| method | success | path (mm) | median (ms) | mean (ms) | medians per repeat (ms) | time / policy's |",
+        "| --- | ---: | ---: | ---: | ---: | --- | ---: |",
+    ]
+    for row in rows:
+        path = "-" if row["path_length_mm"] is None else f"{row['path_length_mm']:.2f}"
+        lines.append(
+            f"| {row['method']} | {row['success_rate']:.3f} | {path} | {row['median_ms']:.3f} | {row['mean_ms']:.3f} | "
+            f"{', '.join(f'{x:.3f}' for x in row['median_ms_per_repeat'])} | {row['ratio_to_first']:.1f}x |"
+        )
+    print("\n".join(lines))
+    write_results(args.out, "bench_plan", lines, {**meta, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
