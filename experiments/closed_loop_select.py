@@ -17,8 +17,8 @@ import numpy as np
 
 from regrasp_mjx.atomic import write_results  # noqa: E402
 from regrasp_mjx.closed_loop import NeedleNoise  # noqa: E402
-from regrasp_mjx.evaluate import episode_poses  # noqa: E402
 from regrasp_mjx.policy import load_policy  # noqa: E402
+from regrasp_mjx.sampling import episode_needles, episode_poses  # noqa: E402
 from regrasp_mjx.testset import make_testset  # noqa: E402
 
 
@@ -35,13 +35,15 @@ def main() -> None:
     p.add_argument("--out", default=None)
     args = p.parse_args()
     policy = load_policy(args.policy)
-    needle, start, goal = episode_poses(make_testset(args.n, args.seed, policy.env_config))
+    episodes = make_testset(args.n, args.seed, policy.env_config)  # a general policy's draws its needles too
+    needle, start, goal = episode_poses(episodes)
+    needles = episode_needles(episodes) if policy.general else {}
     noises = [NeedleNoise(*(float(x) for x in s.split(":"))) for s in args.noises.split(",")]
     warmups = (int(w) for w in args.warmups.split(",")) if args.frames == "fused" else (1,)
     rows = []
     for warmup, stop in itertools.product(warmups, (float(s) for s in args.stops.split(","))):
         run = lambda noise, warmup=warmup, stop=stop: policy.execute(  # noqa: E731
-            needle, start, goal, noise, frames=args.frames, warmup_frames=warmup, stop_tolerance=stop, seed=1
+            needle, start, goal, noise, frames=args.frames, warmup_frames=warmup, stop_tolerance=stop, seed=1, **needles
         )
         success = [float(run(noise)["success"].mean()) for noise in noises]
         rows.append(

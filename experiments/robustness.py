@@ -4,6 +4,11 @@ clearance margins; open loop, per-frame and fused closed loop; judged on the tru
     python experiments/robustness.py --out experiments/results/robustness          # every shipped policy
     python experiments/robustness.py --policy a=runs/x/policy --heldout 1000:7000001 --name select
     python experiments/robustness.py --merge part0.json part1.json --out experiments/results/robustness
+    python experiments/robustness.py --docs experiments/results/robustness/robustness.json
+
+``--docs`` rewrites the generated robustness blocks of README.md, docs/results.md and
+experiments/RESULTS.md (``regrasp_mjx.robustness.docs_blocks``: the default and ``exact``) from a
+table file; run it whenever the table is made again (tests/test_robustness.py checks they agree).
 
 Each policy runs on its own test set (paper300 for a paper-task policy, general1000 for a general
 one) unless ``--testset`` or ``--heldout N:SEED`` (problems drawn here from that seed: validation
@@ -22,7 +27,7 @@ from pathlib import Path
 import jax
 
 from regrasp_mjx import robustness
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import write_results, write_text
 from regrasp_mjx.policy import load_policy, shipped_policies
 from regrasp_mjx.sampling import load_testset
 from regrasp_mjx.testset import make_testset
@@ -39,7 +44,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", default=None)
     p.add_argument("--name", default="robustness")
     p.add_argument("--merge", nargs="+", metavar="JSON", help="only join the tables of earlier runs (in this order)")
+    p.add_argument("--docs", metavar="JSON", help="only rewrite the docs' robustness blocks from this table file")
     args = p.parse_args(argv)
+    if args.docs:
+        return write_docs(args.docs)
     if args.merge:
         return merge(args.merge, args.out, args.name)
     modes = tuple(args.modes.split(","))
@@ -72,6 +80,8 @@ def main(argv: list[str] | None = None) -> None:
                 "hidden": policy.contract["network"]["hidden"],
                 "problems": problems,
                 "wall_s": time.perf_counter() - t0,
+                "machine": f"{meta['backend']} ({meta['device']})",
+                "seed": args.seed,
                 "rows": rows,
             }
         )
@@ -91,7 +101,8 @@ def merge(paths: list[str], out: str | None, name: str) -> None:
     for path in paths:
         data = json.loads(Path(path).read_text())
         for t in data["tables"]:
-            t = {**t, "machine": f"{data['backend']} ({data['device']})", "seed": data["seed"]}
+            if "machine" not in t:  # a part run before the tables carried their machine
+                t = {**t, "machine": f"{data['backend']} ({data['device']})", "seed": data["seed"]}
             tables.append(t)
             lines += [
                 f"**{t['policy']}** (`{t['folder']}`, {'x'.join(map(str, t['hidden']))}, hash {t['policy_hash']}) on "
@@ -101,6 +112,25 @@ def merge(paths: list[str], out: str | None, name: str) -> None:
             lines += robustness.markdown(t["rows"], tuple(dict.fromkeys(r["mode"] for r in t["rows"]))) + [""]
     print("\n".join(lines))
     write_results(out, name, lines, {"tables": tables})
+
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC_PAGES = {  # page -> the blocks it holds
+    ROOT / "README.md": ("summary",),
+    ROOT / "docs" / "results.md": ("summary",),
+    ROOT / "experiments" / "RESULTS.md": ("tables",),
+}
+
+
+def write_docs(table_file: str) -> None:
+    """The docs' robustness blocks from ``table_file`` (this script's JSON), each page written atomically."""
+    blocks = robustness.docs_blocks(json.loads(Path(table_file).read_text())["tables"])
+    for page, kinds in DOC_PAGES.items():
+        text = page.read_text()
+        for kind in kinds:
+            text = robustness.replace_block(text, kind, blocks[kind])
+        write_text(page, text)
+        print(f"rewrote {page.relative_to(ROOT)} ({', '.join(kinds)})")
 
 
 if __name__ == "__main__":

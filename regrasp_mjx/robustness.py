@@ -179,6 +179,65 @@ def markdown(rows: list[dict[str, Any]], modes: tuple[str, ...] = tuple(MODES)) 
     return lines
 
 
+# The docs' summary: these policies side by side (README.md, docs/results.md), their full tables in
+# experiments/RESULTS.md; each between `<!-- robustness:begin KIND -->` and `<!-- robustness:end -->`,
+# written by `python experiments/robustness.py --docs` from robustness.json (a test compares them).
+DOC_POLICIES = ("default", "exact")
+DOC_MODES = ("open", "per-frame", "per-frame-stop", "fused")
+
+
+def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_POLICIES) -> dict[str, list[str]]:
+    """The docs' generated blocks from the tables of ``experiments/robustness.py`` (its JSON's
+    ``tables``): ``"summary"``, the policies side by side (open / per-frame (its own stop) / fused),
+    and ``"tables"``, each policy's full table; both name the policy hashes they measured."""
+    by_name = {t["policy"]: t for t in tables}
+    missing = [p for p in policies if p not in by_name]
+    if missing:
+        raise ConfigError(f"the robustness tables hold no policy named {missing}; accepted: {sorted(by_name)}")
+    chosen = [by_name[p] for p in policies]
+    named = ", ".join(f"{t['policy']} hash {t['policy_hash']}" for t in chosen)
+    machines = sorted({t.get("machine", "?") for t in chosen})
+    source = (
+        f"Measured: {named}; {chosen[0]['problems']}; shielded; {', '.join(machines)}; seed {chosen[0].get('seed', 0)}."
+    )
+
+    def cell(t, condition, mode):
+        return next(r for r in t["rows"] if r["condition"] == condition and r["mode"] == mode)
+
+    summary = [
+        source,
+        "",
+        "| condition | " + " | ".join(f"`{p}`: open / per frame (own stop) / fused" for p in policies) + " |",
+    ]
+    summary.append("| --- |" + " --- |" * len(policies))
+    for condition in dict.fromkeys(r["condition"] for r in chosen[0]["rows"]):
+        cells = []
+        for t in chosen:
+            o, f1, fs, fu = (cell(t, condition, m) for m in DOC_MODES)
+            cells.append(
+                f"{o['success_rate']:.3f} / {f1['success_rate']:.3f} ({fs['success_rate']:.3f}) / {fu['success_rate']:.3f}"
+            )
+        first = cell(chosen[0], condition, "open")
+        note = f" [{first['problems_valid']} valid]" if first["problems_valid"] < first["problems"] else ""
+        summary.append(f"| {condition}{note} | " + " | ".join(cells) + " |")
+    full = [source, ""]
+    for t in chosen:
+        full += [f"**{t['policy']}** (hash {t['policy_hash']}); success (collision rate) [valid problems]:", ""]
+        full += markdown(t["rows"], tuple(m for m in DOC_MODES if any(r["mode"] == m for r in t["rows"]))) + [""]
+    return {"summary": summary, "tables": full[:-1]}
+
+
+def replace_block(text: str, kind: str, lines: list[str]) -> str:
+    """``text`` with the lines between ``<!-- robustness:begin KIND -->`` and the next
+    ``<!-- robustness:end -->`` replaced by ``lines`` (raises when the markers are missing)."""
+    begin, end = f"<!-- robustness:begin {kind} -->", "<!-- robustness:end -->"
+    i = text.find(begin)
+    j = text.find(end, i)
+    if i < 0 or j < 0:
+        raise ValueError(f"no {begin} ... {end} block")
+    return text[: i + len(begin)] + "\n" + "\n".join(lines) + "\n" + text[j:]
+
+
 def policy_hash(path: str | os.PathLike | None = None) -> str:
     """SHA-256 (first 16 hex digits) of a policy's ``policy.npz`` and ``policy.json``: what a
     table records so that a test can tell when the policy it measured has changed."""

@@ -20,6 +20,11 @@ from pathlib import Path
 _OWNER = "REGRASP_MJX_TEST_SHARED" not in os.environ
 SHARED = Path(os.environ.setdefault("REGRASP_MJX_TEST_SHARED", tempfile.mkdtemp(prefix="regrasp_mjx_tests_")))
 
+# Regenerated data files (test sets, the grasp library) match the shipped ones to this, not bit for
+# bit: they are float32 XLA programs, and XLA compiles for the host's instruction set (FMA or not,
+# vector width), so another CPU rounds a few ulps differently (seen: 7e-9 m, 2.4e-7 in a quaternion).
+REGENERATION_ATOL = 1e-6
+
 # One persistent compilation cache for the whole run, set in the environment so that the workers,
 # the CLIs and training children the tests start, and the notebooks' kernels all read and write
 # it: programs built anew (a run and its resumed copy, a learner per test, a notebook planning

@@ -19,7 +19,7 @@ from regrasp_mjx.policy import PoseError, load_policy
 from regrasp_mjx.sampling import GENERAL1000, TestsetError, load_testset
 from regrasp_mjx.scene import load_scene, needle_scene
 from regrasp_mjx.testset import make_testset
-from tests.conftest import PAPER_TESTSET
+from tests.conftest import PAPER_TESTSET, REGENERATION_ATOL
 
 GENERAL = EnvConfig(task=GENERAL_TASK)
 
@@ -45,11 +45,14 @@ def test_ranges_are_validated():
 
 
 def test_default_task_still_draws_paper300_exactly():
-    """The paper's task draws no range, so the committed test set comes out bit for bit."""
+    """The paper's task draws no range, so the committed test set comes out again (to float32
+    rounding: ``REGENERATION_ATOL``)."""
     fresh = make_testset(300, 2021, EnvConfig())
     with np.load(PAPER_TESTSET, allow_pickle=False) as f:
         for name in ("needle_pos", "needle_quat", "start_pos", "start_quat", "goal_pos", "goal_quat", "grasp"):
-            np.testing.assert_array_equal(f[name], np.asarray(getattr(fresh, name), np.float64), err_msg=name)
+            np.testing.assert_allclose(
+                f[name], np.asarray(getattr(fresh, name), np.float64), rtol=0, atol=REGENERATION_ATOL, err_msg=name
+            )
     np.testing.assert_allclose(fresh.needle_radius, 5.4e-3, rtol=1e-6)
 
 

@@ -245,7 +245,7 @@ def test_shipped_policies_by_name_and_one_compiled_planner_per_network_shape(pol
     ensemble = load_policy("ensemble3")  # the earlier default: three networks, stored as float16
     assert ensemble.members == 3 and ensemble.contract["network"]["weights_dtype"] == "float16"
     assert all(x.dtype == np.float32 for x in __import__("jax").tree_util.tree_leaves(ensemble.actor_params))
-    with pytest.raises(PolicyError, match="policy file not found"):
+    with pytest.raises(PolicyError, match="no shipped policy is named 'no_such_policy'; accepted: a shipped name"):
         load_policy("no_such_policy")
     # Policies of one network shape share their compiled planners (the weights are an argument).
     policy.plan(*(x[:3] for x in problems), check_grasp=False)

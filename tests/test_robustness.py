@@ -159,3 +159,39 @@ def test_the_robustness_table_measured_the_shipped_policies():
         assert robustness.policy_hash(name) == digest, name
     readme = (ROOT / "README.md").read_text()
     assert f"hash {robustness.policy_hash('default')}" in readme  # the README's table names the default it measured
+
+
+def test_the_docs_robustness_blocks_are_the_table_file_rendered():
+    """README.md, docs/results.md and experiments/RESULTS.md hold what
+    `python experiments/robustness.py --docs experiments/results/robustness/robustness.json` writes."""
+    blocks = robustness.docs_blocks(json.loads(TABLE.read_text())["tables"])
+    for page, kind in (("README.md", "summary"), ("docs/results.md", "summary"), ("experiments/RESULTS.md", "tables")):
+        text = (ROOT / page).read_text()
+        assert robustness.replace_block(text, kind, blocks[kind]) == text, (
+            f"{page}: rerun experiments/robustness.py --docs"
+        )
+
+
+def test_docs_blocks_render_hand_made_rows_and_replace_only_their_block():
+    rows = [
+        {"condition": c, "mode": m, "success_rate": v, "collision_rate": 0.0, "problems": 4, "problems_valid": n}
+        for c, n, v in (("exact", 4, 1.0), ("margin 0.1 mm", 3, 0.75))
+        for m in robustness.DOC_MODES
+    ]
+    tables = [
+        {"policy": p, "policy_hash": h, "problems": "paper300", "rows": rows}
+        for p, h in (("default", "aa"), ("exact", "bb"))
+    ]
+    blocks = robustness.docs_blocks(tables)
+    assert blocks["summary"][0].startswith("Measured: default hash aa, exact hash bb; paper300")
+    assert blocks["summary"][4] == "| exact | 1.000 / 1.000 (1.000) / 1.000 | 1.000 / 1.000 (1.000) / 1.000 |"
+    assert blocks["summary"][5].startswith("| margin 0.1 mm [3 valid] | 0.750 / 0.750 (0.750) / 0.750 |")
+    page = "a\n<!-- robustness:begin summary -->\nold\n<!-- robustness:end -->\nb\n"
+    assert (
+        robustness.replace_block(page, "summary", ["new"])
+        == "a\n<!-- robustness:begin summary -->\nnew\n<!-- robustness:end -->\nb\n"
+    )
+    with pytest.raises(ValueError, match="no <!-- robustness:begin tables -->"):
+        robustness.replace_block(page, "tables", ["x"])
+    with pytest.raises(ConfigError, match="no policy named"):
+        robustness.docs_blocks(tables[:1])
