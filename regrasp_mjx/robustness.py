@@ -22,6 +22,7 @@ needle and the other tool. :data:`CONDITIONS` are the rows of the robustness tab
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import math
 import os
@@ -134,6 +135,13 @@ def clear_problems(env_config, episodes) -> np.ndarray:
     """``[N]`` whether each problem's start and goal keep ``env_config.clearance_mm`` from the
     needle and the other tool (its own needle where the task varies needles), by the collision
     model the environment judges with."""
+    rows = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), episodes)
+    return np.asarray(_clear_program(env_config)(rows))
+
+
+@functools.lru_cache(maxsize=8)
+def _clear_program(env_config):
+    """One compiled check per environment configuration (a table asks 28 times for a few)."""
     env = RegraspEnv(env_config)
 
     def clear(e):
@@ -141,8 +149,7 @@ def clear_problems(env_config, episodes) -> np.ndarray:
         goal = jnp.min(env.needle_distances(e, e.goal_pos, e.goal_quat))
         return jnp.minimum(start, goal) > env.clearance
 
-    rows = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), episodes)
-    return np.asarray(jax.jit(jax.vmap(clear))(rows))
+    return jax.jit(jax.vmap(clear))
 
 
 def table(
