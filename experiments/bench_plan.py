@@ -3,12 +3,20 @@
 Every method plans the same queries in the same process, pinned to one core, in alternating order
 (each repeat rotates which method goes first, so drift of the machine falls on all of them), and
 the script prints each method's median per repeat, the median over all, and the ratio to the first
-method. Methods: the shipped policy through ``Policy.plan`` (shielded, the JAX path: one compiled
-rollout per query, numpy in and out) and OMPL RRT-Connect (forward and reverse, with and without
-0.2 s of shortcutting, range ``--range-mm``; collision checks with CPU MuJoCo, the same model).
-Problems that collide at the start or goal under the host checker are left out for every method.
+method. Methods: the shipped policy through ``Policy.plan`` (shielded) on the lean path (numba,
+:mod:`regrasp_mjx.lean_planner`, the default for one query on the CPU) and on the JAX path (one
+compiled rollout per query, numpy in and out), the lean rollout alone (``LeanPlanner`` called with
+the poses, no input checks), and OMPL RRT-Connect (forward and reverse, with and without 0.2 s of
+shortcutting, range ``--range-mm``; collision checks with CPU MuJoCo, the same model). Problems
+that collide at the start or goal under the host checker are left out for every method.
+
+``--agreement`` instead plans every problem of paper300 and held-out 3000 (seed 2022) with the
+default, and of general1000 with ``general``, one query at a time on the lean path and as one batch
+on the JAX path, and counts the problems whose verdict (start valid, success, collision, time-out,
+steps) differs, with the largest difference in an action and a pose.
 
     python experiments/bench_plan.py --core 0 --out experiments/results/bench_plan
+    python experiments/bench_plan.py --agreement --out experiments/results/bench_plan
 """
 
 from __future__ import annotations
@@ -57,9 +65,12 @@ def main() -> None:
     p.add_argument("--range-mm", type=float, default=PlannerConfig.rrt_range_mm, help="RRT-Connect's range, mm")
     p.add_argument("--seed", type=int, default=0, help="OMPL's seed")
     p.add_argument("--out", default=None, help="folder for bench_plan.md and bench_plan.json")
+    p.add_argument("--agreement", action="store_true", help="only compare the lean and JAX paths' plans")
     args = p.parse_args()
     if args.queries < 1 or args.repeats < 1:
         p.error("--queries and --repeats are accepted as integers >= 1")
+    if args.agreement:
+        return agreement(args.out)
     policy = load_policy(args.policy)
     episodes, _ = load_testset(args.testset)
     needle, start, goal = episode_poses(episodes)
@@ -73,9 +84,20 @@ def main() -> None:
         )
     ][: args.queries]
 
-    def policy_query(i):
-        plan = policy.plan(needle[i], start[i], goal[i], check_grasp=False, **{k: v[i] for k, v in needles.items()})
-        return bool(plan.success), float(plan.path_length_mm)
+    def policy_query(engine):
+        def query(i):
+            kw = {k: v[i] for k, v in needles.items()}
+            plan = policy.plan(needle[i], start[i], goal[i], check_grasp=False, engine=engine, **kw)
+            return bool(plan.success), float(plan.path_length_mm)
+
+        return query
+
+    _, radii = policy._task_inputs(len(needle), **needles)
+    lean = policy._lean_planner(True)
+
+    def lean_core(i):
+        out = lean(needle[i], start[i], goal[i], radii[i])
+        return bool(out.outcome.success[0]), float(out.outcome.path_length_mm[0])
 
     def rrt(direction, simplify):
         cfg = PlannerConfig("RRTConnect", direction, budget_s=10.0, simplify_s=simplify, rrt_range_mm=args.range_mm)
@@ -90,7 +112,9 @@ def main() -> None:
 
     name = args.policy or "default"
     methods = {
-        f"policy `{name}`, shielded (JAX path)": policy_query,
+        f"policy `{name}`, shielded, lean path (`Policy.plan`)": policy_query("lean"),
+        f"policy `{name}`, shielded, JAX path (`Policy.plan`)": policy_query("jax"),
+        "its lean rollout alone (no input checks)": lean_core,
         "RRT-Connect (F)": rrt("forward", 0.0),
         "RRT-Connect (R)": rrt("reverse", 0.0),
         "RRT-Connect (F) + 0.2 s shortcutting": rrt("forward", 0.2),
@@ -156,6 +180,62 @@ def main() -> None:
         )
     print("\n".join(lines))
     write_results(args.out, "bench_plan", lines, {**meta, "rows": rows})
+
+
+def agreement(out: str | None) -> None:
+    """The lean path against the JAX path on every problem of three test sets (see the docstring)."""
+    from regrasp_mjx.testset import make_testset
+
+    default, general = load_policy("default"), load_policy("general")
+    sets = [
+        ("paper300", default, load_testset("paper300")[0]),
+        ("held-out 3000 (seed 2022)", default, make_testset(3000, 2022, default.env_config)),
+        ("general1000", general, load_testset("general1000")[0]),
+    ]
+    rows = []
+    for name, policy, episodes in sets:
+        needle, start, goal = episode_poses(episodes)
+        needles = episode_needles(episodes) if policy.general else {}
+        for shield in (True, False):
+            batch = policy.plan(needle, start, goal, check_grasp=False, shield=shield, engine="jax", **needles)
+            differ, action, pose = 0, 0.0, 0.0
+            for i in range(len(needle)):
+                kw = {k: v[i] for k, v in needles.items()}
+                one = policy.plan(needle[i], start[i], goal[i], check_grasp=False, shield=shield, engine="lean", **kw)
+                fields = ("start_valid", "success", "collision", "time_out", "steps")
+                if any(getattr(one, f) != getattr(batch, f)[i] for f in fields):
+                    differ += 1
+                    continue
+                action = max(action, float(np.abs(one.actions - batch.actions[i]).max()))
+                pose = max(pose, float(np.abs(one.poses - batch.poses[i]).max()))
+            rows.append(
+                {
+                    "problems": name,
+                    "policy": "general" if policy.general else "default",
+                    "shield": shield,
+                    "n": len(needle),
+                    "success_jax": float(batch.success.mean()),
+                    "verdicts_differ": differ,
+                    "max_action_diff": action,
+                    "max_pose_diff": pose,
+                }
+            )
+            print(json.dumps(rows[-1]), flush=True)
+    lines = [
+        f"{machine()}; {date.today().isoformat()}; policies default (hash {policy_hash('default')}) and general "
+        f"(hash {policy_hash('general')}): each problem planned one at a time on the lean path and as one batch on "
+        "the JAX path.",
+        "",
+        "| problems | policy | shield | n | success (JAX) | verdicts that differ | max action diff | max pose diff |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['problems']} | {r['policy']} | {'on' if r['shield'] else 'off'} | {r['n']} | {r['success_jax']:.3f} | "
+            f"{r['verdicts_differ']} | {r['max_action_diff']:.1e} | {r['max_pose_diff']:.1e} |"
+        )
+    print("\n".join(lines))
+    write_results(out, "agreement", lines, {"rows": rows, "machine": machine(), "date": date.today().isoformat()})
 
 
 if __name__ == "__main__":

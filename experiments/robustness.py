@@ -96,20 +96,37 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def merge(paths: list[str], out: str | None, name: str) -> None:
-    """One table file from the tables of several runs (e.g. parts run side by side on one GPU)."""
-    tables, lines = [], []
+    """One table file from the tables of several runs (e.g. parts run side by side on one GPU); the
+    parts of one policy (same hash, e.g. its noise rows and its margin rows run apart) become one
+    table, rows in :data:`robustness.CONDITIONS` order."""
+    by_policy: dict[str, dict] = {}
     for path in paths:
         data = json.loads(Path(path).read_text())
         for t in data["tables"]:
             if "machine" not in t:  # a part run before the tables carried their machine
                 t = {**t, "machine": f"{data['backend']} ({data['device']})", "seed": data["seed"]}
-            tables.append(t)
-            lines += [
-                f"**{t['policy']}** (`{t['folder']}`, {'x'.join(map(str, t['hidden']))}, hash {t['policy_hash']}) on "
-                f"{t['problems']}; {t['machine']}:",
-                "",
-            ]
-            lines += robustness.markdown(t["rows"], tuple(dict.fromkeys(r["mode"] for r in t["rows"]))) + [""]
+            seen = by_policy.get(t["policy"])
+            if seen is None:
+                by_policy[t["policy"]] = {**t, "rows": list(t["rows"])}
+                continue
+            if seen["policy_hash"] != t["policy_hash"] or seen["problems"] != t["problems"]:
+                raise SystemExit(f"{path}: {t['policy']} was measured with another policy file or problems than before")
+            seen["rows"] += t["rows"]
+            seen["wall_s"] = seen.get("wall_s", 0.0) + t.get("wall_s", 0.0)
+            if t["machine"] not in seen["machine"]:
+                seen["machine"] += f"; {t['machine']}"
+    order = {c.name: i for i, c in enumerate(robustness.CONDITIONS)}
+    tables, lines = [], []
+    for t in by_policy.values():
+        t["rows"].sort(key=lambda r: order.get(r["condition"], len(order)))
+        tables.append(t)
+        lines += [
+            f"**{t['policy']}** (`{t['folder']}`, {'x'.join(map(str, t['hidden']))}, hash {t['policy_hash']}) on "
+            f"{t['problems']}; {t['machine']}:",
+            "",
+        ]
+        modes = tuple(m for m in robustness.MODES if any(r["mode"] == m for r in t["rows"]))
+        lines += robustness.markdown(t["rows"], modes) + [""]
     print("\n".join(lines))
     write_results(out, name, lines, {"tables": tables})
 

@@ -7,7 +7,8 @@ Plans go through the collision shield (``Policy.plan``'s default; ``--no-shield`
 policy out, as training evaluates it). Success, collision and time-out rates of one pass over the
 test set (no retries); planning time of
 one query at a time (compiled and warmed up first; the wall time from the poses to the whole
-trajectory, numpy in and out), mean and median; batched throughput (all queries in one call,
+trajectory, numpy in and out; on the CPU ``Policy.plan``'s lean numba path, on a GPU the JAX
+program), mean and median; batched throughput (all queries in one call,
 repeated, plans/s); path length in mm over the successes; starts that collide before any step
 (``invalid_starts``) and starts implausibly far from their needle (``far_starts``: beyond
 ``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about. Planning runs on JAX's default device:
@@ -98,6 +99,8 @@ def evaluate(
         "planning_time_ms_mean": 1e3 * float(np.mean(times)) if times else None,
         "planning_time_ms_median": 1e3 * float(np.median(times)) if times else None,
         "timed_queries": len(times),
+        # Policy.plan's engine="auto": one query on the CPU goes through the numba rollout
+        "single_query_engine": "lean" if jax.default_backend() == "cpu" else "jax",
         "batch_plans_per_s": len(rows) / batch_s,
         "batch_size": len(rows),
         "ensemble": policy.members,
@@ -239,8 +242,9 @@ def main(argv: list[str] | None = None) -> int:
         f"shield {'on' if r['shield'] else 'off'}, clearance margin {r['clearance_mm']:g} mm)\n"
         f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}\n"
         + (
-            f"  planning time per query: mean {r['planning_time_ms_mean']:.2f} ms, median "
-            f"{r['planning_time_ms_median']:.2f} ms ({r['timed_queries']} queries, one at a time)\n"
+            f"  planning time per query: mean {r['planning_time_ms_mean']:.3f} ms, median "
+            f"{r['planning_time_ms_median']:.3f} ms ({r['timed_queries']} queries, one at a time, "
+            f"{r['single_query_engine']} path)\n"
             if r["timed_queries"]
             else ""
         )

@@ -68,12 +68,18 @@ class PoseError(ValueError):
     """A pose that is not a finite 7-vector ``[x, y, z, qw, qx, qy, qz]`` with a unit quaternion."""
 
 
+ENGINES = ("auto", "jax", "lean")  # Policy.plan's planning programs
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
 
 
 def check_poses(name: str, poses: Any) -> np.ndarray:
     """``poses[..., 7]`` as float64 with unit quaternions, or a :class:`PoseError` saying why not."""
     arr = np.asarray(poses, np.float64)
+    if arr.shape == (7,):  # one good pose in scalar arithmetic: numpy's calls would cost more than a lean plan
+        x = arr.tolist()
+        norm = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5] + x[6] * x[6])
+        if all(map(math.isfinite, x)) and abs(norm - 1.0) <= QUAT_NORM_TOLERANCE:
+            return np.array(x[:3] + [v / norm for v in x[3:]])
     if arr.ndim == 0 or arr.shape[-1] != 7:
         raise PoseError(f"{name} has shape {arr.shape}; accepted: (..., 7) = [x, y, z, qw, qx, qy, qz] in metres")
     if not np.all(np.isfinite(arr)):
@@ -200,6 +206,7 @@ class Policy:
         object.__setattr__(self, "_actor", act)
         object.__setattr__(self, "_act", jax.jit(act))
         object.__setattr__(self, "_planners", {})  # (camera, shield) -> the shared program, weights bound
+        object.__setattr__(self, "_one_task", None)  # _task_inputs of one query with no task arguments
 
     def __repr__(self) -> str:
         net = "x".join(str(h) for h in self.contract["network"]["hidden"])
@@ -481,6 +488,9 @@ class Policy:
         = ``(R, wire radius)`` [m] from ``plan``'s keyword arguments (scalars or ``[n]``; None: the
         task's goal grasp, the middle of the depth range, the scene's needle), each checked against
         the trained range: a :class:`PoseError` names the range (a specialist's is one value)."""
+        plain = n == 1 and all(v is None for v in given.values())
+        if plain and self._one_task is not None:  # one query of the task's own goal and needle: as last time
+            return self._one_task
         defaults, lo, hi, full_turn = self._task_table
         values = np.empty((n, len(self._TASK_INPUTS)))
         values[:] = defaults
@@ -503,7 +513,12 @@ class Policy:
             )
         grasp = values[:, :4].copy()
         grasp[:, 1] *= 1e-3
-        return grasp, values[:, 4:] * 1e-3
+        out = grasp, values[:, 4:] * 1e-3
+        if plain:
+            for x in out:
+                x.flags.writeable = False
+            object.__setattr__(self, "_one_task", out)
+        return out
 
     def plan(
         self,
@@ -519,6 +534,7 @@ class Policy:
         goal_phi_rad: Any = None,
         needle_radius_mm: Any = None,
         wire_radius_mm: Any = None,
+        engine: str = "auto",
     ) -> Plan:
         """Plans from poses in the grasping end-effector frame e_g (7-vectors, or batches ``[B, 7]``).
 
@@ -532,7 +548,15 @@ class Policy:
         (:func:`shield_candidates`); ``shield=False`` rolls the policy out as trained. Raises
         :class:`PoseError` on bad input; warns when the needle pose of a paper-task policy is far
         from every valid grasp of the library.
+
+        ``engine``: ``"jax"`` runs the jitted program (:mod:`regrasp_mjx.planner`; any batch, any
+        device); ``"lean"`` the same rollout compiled with numba for one query on the CPU
+        (:mod:`regrasp_mjx.lean_planner`, several times faster there; it gives the JAX path's
+        verdicts, and its actions to float32 rounding); ``"auto"`` (default) takes the lean one
+        for a single query when JAX runs on the CPU.
         """
+        if engine not in ENGINES:
+            raise ValueError(f"engine={engine!r} is not accepted; accepted: {', '.join(map(repr, ENGINES))}")
         needle = check_poses("needle", needle)
         start = check_poses("start", start)
         single = needle.ndim == 1
@@ -548,16 +572,35 @@ class Policy:
             needle_radius_mm=needle_radius_mm,
             wire_radius_mm=wire_radius_mm,
         )
+        if engine == "auto":
+            engine = "lean" if len(needle) == 1 and jax.default_backend() == "cpu" else "jax"
+        if engine == "lean" and len(needle) != 1:
+            raise ValueError(f"engine='lean' plans one query at a time; got {len(needle)}: use engine='jax'")
         if goal is None:
-            goal = self._default_goal(needle, grasp, radii)
+            if engine == "lean":  # no eager JAX ops on the one-query path: milliseconds against microseconds
+                goal = self._lean_planner(shield).goal(needle[0], grasp[0], radii[0, 0])
+            else:
+                goal = self._default_goal(needle, grasp, radii)
         goal = np.atleast_2d(check_poses("goal", goal))
         if goal.shape != needle.shape:
             raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
         nearest = self._check_grasp(needle) if check_grasp and not self.general else None
         _check_start_distance(needle, start)
-        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
-        out = self._planner(False, shield)(f32(needle), f32(start), f32(goal), f32(radii))
+        if engine == "lean":
+            out = self._lean_planner(shield)(needle[0], start[0], goal[0], radii[0])
+        else:
+            f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
+            out = self._planner(False, shield)(f32(needle), f32(start), f32(goal), f32(radii))
         return self._finish(out, single, nearest)
+
+    def _lean_planner(self, shield: bool):
+        """The numba-compiled one-query rollout (:mod:`regrasp_mjx.lean_planner`), built once."""
+        if ("lean", shield) not in self._planners:
+            # imported here: numba's import and first compilation are paid only where it is used
+            from regrasp_mjx.lean_planner import LeanPlanner
+
+            self._planners[("lean", shield)] = LeanPlanner(self.env_config, self._weights, shield)
+        return self._planners[("lean", shield)]
 
     def plan_from_camera(
         self,
@@ -661,9 +704,9 @@ def far_starts(needle: np.ndarray, start: np.ndarray) -> np.ndarray:
 
 def _check_start_distance(needle: np.ndarray, start: np.ndarray) -> None:
     """Warns about starts implausibly far from their needle (e.g. given in millimetres, not metres)."""
-    far = far_starts(needle, start)
     dist = np.linalg.norm(start[:, :3] - needle[:, :3], axis=1) * 1e3
-    if np.any(far):
+    far = dist > START_WARN_MM
+    if far.any():
         warnings.warn(
             f"start {int(np.argmax(far))} is {float(dist[far][0]):.4g} mm from its needle (beyond {START_WARN_MM:g} mm, "
             "where no start was trained): poses are in metres; check the units and the frame",

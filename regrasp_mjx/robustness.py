@@ -177,7 +177,7 @@ def markdown(rows: list[dict[str, Any]], modes: tuple[str, ...] = tuple(MODES)) 
         for mode in modes:
             r = next((r for r in rows if r["condition"] == name and r["mode"] == mode), None)
             if r is None:
-                cells.append("")
+                cells.append("not run")
                 continue
             coll = f" (coll. {r['collision_rate']:.3f})" if r["collision_rate"] > 0 else ""
             valid = f" [{r['problems_valid']}/{r['problems']}]" if r["problems_valid"] < r["problems"] else ""

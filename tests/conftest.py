@@ -55,6 +55,7 @@ SLOW_FIRST = (
     "tests/test_inference.py",  # ~135
     "tests/test_env.py",  # ~130
     "tests/test_general.py",  # ~120
+    "tests/test_lean_planner.py",  # ~150 (numba compiles the rollout once: ~30 s)
     "notebooks/04_policy.ipynb",  # ~65
 )
 

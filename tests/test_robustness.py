@@ -112,12 +112,15 @@ def test_conditions_refuse_bad_values():
         (["--queries", "-1"], "--queries -1 is not accepted"),
     ],
 )
-def test_evaluate_refuses_bad_values_before_any_work(argv, fragment, capsys):
+def test_evaluate_refuses_bad_values_before_any_work(argv, fragment, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # where a stray write would land
+    (tmp_path / "kept").write_text("x")
     with pytest.raises(SystemExit) as exit_:
         evaluate.main(argv)
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert fragment in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"]  # nothing written
 
 
 @pytest.mark.parametrize(
@@ -131,9 +134,11 @@ def test_evaluate_refuses_bad_values_before_any_work(argv, fragment, capsys):
         ),
     ],
 )
-def test_evaluate_names_what_was_not_found(argv, fragment, capsys):
+def test_evaluate_names_what_was_not_found(argv, fragment, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     assert evaluate.main(argv) == 2
     assert fragment in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing written
 
 
 def test_a_text_file_is_no_test_set(tmp_path, capsys):
