@@ -9,7 +9,7 @@ trained for: a general policy on ``general1000`` (1000 problems from the full ra
 paper300 only, since it refuses other needles and goal grasps. Writes ``NAME.md`` (the table, and
 bare success on general1000 by needle radius and by goal angle alpha*, mean over the general
 policies) and ``NAME.json`` (the rows, and each general policy's per-problem bare outcome with the
-problem's R and alpha*, which ``notebooks/04_general.ipynb`` draws as a heat map).
+problem's R and alpha*, which ``notebooks/04_policy.ipynb`` draws as a heat map).
 """
 
 from __future__ import annotations

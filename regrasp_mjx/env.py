@@ -1,9 +1,10 @@
 """RegraspEnv: the bimanual needle-regrasping MDP on brax's environment API, batched in MJX.
 
 The grasping tool and the needle it holds never move; the regrasping end-effector moves by the
-action. A step is pure kinematics and collision (``mjx.kinematics`` + ``mjx.collision``), no
-dynamics. The episode's poses live in ``State.pipeline_state`` (an :class:`EpisodeState`), so
-brax's ``AutoResetWrapper`` restores a whole episode when it resets.
+action. A step is pure kinematics and collision (``mjx.kinematics`` and exact capsule-axis
+distances, ``Scene.distance_fn``), no dynamics. The episode's poses live in
+``State.pipeline_state`` (an :class:`EpisodeState`), so brax's ``AutoResetWrapper`` restores a
+whole episode when it resets.
 
 Read top to bottom: construction, ``reset``/``reset_from``, ``step``, then the reward and the
 observation.

@@ -1,5 +1,5 @@
 """The collision shield's alternatives to a policy action (ours), shared by planning
-(``regrasp_mjx.policy``) and distillation (``regrasp_mjx.agents.distill``).
+(``regrasp_mjx.planner``, ``regrasp_mjx.lean_planner``) and distillation (``regrasp_mjx.agents.dagger``).
 
 When the policy's action would collide, a plan takes instead the first collision-free one of a
 fixed list, closest to the policy first: each ensemble member's own action (when there are

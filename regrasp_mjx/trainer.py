@@ -73,7 +73,7 @@ class Run:
         self.cfg, self.out, self.quiet = cfg, out, quiet
         self.ckpt = out / "checkpoint"
         self.testset, _ = load_testset(testset)
-        # Model selection uses problems of their own (never the test set): 300 from another seed.
+        # Model selection uses problems of their own (never the test set): validation_size from another seed.
         from regrasp_mjx.testset import make_testset
 
         self.valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, cfg.env)
