@@ -283,21 +283,19 @@ class Policy:
 
     def _finish(self, out: PlanArrays, single: bool, nearest) -> Plan:
         o = out.outcome
-        plan = Plan(
-            success=o.success,
-            collision=o.collision,
-            time_out=o.time_out,
-            start_valid=o.start_valid,
-            steps=o.steps.astype(np.int64),
-            path_length_mm=o.path_length_mm,
-            poses=np.asarray(out.poses, np.float64),
-            actions=np.asarray(out.actions, np.float64),
-            poses_camera=None if out.poses_camera is None else np.asarray(out.poses_camera, np.float64),
-            nearest_grasp_distance=nearest,
+        pick = _first if single else (lambda x: x)  # one query: its row of every field  # noqa: E731
+        return Plan(
+            success=pick(o.success),
+            collision=pick(o.collision),
+            time_out=pick(o.time_out),
+            start_valid=pick(o.start_valid),
+            steps=pick(o.steps.astype(np.int64)),
+            path_length_mm=pick(o.path_length_mm),
+            poses=pick(np.asarray(out.poses, np.float64)),
+            actions=pick(np.asarray(out.actions, np.float64)),
+            poses_camera=pick(None if out.poses_camera is None else np.asarray(out.poses_camera, np.float64)),
+            nearest_grasp_distance=pick(nearest),
         )
-        if single:
-            plan = Plan(**{f.name: _first(getattr(plan, f.name)) for f in dataclasses.fields(Plan)})
-        return plan
 
     # ---- closed loop ----------------------------------------------------------------------
     def _closed_loop(
@@ -704,7 +702,10 @@ def far_starts(needle: np.ndarray, start: np.ndarray) -> np.ndarray:
 
 def _check_start_distance(needle: np.ndarray, start: np.ndarray) -> None:
     """Warns about starts implausibly far from their needle (e.g. given in millimetres, not metres)."""
-    dist = np.linalg.norm(start[:, :3] - needle[:, :3], axis=1) * 1e3
+    if len(start) == 1:  # one query: plain floats (numpy's calls would cost as much as a lean plan)
+        dist = np.array([math.dist(start[0, :3].tolist(), needle[0, :3].tolist()) * 1e3])
+    else:
+        dist = np.linalg.norm(start[:, :3] - needle[:, :3], axis=1) * 1e3
     far = dist > START_WARN_MM
     if far.any():
         warnings.warn(
