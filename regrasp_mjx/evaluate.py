@@ -27,7 +27,15 @@ import numpy as np
 
 from regrasp_mjx import robustness
 from regrasp_mjx.config import ConfigError
-from regrasp_mjx.policy import DEFAULT_POLICY, START_WARN_MM, PolicyError, far_starts, load_policy, shipped_policies
+from regrasp_mjx.policy import (
+    DEFAULT_POLICY,
+    START_WARN_MM,
+    PolicyError,
+    auto_engine,
+    far_starts,
+    load_policy,
+    shipped_policies,
+)
 from regrasp_mjx.robustness import check_condition
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
@@ -99,8 +107,7 @@ def evaluate(
         "planning_time_ms_mean": 1e3 * float(np.mean(times)) if times else None,
         "planning_time_ms_median": 1e3 * float(np.median(times)) if times else None,
         "timed_queries": len(times),
-        # Policy.plan's engine="auto": one query on the CPU goes through the numba rollout
-        "single_query_engine": "lean" if jax.default_backend() == "cpu" else "jax",
+        "single_query_engine": auto_engine(1),  # what Policy.plan ran the timed queries with
         "batch_plans_per_s": len(rows) / batch_s,
         "batch_size": len(rows),
         "ensemble": policy.members,

@@ -30,7 +30,7 @@ from numba import njit
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.planner import PlanArrays
 from regrasp_mjx.rollout import Rollout
-from regrasp_mjx.shield import SHIELD_NOISE, SHIELD_PER_NOISE, step_key
+from regrasp_mjx.shield import candidate_noise, step_key
 
 # ---- pose algebra (wxyz quaternions, as regrasp_mjx.geometry and jaxlie) ---------------------------
 
@@ -251,14 +251,10 @@ def _fixed_ends(geo, varies, needle_p, needle_m, radius, wire):
     needles)."""
     tool_local, other_local, other_on_needle, pair_tool, pair_other, radii, tool_radii, sagitta0, radius0 = geo
     scale = radius / radius0 if varies else 1.0
-    other = np.empty_like(other_local)
-    identity = np.eye(3)
-    zero = np.zeros(3)
+    other = other_local.copy()  # the grasping tool's are already in the world (e_g) frame
     for o in range(other_local.shape[0]):
         if other_on_needle[o]:
             _place(other_local[o : o + 1], needle_p, needle_m, scale, other[o : o + 1])
-        else:
-            _place(other_local[o : o + 1], zero, identity, 1.0, other[o : o + 1])
     sums = radii.copy()
     if varies:
         for k in range(radii.shape[0]):
@@ -453,11 +449,9 @@ class LeanPlanner:
             np.stack([np.asarray(m, np.float32) for _, m, _ in weights]),
             np.stack([np.asarray(s, np.float32) for _, _, s in weights]),
         )
-        # shield_candidates' noise at every step: normal(step_key(t), [24, 1, 6]) times its std
-        draws = len(SHIELD_NOISE) * SHIELD_PER_NOISE
-        noise = jax.vmap(lambda t: jax.random.normal(step_key(t), (draws, 1, 6)))(np.arange(self.horizon))
-        std = np.repeat(np.asarray(SHIELD_NOISE, np.float32), SHIELD_PER_NOISE)[None, :, None]
-        self.noise = np.ascontiguousarray(np.asarray(noise, np.float32)[:, :, 0] * std)
+        # shield_candidates' perturbations at every step of the horizon, [horizon, 24, 6]
+        noise = jax.vmap(lambda t: candidate_noise(step_key(t), 6))(np.arange(self.horizon))
+        self.noise = np.ascontiguousarray(np.asarray(noise, np.float32)[:, :, 0])
 
     def goal(self, needle: np.ndarray, grasp: np.ndarray, radius: float) -> np.ndarray:
         """The goal end-effector pose ``[7]`` (e_g) of a goal grasp ``(alpha*, d* [m], theta*, phi*)``

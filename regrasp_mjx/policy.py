@@ -69,6 +69,14 @@ class PoseError(ValueError):
 
 
 ENGINES = ("auto", "jax", "lean")  # Policy.plan's planning programs
+
+
+def auto_engine(queries: int) -> str:
+    """What ``Policy.plan(engine="auto")`` runs ``queries`` queries with: the lean numba rollout for
+    one query when JAX runs on the CPU, the jitted JAX program otherwise."""
+    return "lean" if queries == 1 and jax.default_backend() == "cpu" else "jax"
+
+
 OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
 
 
@@ -571,7 +579,7 @@ class Policy:
             wire_radius_mm=wire_radius_mm,
         )
         if engine == "auto":
-            engine = "lean" if len(needle) == 1 and jax.default_backend() == "cpu" else "jax"
+            engine = auto_engine(len(needle))
         if engine == "lean" and len(needle) != 1:
             raise ValueError(f"engine='lean' plans one query at a time; got {len(needle)}: use engine='jax'")
         if goal is None:
@@ -697,15 +705,19 @@ class Policy:
 def far_starts(needle: np.ndarray, start: np.ndarray) -> np.ndarray:
     """Which starts ``[n, 7]`` lie implausibly far from their needles ``[n, 7]`` (beyond
     :data:`START_WARN_MM`; every trained start lies within about 30 mm): a bool ``[n]``."""
-    return np.linalg.norm(np.asarray(start)[:, :3] - np.asarray(needle)[:, :3], axis=1) * 1e3 > START_WARN_MM
+    return start_distance_mm(np.asarray(needle), np.asarray(start)) > START_WARN_MM
+
+
+def start_distance_mm(needle: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """``[n]`` distances of starts ``[n, 7]`` from their needles ``[n, 7]``, mm."""
+    if len(start) == 1:  # one query: plain floats (numpy's calls would cost as much as a lean plan)
+        return np.array([math.dist(start[0, :3].tolist(), needle[0, :3].tolist()) * 1e3])
+    return np.linalg.norm(start[:, :3] - needle[:, :3], axis=1) * 1e3
 
 
 def _check_start_distance(needle: np.ndarray, start: np.ndarray) -> None:
     """Warns about starts implausibly far from their needle (e.g. given in millimetres, not metres)."""
-    if len(start) == 1:  # one query: plain floats (numpy's calls would cost as much as a lean plan)
-        dist = np.array([math.dist(start[0, :3].tolist(), needle[0, :3].tolist()) * 1e3])
-    else:
-        dist = np.linalg.norm(start[:, :3] - needle[:, :3], axis=1) * 1e3
+    dist = start_distance_mm(needle, start)
     far = dist > START_WARN_MM
     if far.any():
         warnings.warn(

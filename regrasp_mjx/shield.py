@@ -22,9 +22,15 @@ def shield_candidates(members: list[jax.Array], action: jax.Array, key: jax.Arra
     """``[K, b, 6]`` alternatives to the policy's (mean) action ``[b, 6]`` (see the module
     docstring); ``K = (members if several) + 1 + 24``."""
     own = list(members) if len(members) > 1 else []
-    noise = jax.random.normal(key, (len(SHIELD_NOISE) * SHIELD_PER_NOISE, 1, action.shape[-1]))
-    std = jnp.repeat(jnp.asarray(SHIELD_NOISE), SHIELD_PER_NOISE)[:, None, None]
-    return jnp.concatenate([jnp.stack(own + [0.5 * action]), jnp.clip(action[None] + std * noise, -1.0, 1.0)])
+    noise = candidate_noise(key, action.shape[-1])
+    return jnp.concatenate([jnp.stack(own + [0.5 * action]), jnp.clip(action[None] + noise, -1.0, 1.0)])
+
+
+def candidate_noise(key: jax.Array, action_size: int) -> jax.Array:
+    """``[24, 1, action_size]``: the Gaussian perturbations added to the action at a step with
+    ``key`` (``SHIELD_PER_NOISE`` draws of each std in ``SHIELD_NOISE``, the same for every row)."""
+    noise = jax.random.normal(key, (len(SHIELD_NOISE) * SHIELD_PER_NOISE, 1, action_size))
+    return jnp.repeat(jnp.asarray(SHIELD_NOISE), SHIELD_PER_NOISE)[:, None, None] * noise
 
 
 def step_key(t: jax.Array) -> jax.Array:
