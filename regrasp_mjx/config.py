@@ -44,10 +44,12 @@ class SceneConfig:
       jaw_angle_deg: angle between the two open jaws of the regrasping tool (SPEC: 20, ours).
       needle_radius_mm: needle radius R (paper: 5.4).
       wire_radius_mm: needle wire radius (SPEC: 0.25, ours).
-      conservative_needle: the needle's straight capsule chords get the wire radius plus their
-        sagitta (the most an arc point lies off its chord, 20.5 um for R = 5.4 mm and 18 chords), so
-        the collision model contains the true wire and never reports more clearance than there is
-        (ours; False = the wire radius alone, which under-reports contact by up to the sagitta).
+      conservative_needle: the needle's 56 straight capsule chords are moved out from the arc and
+        grown (ends at R k, k = 2 / (1 + cos h), radius wire + R tan^2(h/2), see
+        ``regrasp_mjx.scene.chord_placement``) so that they contain the true wire: the model never
+        reports more clearance than there is and at most 2.12 um less for R = 5.4 mm, 4.72 um for
+        12 mm (ours; False = the chords' ends on the arc and the wire radius alone, which
+        under-reports contact by up to the sagitta, 4.7 um for R = 12 mm).
     """
 
     jaw_angle_deg: float = 20.0

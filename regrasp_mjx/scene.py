@@ -23,6 +23,7 @@ import numpy as np
 from mujoco import mjx
 
 from regrasp_mjx.config import SceneConfig
+from regrasp_mjx.geometry import rotation_matrix
 
 MJCF_PATH = Path(__file__).resolve().parent / "models" / "regrasp_scene.xml"  # package data
 
@@ -129,14 +130,49 @@ class Scene:
         return n
 
     @property
-    def needle_sagitta(self) -> float:
-        """The most a point of the needle's true arc lies off its capsule chord [m]: ``R (1 - cos(h))``
-        for a chord of half-angle h. With ``SceneConfig.conservative_needle`` the chords' radius is
-        the wire radius plus this, so they contain the true wire: the model's clearance is never
-        above the true one and at most twice this below it (the inner side of a chord's middle;
-        measured in tests/test_clearance.py)."""
-        radius = self.config.needle_radius_mm * 1e-3
-        return max(radius - float(np.linalg.norm((c.p0 + c.p1) / 2.0)) for c in self.needle_capsules)
+    def needle_inflation(self) -> float:
+        """How much the needle chords' capsule radius exceeds the wire's [m] (see :func:`chord_placement`):
+        ``e = R tan^2(h/2)`` for chords of half-angle h with ``SceneConfig.conservative_needle``, else 0."""
+        wire = self.config.wire_radius_mm * 1e-3
+        return max(c.radius for c in self.needle_capsules) - wire
+
+    @property
+    def needle_error_bound(self) -> float:
+        """The most the model's clearance to the needle lies below the true one [m]: ``2e`` with
+        ``SceneConfig.conservative_needle`` (it is never above it), 2.12 um for R = 5.4 mm and 4.72 um
+        for 12 mm with the 56 chords of the MJCF (measured in tests/test_clearance.py). Without it,
+        the model over-reports clearance by up to the sagitta instead."""
+        return 2.0 * self.needle_inflation
+
+    @functools.cached_property
+    def capsule_frames(self) -> CapsuleFrames:
+        """The counted pairs' capsules as :class:`CapsuleFrames`: axis ends in their bodies' frames,
+        read off CPU MuJoCo with both free bodies at the identity (world = e_g), and radii."""
+        data = mujoco.MjData(self.model)
+        zero, unit = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+        data.qpos[:] = self.qpos(zero, unit, zero, unit)
+        mujoco.mj_kinematics(self.model, data)
+
+        def ends(g: int) -> np.ndarray:
+            axis = data.geom_xmat[g].reshape(3, 3)[:, 2] * self.model.geom_size[g, 1]
+            return np.stack([data.geom_xpos[g] - axis, data.geom_xpos[g] + axis])
+
+        tools = sorted({p[0] for p in self.pairs})
+        others = sorted({p[1] for p in self.pairs})
+        if [(t, o) for t in tools for o in others] != list(self.pairs):
+            raise ValueError("every regrasping capsule must be paired with every counted one, tool by tool")
+        needle_ids = [c.geom_id for c in self.needle_capsules]  # in the file's order: along the arc
+        on_needle = np.isin(others, needle_ids)
+        wire = self.config.wire_radius_mm * 1e-3
+        return CapsuleFrames(
+            tool_ends=np.stack([ends(g) for g in tools]),
+            other_ends=np.stack([ends(g) for g in others]),
+            on_needle=on_needle,
+            tool_radii=self.model.geom_size[tools, 0].copy(),
+            other_radii=self.model.geom_size[others, 0].copy(),
+            inflation=np.where(on_needle, self.model.geom_size[others, 0] - wire, 0.0),
+            chords=np.searchsorted(others, needle_ids),
+        )
 
     def distance_fn(self) -> DistanceFn:
         """A pure JAX function ``(needle_pos, needle_quat, ee_pos, ee_quat[, radius, wire]) ->
@@ -144,44 +180,62 @@ class Scene:
 
         With ``radius`` and ``wire`` [m] (traced values: one compiled program serves every needle)
         the needle is that one instead of the scene's: its chords scaled by ``radius / R`` about the
-        needle centre, their radius the wire's plus the scaled sagitta (with
+        needle centre, their radius the wire's plus the scaled inflation (with
         ``conservative_needle``), exactly the capsules :func:`load_scene` builds for that needle.
 
-        Signed surface distances (m) of the counted pairs in the order of :attr:`pairs`, negative
-        when they penetrate; the minimum is the clearance. Geom poses come from ``mjx.kinematics``;
-        distances are the exact closest points of the two capsule axes (Ericson, Real-Time Collision
-        Detection, 5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes. (``mjx.collision``'s
+        Signed surface distances (m) of the counted pairs in the order of :attr:`pairs` (regrasping
+        capsule by regrasping capsule), negative when they penetrate; the minimum is the clearance.
+        The capsules are placed by their bodies' poses (both free bodies hang off the world, so
+        this is what ``mj_kinematics`` computes, without its work on every other geom) and the
+        distances are the exact closest points of the capsule axes (Ericson, Real-Time Collision
+        Detection, 5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes, every regrasping capsule
+        against every counted one by broadcasting rather than a gather per pair. (``mjx.collision``'s
         capsule-capsule contact is one clip-and-project pass that overestimates some distances by
         tens of microns, up to 20x at a few microns' clearance on this scene, so it is not used.)
         """
-        mx = self.mjx_model
-        data0 = mjx.make_data(mx, device=jax.local_devices()[0])
-        g1 = np.array([p[0] for p in self.pairs])
-        g2 = np.array([p[1] for p in self.pairs])
-        half1, half2 = self.model.geom_size[g1, 1], self.model.geom_size[g2, 1]
-        radii = (self.model.geom_size[g1, 0] + self.model.geom_size[g2, 0]).astype(np.float32)
-        # for another needle: which pairs' second geom is a needle chord, and what of its radius is sagitta
-        needle_ids = {c.geom_id for c in self.needle_capsules}
-        on_needle = np.array([g in needle_ids for g in g2])
-        wire0, radius0 = self.config.wire_radius_mm * 1e-3, self.config.needle_radius_mm * 1e-3
-        sagitta0 = np.where(on_needle, self.model.geom_size[g2, 0] - wire0, 0.0).astype(np.float32)
-        tool_radii = self.model.geom_size[g1, 0].astype(np.float32)
+        f = self.capsule_frames
+        tool_ends = jnp.asarray(f.tool_ends, jnp.float32)  # [T, 2, 3] in e_r
+        other_ends = jnp.asarray(f.other_ends, jnp.float32)  # [O, 2, 3] in n (needle) or e_g
+        on_needle = jnp.asarray(f.on_needle)
+        tool_radii = jnp.asarray(f.tool_radii, jnp.float32)[:, None]
+        other_radii = jnp.asarray(f.other_radii, jnp.float32)
+        inflation0 = jnp.asarray(f.inflation, jnp.float32)
+        radius0 = self.config.needle_radius_mm * 1e-3
+
+        def place(ends, pos, quat, scale=1.0):
+            quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)  # as mj_kinematics does
+            # products and sums, not a matmul: on the GPU a float32 matmul may run in TF32 (10-bit
+            # mantissa), which moves a capsule 50 mm from its origin by tens of microns
+            return pos + jnp.sum(rotation_matrix(quat) * (scale * ends)[..., None, :], axis=-1)
 
         def distances(needle_pos, needle_quat, ee_pos, ee_quat, radius=None, wire=None):
-            d = mjx.kinematics(mx, data0.replace(qpos=self.qpos(needle_pos, needle_quat, ee_pos, ee_quat)))
-            xpos, axis = d.geom_xpos, d.geom_xmat[:, :, 2]
-            a0 = xpos[g1] - axis[g1] * half1[:, None]
-            a1 = xpos[g1] + axis[g1] * half1[:, None]
-            b0 = xpos[g2] - axis[g2] * half2[:, None]
-            b1 = xpos[g2] + axis[g2] * half2[:, None]
-            if radius is None:
-                return segment_distance(a0, a1, b0, b1) - radii
-            scale = radius / radius0
-            grow = lambda p: jnp.where(on_needle[:, None], needle_pos + scale * (p - needle_pos), p)  # noqa: E731
-            other = jnp.where(on_needle, wire + sagitta0 * scale, radii - tool_radii)
-            return segment_distance(a0, a1, grow(b0), grow(b1)) - (tool_radii + other)
+            tool = place(tool_ends, ee_pos, ee_quat)[:, None]  # [T, 1, 2, 3]
+            scale = 1.0 if radius is None else radius / radius0
+            needle = place(other_ends, needle_pos, needle_quat, scale)
+            other = jnp.where(on_needle[:, None, None], needle, other_ends)[None]  # [1, O, 2, 3]
+            others = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
+            gap = segment_distance(tool[..., 0, :], tool[..., 1, :], other[..., 0, :], other[..., 1, :])
+            return (gap - tool_radii - others).reshape(-1)
 
         return distances
+
+
+@dataclasses.dataclass(frozen=True)
+class CapsuleFrames:
+    """The counted pairs' capsules in their bodies' frames (:attr:`Scene.capsule_frames`): the
+    regrasping tool's ``tool_ends`` ``[T, 2, 3]`` (frame e_r) and the counted ones' ``other_ends``
+    ``[O, 2, 3]`` (the needle's in frame n, the grasping tool's in the world e_g), sorted by geom id
+    as :attr:`Scene.pairs` pairs them (every tool capsule with every counted one); their radii [m];
+    ``on_needle`` ``[O]``; ``inflation`` ``[O]``, how much a needle chord's radius exceeds the wire's;
+    ``chords``, the needle chords' indices into ``other_ends`` along the arc."""
+
+    tool_ends: np.ndarray
+    other_ends: np.ndarray
+    on_needle: np.ndarray
+    tool_radii: np.ndarray
+    other_radii: np.ndarray
+    inflation: np.ndarray
+    chords: np.ndarray
 
 
 def segment_distance(a0: jax.Array, a1: jax.Array, b0: jax.Array, b1: jax.Array) -> jax.Array:
@@ -203,6 +257,23 @@ def segment_distance(a0: jax.Array, a1: jax.Array, b0: jax.Array, b1: jax.Array)
     s = jnp.where(t < 0.0, jnp.clip(-c / a, 0.0, 1.0), jnp.where(t > 1.0, jnp.clip((b - c) / a, 0.0, 1.0), s))
     t = jnp.clip(t, 0.0, 1.0)
     return jnp.linalg.norm(a0 + d1 * s[..., None] - (b0 + d2 * t[..., None]), axis=-1)
+
+
+def chord_placement(radius: float, half_angle: float, conservative: bool = True) -> tuple[float, float]:
+    """Where a capsule chord of half-angle h standing for an arc of ``radius`` puts its ends, as a
+    factor k of the radius, and how much its capsule's radius exceeds the wire's [m].
+
+    Conservative: k = 2 / (1 + cos h) puts the arc's middle and its ends equally far, e = R tan^2(h/2),
+    from the chord (the middle outside it, the ends inside), the least that any straight chord with
+    its ends on the arc's rays can be; a capsule of radius w + e then holds the whole wire, and its
+    distance to any point is at most 2e less than the wire's (within e of the chord, which is within
+    e of the arc). Not conservative: the ends on the arc and the wire's radius (``k = 1, e = 0``),
+    which under-reports contact by up to the sagitta ``R (1 - cos h)``.
+    """
+    if not conservative:
+        return 1.0, 0.0
+    grow = 2.0 / (1.0 + math.cos(half_angle))
+    return grow, radius * (grow - 1.0)
 
 
 def _capsules(model: mujoco.MjModel, names: list[str]) -> tuple[CapsuleInfo, ...]:
@@ -232,11 +303,13 @@ def _apply_config(spec: mujoco.MjSpec, config: SceneConfig) -> None:
     scale = radius / _DEFAULT_NEEDLE_RADIUS
     for geom in spec.geoms:
         if geom.name.startswith("needle_seg"):
-            geom.fromto = [v * scale for v in geom.fromto]
+            # the file's chord ends lie on the arc; only their directions from the centre are used
             ends = np.reshape(geom.fromto, (2, 3))
-            # the chord's sagitta: how far the arc between its ends bulges past it (ends on the arc)
-            sagitta = radius - float(np.linalg.norm(ends.mean(0))) if config.conservative_needle else 0.0
-            geom.size = [config.wire_radius_mm * 1e-3 + sagitta, 0.0, 0.0]
+            ends = ends / np.linalg.norm(ends, axis=1, keepdims=True)
+            half = 0.5 * math.acos(float(np.clip(ends[0] @ ends[1], -1.0, 1.0)))
+            grow, inflation = chord_placement(radius, half, config.conservative_needle)
+            geom.fromto = list((ends * radius * grow).ravel())
+            geom.size = [config.wire_radius_mm * 1e-3 + inflation, 0.0, 0.0]
     if abs(scale - 1.0) > 1e-12 or abs(config.wire_radius_mm - _DEFAULT_WIRE_RADIUS_MM) > 1e-12:
         # the render mesh of this needle (the file holds the default one): the arc of R, the tube of the wire
         from regrasp_mjx.needle_mesh import needle_tube

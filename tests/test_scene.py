@@ -15,21 +15,26 @@ from regrasp_mjx.host import HostChecker
 from regrasp_mjx.scene import load_scene, segment_distance
 
 
-def test_needle_capsules_lie_on_the_arc():
+def test_needle_capsules_follow_the_arc():
     scene = load_scene()
     caps = scene.needle_capsules
-    assert len(caps) == 18
+    assert len(caps) == 56
     ends = np.array([p for c in caps for p in (c.p0, c.p1)])
     np.testing.assert_allclose(ends[:, 0], 0.0, atol=1e-9)  # needle in the y-z plane
-    np.testing.assert_allclose(np.linalg.norm(ends, axis=1), 0.0054, atol=1e-7)
+    # ends moved out from the arc by k = 2 / (1 + cos h), h = 90/56 deg: 5.4 mm -> 5.401062 mm
+    half = math.pi / 112
+    np.testing.assert_allclose(np.linalg.norm(ends, axis=1), 0.0054 * 2 / (1 + math.cos(half)), atol=1e-10)
     alpha = np.mod(np.arctan2(ends[:, 2], ends[:, 1]), 2 * np.pi)
     alpha = np.unique(np.round(alpha, 6))
-    np.testing.assert_allclose(alpha, np.linspace(np.pi / 2, 3 * np.pi / 2, 19), atol=5e-5)  # 0.1 micron in the XML
-    # the wire radius plus the chord's sagitta (conservative_needle): R (1 - cos 5 deg) = 20.56 um
-    assert all(c.radius == pytest.approx(0.00025 + 0.0054 * (1 - math.cos(math.radians(5.0))), abs=1e-7) for c in caps)
-    for c0, c1 in zip(caps, caps[1:]):  # a chain without gaps: neighbours share an end point
+    np.testing.assert_allclose(alpha, np.linspace(np.pi / 2, 3 * np.pi / 2, 57), atol=1e-6)
+    # the wire radius plus e = R tan^2(h/2) (conservative_needle) = 1.062 um
+    assert all(c.radius == pytest.approx(0.00025 + 0.0054 * math.tan(half / 2) ** 2, abs=1e-10) for c in caps)
+    for c0, c1 in zip(caps, caps[1:]):  # a chain without gaps, along the arc: neighbours share an end
         gaps = [np.linalg.norm(a - b) for a in (c0.p0, c0.p1) for b in (c1.p0, c1.p1)]
         assert min(gaps) < 1e-9
+    frames = scene.capsule_frames  # the same chords, in order along the arc, for the JAX and lean paths
+    np.testing.assert_allclose(frames.other_ends[frames.chords, 0], [c.p0 for c in caps], atol=1e-12)
+    np.testing.assert_allclose(frames.other_ends[frames.chords, 1], [c.p1 for c in caps], atol=1e-12)
 
 
 def test_scene_config_changes_the_geometry():
@@ -37,10 +42,9 @@ def test_scene_config_changes_the_geometry():
     jaw = scene.regrasp_capsules[0]
     tip = jaw.p0 if np.linalg.norm(jaw.p0) > np.linalg.norm(jaw.p1) else jaw.p1
     assert math.degrees(math.atan2(abs(tip[1]), tip[2])) == pytest.approx(20.0, abs=1e-6)
-    assert scene.needle_capsules[0].radius == pytest.approx(
-        0.0003 + 0.006 * (1 - math.cos(math.radians(5.0))), abs=1e-7
-    )
-    assert np.linalg.norm(scene.needle_capsules[3].p0) == pytest.approx(0.006, abs=1e-8)
+    half = math.pi / 112
+    assert scene.needle_capsules[0].radius == pytest.approx(0.0003 + 0.006 * math.tan(half / 2) ** 2, abs=1e-10)
+    assert np.linalg.norm(scene.needle_capsules[3].p0) == pytest.approx(0.006 * 2 / (1 + math.cos(half)), abs=1e-10)
 
 
 def test_only_the_counted_pairs_collide():
