@@ -10,7 +10,8 @@ finely, and whether the regrasping PSM can follow the plans (issue: dVRK kinemat
    at ``--substeps`` poses per policy step (BIT*'s segments at the same spacing: 20 poses per
    0.5 mm or 3 degrees); per path the smallest clearance; the 1st percentile and median over paths,
    and the paths that penetrate (clearance < 0; with the conservative needle that is contact with
-   the true wire or an over-estimate of it by at most the chords' 20.6 um sagitta).
+   the true wire or an under-estimate of its clearance by at most the needle model's bound,
+   ``Scene.needle_error_bound``).
 3. Reachability. The shipped policy's shielded plans (margin 0) as dVRK PSM joint trajectories
    (``regrasp_mjx.dvrk``) for two placements of the regrasping arm's remote centre of motion (RCM):
    ``start`` puts it 0.12 m behind each problem's start pose on the tool's shaft (the arm starts

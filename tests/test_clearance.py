@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import dvrk, load_policy
+from regrasp_mjx import dvrk, load_policy, true_needle
 from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.evaluate import episode_poses
@@ -73,14 +73,7 @@ def test_conservative_chords_contain_the_true_wire():
 
 
 def _arc_distance(p: np.ndarray, radius: float, wire: float) -> np.ndarray:
-    """Exact distance of points ``[n, 3]`` to the surface of the true needle: the wire about the
-    semicircle of ``radius`` in the needle's y-z plane, angles 90-270 degrees (ends included)."""
-    x, y, z = p.T
-    rho, angle = np.hypot(y, z), np.mod(np.arctan2(z, y), 2 * np.pi)
-    on_arc = (angle >= np.pi / 2) & (angle <= 3 * np.pi / 2)
-    ends = np.array([[0.0, 0.0, radius], [0.0, 0.0, -radius]])
-    to_end = np.linalg.norm(p[:, None] - ends[None], axis=-1).min(axis=1)
-    return np.where(on_arc, np.hypot(x, rho - radius), to_end) - wire
+    return true_needle.point_distance(p, radius, wire)
 
 
 def _segment_chord_distances(a0, a1, caps) -> np.ndarray:
@@ -102,25 +95,7 @@ def _segment_chord_distances(a0, a1, caps) -> np.ndarray:
 
 
 def _segment_arc_distance(a0, a1, radius, wire) -> float:
-    """The exact clearance of one segment to the true needle: the point-to-wire distance (exact,
-    1-Lipschitz) on 4001 points along it, then golden-section refinement about each local minimum
-    to 1e-12 of the segment's parameter."""
-    ts = np.linspace(0.0, 1.0, 4001)
-    f = lambda t: _arc_distance(a0 + np.atleast_1d(t)[:, None] * (a1 - a0), radius, wire)  # noqa: E731
-    values = f(ts)
-    best = values.min()
-    minima = np.nonzero((values <= np.roll(values, 1)) & (values <= np.roll(values, -1)))[0]
-    for i in list(minima) + [0, len(ts) - 1]:
-        lo, hi = ts[max(i - 1, 0)], ts[min(i + 1, len(ts) - 1)]
-        g = (math.sqrt(5) - 1) / 2
-        while hi - lo > 1e-12:
-            m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
-            if f(m1)[0] <= f(m2)[0]:
-                hi = m2
-            else:
-                lo = m1
-        best = min(best, f(0.5 * (lo + hi))[0])
-    return float(best)
+    return true_needle.segment_distance(a0, a1, radius, wire)[0]
 
 
 @pytest.mark.parametrize("radius_mm, wire_mm", [(4.0, 0.15), (5.4, 0.25), (8.0, 0.2), (12.0, 0.35)])
