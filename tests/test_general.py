@@ -46,13 +46,15 @@ def test_ranges_are_validated():
 
 def test_default_task_still_draws_paper300_exactly():
     """The paper's task draws no range, so the committed test set comes out again (to float32
-    rounding: ``REGENERATION_ATOL``)."""
+    rounding: ``REGENERATION_ATOL``), but for the rows whose first draw the 18-chord needle model it
+    was made under refused (docs/environment.md: 163, 228, 241, 282): the 56-chord model of issue 30
+    keeps that first draw, so those rows differ and the file stays the one every table used."""
     fresh = make_testset(300, 2021, EnvConfig())
+    redrawn = np.zeros(300, bool)
     with np.load(PAPER_TESTSET, allow_pickle=False) as f:
         for name in ("needle_pos", "needle_quat", "start_pos", "start_quat", "goal_pos", "goal_quat", "grasp"):
-            np.testing.assert_allclose(
-                f[name], np.asarray(getattr(fresh, name), np.float64), rtol=0, atol=REGENERATION_ATOL, err_msg=name
-            )
+            redrawn |= np.abs(f[name] - np.asarray(getattr(fresh, name), np.float64)).max(axis=1) > REGENERATION_ATOL
+    assert sorted(np.nonzero(redrawn)[0]) == [163, 228, 241, 282]
     np.testing.assert_allclose(fresh.needle_radius, 5.4e-3, rtol=1e-6)
 
 
