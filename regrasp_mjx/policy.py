@@ -77,7 +77,7 @@ def auto_engine(queries: int) -> str:
     return "lean" if queries == 1 and jax.default_backend() == "cpu" else "jax"
 
 
-OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.6)
+OOD_WARN_DISTANCE = 4.0  # nearest-grasp distance (mm + deg/5) beyond which a plan warns (fresh draws: p99 2.7)
 
 
 def check_poses(name: str, poses: Any) -> np.ndarray:

@@ -17,9 +17,10 @@ from regrasp_mjx.sampling import load_testset
 from regrasp_mjx.testset import make_testset
 from regrasp_mjx.train import DEFAULT_TESTSET
 
-# paper300 rows where the earlier default (student_v2, the teacher here) alone collides (two of them on
-# its first step), and rows it plans to the goal (RESULTS, "The shipped network, re-distilled")
-FAILING, SUCCEEDING = [161, 169, 179, 275], [0, 1, 2]
+# paper300 rows where the earlier default (student_v2, the teacher here) alone collides, on its first
+# step (under the 18-chord needle model before issue 30 also 161, 179, 275), and rows it plans to the
+# goal (RESULTS, "The shipped network, re-distilled"; experiments/results/needle_model/shipped/)
+FAILING, SUCCEEDING = [169], [0, 1, 2]
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +47,7 @@ def test_teacher_keeps_the_policy_where_it_succeeds_and_repairs_where_it_collide
     np.testing.assert_array_equal(np.asarray(action), np.asarray(teacher.actor_fn()(ok.obs)))
     assert not np.asarray(overridden).any() and np.asarray(reaches).all()
 
-    bad = _starts(env, episodes, [161, 169])  # the policy's first step collides
+    bad = _starts(env, episodes, FAILING)  # the policy's first step collides
     assert np.asarray(step(bad, teacher.actor_fn()(bad.obs)).metrics["collision"]).all()
     action, overridden, reaches = label(bad, jax.random.PRNGKey(0))
     assert np.asarray(overridden).all() and np.asarray(reaches).all()

@@ -19,7 +19,7 @@ from regrasp_mjx.policy import PoseError, load_policy
 from regrasp_mjx.sampling import GENERAL1000, TestsetError, load_testset
 from regrasp_mjx.scene import load_scene, needle_scene
 from regrasp_mjx.testset import make_testset
-from tests.conftest import PAPER_TESTSET, REGENERATION_ATOL
+from tests.conftest import PAPER_TESTSET, needle_model_redraws
 
 GENERAL = EnvConfig(task=GENERAL_TASK)
 
@@ -50,11 +50,7 @@ def test_default_task_still_draws_paper300_exactly():
     was made under refused (docs/environment.md: 163, 228, 241, 282): the 56-chord model of issue 30
     keeps that first draw, so those rows differ and the file stays the one every table used."""
     fresh = make_testset(300, 2021, EnvConfig())
-    redrawn = np.zeros(300, bool)
-    with np.load(PAPER_TESTSET, allow_pickle=False) as f:
-        for name in ("needle_pos", "needle_quat", "start_pos", "start_quat", "goal_pos", "goal_quat", "grasp"):
-            redrawn |= np.abs(f[name] - np.asarray(getattr(fresh, name), np.float64)).max(axis=1) > REGENERATION_ATOL
-    assert sorted(np.nonzero(redrawn)[0]) == [163, 228, 241, 282]
+    assert list(needle_model_redraws(fresh, load_testset(PAPER_TESTSET)[0])) == [163, 228, 241, 282]
     np.testing.assert_allclose(fresh.needle_radius, 5.4e-3, rtol=1e-6)
 
 
