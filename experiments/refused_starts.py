@@ -40,9 +40,11 @@ def main(argv: list[str] | None = None) -> None:
     env_config = load_policy("general").env_config
     scene = load_scene(env_config.scene)
     frames = scene.capsule_frames
-    model = jax.jit(jax.vmap(lambda *a: jnp.min(scene.distance_fn()(*a))))
+    distances = scene.distance_fn()
+    model = jax.jit(jax.vmap(lambda *a: jnp.min(distances(*a))))
+    # the grasping tool's capsules are exact: its pairs' smallest distance joins the exact clearance
     grasp_pairs = jax.jit(
-        jax.vmap(lambda *a: jnp.min(scene.distance_fn()(*a).reshape(len(frames.tool_ends), -1)[:, ~frames.on_needle]))
+        jax.vmap(lambda *a: jnp.min(distances(*a).reshape(len(frames.tool_ends), -1)[:, ~frames.on_needle]))
     )
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.n)
     eps = jax.vmap(lambda k: draw_episode(k, env_config.task, 5.4e-3))(keys)
@@ -86,7 +88,7 @@ def main(argv: list[str] | None = None) -> None:
                     "wire_mm": wire * 1e3,
                     "exact_um": min(clear, float(grasp_pairs(*args_[:4])[0])) * 1e6,
                     "model_um": float(model(*args_)[0]) * 1e6,
-                    "bound_um": 2 * radius * float(np.tan(np.pi / 224) ** 2) * 1e6,
+                    "bound_um": scene.needle_error_bound * radius / (env_config.scene.needle_radius_mm * 1e-3) * 1e6,
                 }
             )
     exact_um = np.array([r["exact_um"] for r in rows])

@@ -26,7 +26,6 @@ import math
 from typing import Any
 
 import jax
-import mujoco
 import numpy as np
 from numba import njit
 
@@ -536,42 +535,23 @@ class LeanPlanner:
 
 
 def _geometry(env: RegraspEnv) -> tuple:
-    """The counted pairs' capsule axes in their bodies' frames (the regrasping tool's, the needle's,
-    the world's for the grasping tool), read off CPU MuJoCo with both free bodies at the identity,
-    and the radii as ``Scene.distance_fn`` takes them."""
-    scene = env.scene
-    model = scene.model
-    data = mujoco.MjData(model)
-    zero = np.zeros(3)
-    unit = np.array([1.0, 0.0, 0.0, 0.0])
-    data.qpos[:] = scene.qpos(zero, unit, zero, unit)
-    mujoco.mj_kinematics(model, data)
-
-    def ends(g):
-        axis = data.geom_xmat[g].reshape(3, 3)[:, 2] * model.geom_size[g, 1]
-        return np.stack([data.geom_xpos[g] - axis, data.geom_xpos[g] + axis])
-
-    g1 = np.array([p[0] for p in scene.pairs])
-    g2 = np.array([p[1] for p in scene.pairs])
-    tools, others = np.unique(g1), np.unique(g2)  # each capsule placed once per pose
-    pair_index = np.full((len(tools), len(others)), -1, np.int64)
-    pair_index[np.searchsorted(tools, g1), np.searchsorted(others, g2)] = np.arange(len(g1))
-    if (pair_index < 0).any():
-        raise ValueError("the lean planner expects every regrasping capsule paired with every counted one")
-    needle_ids = [c.geom_id for c in scene.needle_capsules]  # in the file's order: along the arc
-    on_needle = np.isin(g2, needle_ids)
-    wire0 = scene.config.wire_radius_mm * 1e-3
-    f32 = lambda x: np.asarray(x, np.float32).astype(np.float64)  # noqa: E731 (the JAX path's radii)
+    """The counted pairs' capsules (``Scene.capsule_frames``: every regrasping capsule paired with
+    every counted one, pair ``t * O + o``) as the compiled loops take them, the radii rounded as
+    ``Scene.distance_fn`` holds them (float32)."""
+    f = env.scene.capsule_frames
+    n_tools, n_others = len(f.tool_ends), len(f.other_ends)
+    f32 = lambda x: np.asarray(x, np.float32).astype(np.float64)  # noqa: E731
+    per_pair = lambda tool, other: (tool[:, None] + other[None, :]).ravel()  # noqa: E731
     return (
-        np.stack([ends(g) for g in tools]),
-        np.stack([ends(g) for g in others]),
-        np.isin(others, needle_ids),
-        pair_index,
-        f32(model.geom_size[g1, 0] + model.geom_size[g2, 0]),
-        f32(model.geom_size[g1, 0]),
-        f32(np.where(on_needle, model.geom_size[g2, 0] - wire0, 0.0)),
-        float(np.float32(scene.config.needle_radius_mm * 1e-3)),
-        np.flatnonzero(~np.isin(others, needle_ids)),
-        np.searchsorted(others, needle_ids),
+        f.tool_ends,
+        f.other_ends,
+        f.on_needle,
+        np.arange(n_tools * n_others).reshape(n_tools, n_others),
+        f32(per_pair(f.tool_radii, f.other_radii)),
+        f32(per_pair(f.tool_radii, np.zeros(n_others))),
+        f32(per_pair(np.zeros(n_tools), f.inflation)),
+        float(np.float32(env.scene.config.needle_radius_mm * 1e-3)),
+        np.flatnonzero(~f.on_needle),
+        f.chords,
         CHORD_GROUP,
     )

@@ -23,7 +23,6 @@ import numpy as np
 from mujoco import mjx
 
 from regrasp_mjx.config import SceneConfig
-from regrasp_mjx.geometry import rotation_matrix
 
 MJCF_PATH = Path(__file__).resolve().parent / "models" / "regrasp_scene.xml"  # package data
 
@@ -157,14 +156,16 @@ class Scene:
             axis = data.geom_xmat[g].reshape(3, 3)[:, 2] * self.model.geom_size[g, 1]
             return np.stack([data.geom_xpos[g] - axis, data.geom_xpos[g] + axis])
 
-        tools = sorted({p[0] for p in self.pairs})
-        others = sorted({p[1] for p in self.pairs})
+        tools = sorted({int(p[0]) for p in self.pairs})
+        others = sorted({int(p[1]) for p in self.pairs})
         if [(t, o) for t in tools for o in others] != list(self.pairs):
             raise ValueError("every regrasping capsule must be paired with every counted one, tool by tool")
         needle_ids = [c.geom_id for c in self.needle_capsules]  # in the file's order: along the arc
         on_needle = np.isin(others, needle_ids)
         wire = self.config.wire_radius_mm * 1e-3
         return CapsuleFrames(
+            tool_ids=tuple(tools),
+            other_ids=tuple(others),
             tool_ends=np.stack([ends(g) for g in tools]),
             other_ends=np.stack([ends(g) for g in others]),
             on_needle=on_needle,
@@ -185,37 +186,47 @@ class Scene:
 
         Signed surface distances (m) of the counted pairs in the order of :attr:`pairs` (regrasping
         capsule by regrasping capsule), negative when they penetrate; the minimum is the clearance.
-        The capsules are placed by their bodies' poses (both free bodies hang off the world, so
-        this is what ``mj_kinematics`` computes, without its work on every other geom) and the
-        distances are the exact closest points of the capsule axes (Ericson, Real-Time Collision
-        Detection, 5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes, every regrasping capsule
-        against every counted one by broadcasting rather than a gather per pair. (``mjx.collision``'s
+        Geom poses come from ``mjx.kinematics``, each counted capsule read once; the distances are
+        the exact closest points of the capsule axes (Ericson, Real-Time Collision Detection,
+        5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes, every regrasping capsule against
+        every counted one by broadcasting ``[T, 1] x [1, O]`` rather than gathering both capsules
+        of each of the T x O pairs. (``mjx.collision``'s
         capsule-capsule contact is one clip-and-project pass that overestimates some distances by
         tens of microns, up to 20x at a few microns' clearance on this scene, so it is not used.)
         """
         f = self.capsule_frames
-        tool_ends = jnp.asarray(f.tool_ends, jnp.float32)  # [T, 2, 3] in e_r
-        other_ends = jnp.asarray(f.other_ends, jnp.float32)  # [O, 2, 3] in n (needle) or e_g
+        mx = self.mjx_model
+        data0 = mjx.make_data(mx, device=jax.local_devices()[0])
+        tools, others = np.array(f.tool_ids), np.array(f.other_ids)
+        tool_half = jnp.asarray(self.model.geom_size[tools, 1], jnp.float32)[:, None]
+        other_half = jnp.asarray(self.model.geom_size[others, 1], jnp.float32)[:, None]
         on_needle = jnp.asarray(f.on_needle)
         tool_radii = jnp.asarray(f.tool_radii, jnp.float32)[:, None]
         other_radii = jnp.asarray(f.other_radii, jnp.float32)
         inflation0 = jnp.asarray(f.inflation, jnp.float32)
         radius0 = self.config.needle_radius_mm * 1e-3
 
-        def place(ends, pos, quat, scale=1.0):
-            quat = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)  # as mj_kinematics does
-            # products and sums, not a matmul: on the GPU a float32 matmul may run in TF32 (10-bit
-            # mantissa), which moves a capsule 50 mm from its origin by tens of microns
-            return pos + jnp.sum(rotation_matrix(quat) * (scale * ends)[..., None, :], axis=-1)
+        def axes(d, ids, half):
+            """``[n, 2, 3]`` world end points of the capsules ``ids`` (each geom read once)."""
+            centre, axis = d.geom_xpos[ids], d.geom_xmat[ids, :, 2] * half
+            return jnp.stack([centre - axis, centre + axis], axis=-2)
 
         def distances(needle_pos, needle_quat, ee_pos, ee_quat, radius=None, wire=None):
-            tool = place(tool_ends, ee_pos, ee_quat)[:, None]  # [T, 1, 2, 3]
-            scale = 1.0 if radius is None else radius / radius0
-            needle = place(other_ends, needle_pos, needle_quat, scale)
-            other = jnp.where(on_needle[:, None, None], needle, other_ends)[None]  # [1, O, 2, 3]
-            others = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
+            # float32 products in full: a GPU may otherwise run them in TF32 (10-bit mantissa), which
+            # moves a capsule 50 mm from its body's origin by tens of microns
+            with jax.default_matmul_precision("float32"):
+                d = mjx.kinematics(mx, data0.replace(qpos=self.qpos(needle_pos, needle_quat, ee_pos, ee_quat)))
+            tool = axes(d, tools, tool_half)[:, None]  # [T, 1, 2, 3]
+            other = axes(d, others, other_half)  # [O, 2, 3]
+            others_r = other_radii
+            if radius is not None:  # another needle: its chords scaled about the needle centre
+                scale = radius / radius0
+                grown = needle_pos + scale * (other - needle_pos)
+                other = jnp.where(on_needle[:, None, None], grown, other)
+                others_r = jnp.where(on_needle, wire + inflation0 * scale, other_radii)
+            other = other[None]  # [1, O, 2, 3]
             gap = segment_distance(tool[..., 0, :], tool[..., 1, :], other[..., 0, :], other[..., 1, :])
-            return (gap - tool_radii - others).reshape(-1)
+            return (gap - tool_radii - others_r).reshape(-1)
 
         return distances
 
@@ -227,8 +238,11 @@ class CapsuleFrames:
     ``[O, 2, 3]`` (the needle's in frame n, the grasping tool's in the world e_g), sorted by geom id
     as :attr:`Scene.pairs` pairs them (every tool capsule with every counted one); their radii [m];
     ``on_needle`` ``[O]``; ``inflation`` ``[O]``, how much a needle chord's radius exceeds the wire's;
-    ``chords``, the needle chords' indices into ``other_ends`` along the arc."""
+    ``chords``, the needle chords' indices into ``other_ends`` along the arc; ``tool_ids`` and
+    ``other_ids``, their geom ids."""
 
+    tool_ids: tuple[int, ...]
+    other_ids: tuple[int, ...]
     tool_ends: np.ndarray
     other_ends: np.ndarray
     on_needle: np.ndarray

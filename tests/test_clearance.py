@@ -72,10 +72,6 @@ def test_conservative_chords_contain_the_true_wire():
     assert outside_thin > 0
 
 
-def _arc_distance(p: np.ndarray, radius: float, wire: float) -> np.ndarray:
-    return true_needle.point_distance(p, radius, wire)
-
-
 def _segment_chord_distances(a0, a1, caps) -> np.ndarray:
     """The model's clearance of segments ``[n, 3]``-``[n, 3]`` to the needle capsules (float64,
     Ericson's closest points as ``scene.segment_distance``)."""
@@ -92,10 +88,6 @@ def _segment_chord_distances(a0, a1, caps) -> np.ndarray:
         gap = a0 + d1 * s[:, None] - (c.p0 + d2 * t[:, None])
         out = np.minimum(out, np.linalg.norm(gap, axis=1) - c.radius)
     return out
-
-
-def _segment_arc_distance(a0, a1, radius, wire) -> float:
-    return true_needle.segment_distance(a0, a1, radius, wire)[0]
 
 
 @pytest.mark.parametrize("radius_mm, wire_mm", [(4.0, 0.15), (5.4, 0.25), (8.0, 0.2), (12.0, 0.35)])
@@ -115,8 +107,8 @@ def test_the_needle_models_clearance_error_against_the_true_arc(radius_mm, wire_
     rho, x = radius + rng.uniform(-1e-3, 1e-3, n), rng.uniform(-1e-3, 1e-3, n)
     points = np.stack([x, rho * np.cos(angle), rho * np.sin(angle)], axis=1)
     model = _segment_chord_distances(points, points + 1e-12, scene.needle_capsules)
-    error = _arc_distance(points, radius, wire) - model
-    near = _arc_distance(points, radius, wire) < 0.2e-3  # where a clearance decides anything
+    error = true_needle.point_distance(points, radius, wire) - model
+    near = true_needle.point_distance(points, radius, wire) < 0.2e-3  # where a clearance decides anything
     assert error.min() >= -1e-12  # conservative: never reports more clearance than there is
     assert error[near].max() <= bound + 1e-12
     assert error[near].max() >= 0.95 * bound  # the bound is reached: it is the model's, not slack
@@ -131,7 +123,7 @@ def test_the_needle_models_clearance_error_against_the_true_arc(radius_mm, wire_
     a0 = through - (at * length)[:, None] * direction
     a1 = a0 + length[:, None] * direction
     model = _segment_chord_distances(a0, a1, scene.needle_capsules)
-    exact = np.array([_segment_arc_distance(p, q, radius, wire) for p, q in zip(a0, a1)])
+    exact = np.array([true_needle.segment_distance(p, q, radius, wire)[0] for p, q in zip(a0, a1)])
     error = exact - model
     assert error.min() >= -1e-10  # conservative (the reference is exact to ~1e-12 m)
     assert error[exact > 0].max() <= bound + 1e-10
