@@ -28,6 +28,7 @@ MJCF_PATH = Path(__file__).resolve().parent / "models" / "regrasp_scene.xml"  # 
 
 NEEDLE_JOINT = "needle_pose"
 REGRASP_JOINT = "regrasp_pose"
+NEEDLE_BODY, REGRASP_BODY = "needle", "regrasp_tool"
 REGRASP_JAWS = ("regrasp_jaw_a", "regrasp_jaw_b")
 _DEFAULT_JAW_HALF_ANGLE = math.radians(10.0)  # what the MJCF file holds
 _DEFAULT_NEEDLE_RADIUS = 0.0054
@@ -75,6 +76,19 @@ class Scene:
     def mjx_model(self) -> mjx.Model:
         # this process's first device: MJX's default, jax.devices()[0], is process 0's in a distributed run
         return mjx.put_model(self.model, device=jax.local_devices()[0])
+
+    @functools.cached_property
+    def mjx_body_model(self) -> mjx.Model:
+        """The scene's two free bodies without their geoms, on this process's first device: what
+        ``mjx.kinematics`` needs to pose them. The counted capsules are then placed from their
+        bodies' frames (:attr:`capsule_frames`), only those, instead of every geom of the scene."""
+        spec = mujoco.MjSpec()
+        order = [NEEDLE_BODY, REGRASP_BODY] if self.needle_qpos < self.regrasp_qpos else [REGRASP_BODY, NEEDLE_BODY]
+        for name in order:
+            body = spec.worldbody.add_body(name=name)
+            body.add_freejoint()
+            body.explicitinertial, body.mass, body.inertia = True, 1.0, [1e-6] * 3  # a moving body needs mass
+        return mjx.put_model(spec.compile(), device=jax.local_devices()[0])
 
     def qpos(self, needle_pos, needle_quat, ee_pos, ee_quat) -> np.ndarray | jax.Array:
         """The model's ``qpos`` for a needle pose and a regrasping end-effector pose (world = e_g)."""
@@ -186,7 +200,8 @@ class Scene:
 
         Signed surface distances (m) of the counted pairs in the order of :attr:`pairs` (regrasping
         capsule by regrasping capsule), negative when they penetrate; the minimum is the clearance.
-        Geom poses come from ``mjx.kinematics``, each counted capsule read once; the distances are
+        The two free bodies are posed by ``mjx.kinematics`` (on :attr:`mjx_body_model`) and the
+        counted capsules placed from their bodies' frames, only those; the distances are
         the exact closest points of the capsule axes (Ericson, Real-Time Collision Detection,
         5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes, every regrasping capsule against
         every counted one by broadcasting ``[T, 1] x [1, O]`` rather than gathering both capsules
@@ -195,38 +210,31 @@ class Scene:
         tens of microns, up to 20x at a few microns' clearance on this scene, so it is not used.)
         """
         f = self.capsule_frames
-        mx = self.mjx_model
-        data0 = mjx.make_data(mx, device=jax.local_devices()[0])
-        tools, others = np.array(f.tool_ids), np.array(f.other_ids)
-        tool_half = jnp.asarray(self.model.geom_size[tools, 1], jnp.float32)[:, None]
-        other_half = jnp.asarray(self.model.geom_size[others, 1], jnp.float32)[:, None]
+        bodies = self.mjx_body_model
+        data0 = mjx.make_data(bodies, device=jax.local_devices()[0])
+        tool_ends = jnp.asarray(f.tool_ends, jnp.float32)  # [T, 2, 3] in e_r
+        other_ends = jnp.asarray(f.other_ends, jnp.float32)  # [O, 2, 3] in n (needle) or e_g
         on_needle = jnp.asarray(f.on_needle)
         tool_radii = jnp.asarray(f.tool_radii, jnp.float32)[:, None]
         other_radii = jnp.asarray(f.other_radii, jnp.float32)
         inflation0 = jnp.asarray(f.inflation, jnp.float32)
         radius0 = self.config.needle_radius_mm * 1e-3
+        needle_body, tool_body = (1, 2) if self.needle_qpos < self.regrasp_qpos else (2, 1)
 
-        def axes(d, ids, half):
-            """``[n, 2, 3]`` world end points of the capsules ``ids`` (each geom read once)."""
-            centre, axis = d.geom_xpos[ids], d.geom_xmat[ids, :, 2] * half
-            return jnp.stack([centre - axis, centre + axis], axis=-2)
+        def place(ends, d, body, scale=1.0):
+            # products and sums, not a matmul: on the GPU a float32 matmul may run in TF32 (10-bit
+            # mantissa), which moves a capsule 50 mm from its body's origin by tens of microns
+            return d.xpos[body] + jnp.sum(d.xmat[body] * (scale * ends)[..., None, :], axis=-1)
 
         def distances(needle_pos, needle_quat, ee_pos, ee_quat, radius=None, wire=None):
-            # float32 products in full: a GPU may otherwise run them in TF32 (10-bit mantissa), which
-            # moves a capsule 50 mm from its body's origin by tens of microns
-            with jax.default_matmul_precision("float32"):
-                d = mjx.kinematics(mx, data0.replace(qpos=self.qpos(needle_pos, needle_quat, ee_pos, ee_quat)))
-            tool = axes(d, tools, tool_half)[:, None]  # [T, 1, 2, 3]
-            other = axes(d, others, other_half)  # [O, 2, 3]
-            others_r = other_radii
-            if radius is not None:  # another needle: its chords scaled about the needle centre
-                scale = radius / radius0
-                grown = needle_pos + scale * (other - needle_pos)
-                other = jnp.where(on_needle[:, None, None], grown, other)
-                others_r = jnp.where(on_needle, wire + inflation0 * scale, other_radii)
-            other = other[None]  # [1, O, 2, 3]
+            d = mjx.kinematics(bodies, data0.replace(qpos=self.qpos(needle_pos, needle_quat, ee_pos, ee_quat)))
+            tool = place(tool_ends, d, tool_body)[:, None]  # [T, 1, 2, 3]
+            scale = 1.0 if radius is None else radius / radius0
+            needle = place(other_ends, d, needle_body, scale)  # another needle: chords scaled about its centre
+            other = jnp.where(on_needle[:, None, None], needle, other_ends)[None]  # [1, O, 2, 3]
+            others = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
             gap = segment_distance(tool[..., 0, :], tool[..., 1, :], other[..., 0, :], other[..., 1, :])
-            return (gap - tool_radii - others_r).reshape(-1)
+            return (gap - tool_radii - others).reshape(-1)
 
         return distances
 
