@@ -206,8 +206,9 @@ def agreement(out: str | None) -> None:
                 if any(getattr(one, f) != getattr(batch, f)[i] for f in fields):
                     differ += 1
                     continue
-                action = max(action, float(np.abs(one.actions - batch.actions[i]).max()))
-                pose = max(pose, float(np.abs(one.poses - batch.poses[i]).max()))
+                n = int(one.steps)  # the batch's trajectories run on to its longest plan
+                action = max(action, float(np.abs(one.actions - batch.actions[i, :n]).max()) if n else 0.0)
+                pose = max(pose, float(np.abs(one.poses - batch.poses[i, : n + 1]).max()))
             rows.append(
                 {
                     "problems": name,

@@ -23,6 +23,7 @@ from regrasp_mjx.rollout import Rollout, rollout
 from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
 
 PLANNERS: dict[tuple, Any] = {}  # planners by (hidden, members, env, camera, shield)
+CUT_ON_DEVICE = 1 << 20  # action numbers (B x horizon x 6) from which a batch's trajectories are cut before the copy
 
 
 def members_apply(hidden: tuple[int, ...]):
@@ -44,9 +45,14 @@ def mean_action(actions: list[jax.Array]) -> jax.Array:
 
 class Planner:
     """A jitted planning program and how to read its output: calling it returns
-    :class:`PlanArrays` of numpy arrays. The program packs everything into one float32 array
-    ``[B, n]`` (one transfer to the host costs a fifth of several on a CPU, ~20 against ~100 us);
-    the layout to unpack it is recorded while the program is traced."""
+    :class:`PlanArrays` of numpy arrays, the trajectories cut after the longest plan of the batch.
+
+    The program returns each query's outcome packed into one float32 array ``[B, n]`` (one
+    transfer to the host costs a fifth of several on a CPU, ~20 against ~100 us; the layout to
+    unpack it is recorded while the program is traced) and the horizon-long trajectories, which
+    stay on the device until the outcome says how long the longest plan is: only that many steps
+    are copied to the host (a batch's plans take ~7 steps of a horizon of 100, and the copy of
+    whole trajectories, not the planning, was most of a large batch's time on a GPU)."""
 
     def __init__(self, program):
         self._layout = None
@@ -54,23 +60,49 @@ class Planner:
         def packed(*args):
             out = program(*args)
             # runs only while tracing; every batch size has the same per-query layout
-            self._layout = jax.tree.map(lambda x: (x.shape[1:], x.dtype), out)
-            return pack(out)
+            self._layout = jax.tree.map(lambda x: (x.shape[1:], x.dtype), out.outcome)
+            return pack(out.outcome), out._replace(outcome=None)
 
         self._packed = jax.jit(packed)
+        self._cut = jax.jit(_cut, static_argnums=1)
 
     def __call__(self, *args) -> PlanArrays:
-        return unpack(np.asarray(self._packed(*args)), self._layout)
+        packed, trajectories = self._packed(*args)
+        if trajectories.actions.size < CUT_ON_DEVICE or _on_cpu(trajectories.actions):
+            # small (a few queries: one round trip beats two) or already in host memory
+            packed, trajectories = jax.device_get((packed, trajectories))
+        outcome = unpack(np.asarray(packed), self._layout)
+        steps = int(outcome.steps.max()) if outcome.steps.size else 0
+        if not isinstance(trajectories.actions, np.ndarray):
+            # cut on the device to a multiple of 8 steps (few compiled cuts), then copied
+            horizon = trajectories.actions.shape[1]
+            trajectories = jax.device_get(self._cut(trajectories, min(-(-steps // 8) * 8, horizon)))
+        return _cut(trajectories, steps)._replace(outcome=outcome)
+
+
+def _cut(trajectories: PlanArrays, steps: int) -> PlanArrays:
+    """Trajectories cut after ``steps`` steps (``steps + 1`` poses); the outcome left as it is."""
+    cut = lambda x, n: None if x is None else x[:, :n]  # noqa: E731
+    t = trajectories
+    return t._replace(
+        poses=cut(t.poses, steps + 1), actions=cut(t.actions, steps), poses_camera=cut(t.poses_camera, steps + 1)
+    )
+
+
+def _on_cpu(x: jax.Array) -> bool:
+    return all(d.platform == "cpu" for d in x.devices())
 
 
 class PlanArrays(NamedTuple):
     """What a planning program returns (``[B, ...]``): how each query ended, its trajectory and
-    actions, and (from camera-frame poses) the trajectory in the camera frame."""
+    actions, and (from camera-frame poses) the trajectory in the camera frame. Read through
+    :class:`Planner`, the trajectories have ``T + 1`` poses and ``T`` actions, T the longest plan's
+    steps; inside the program, ``horizon + 1`` and ``horizon``."""
 
     outcome: Rollout  # without its trace
-    poses: Any  # [B, horizon + 1, 7] in e_g; rows after the end repeat the last pose
-    actions: Any  # [B, horizon, 6] in [-1, 1]; zero from the end on
-    poses_camera: Any = None  # [B, horizon + 1, 7]
+    poses: Any  # [B, T + 1, 7] in e_g; rows after the end repeat the last pose
+    actions: Any  # [B, T, 6] in [-1, 1]; zero from the end on
+    poses_camera: Any = None  # [B, T + 1, 7]
 
 
 def pack(tree: Any) -> jax.Array:

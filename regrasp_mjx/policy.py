@@ -139,12 +139,13 @@ class Plan:
       steps: actions taken (the trajectory's valid length is ``steps + 1`` poses).
       path_length_mm: sum of the translation steps.
       poses: regrasping end-effector poses ``[x, y, z, qw, qx, qy, qz]`` in the grasping
-        end-effector frame e_g, the start first; ``horizon + 1`` rows, rows after ``steps`` repeat
-        the last pose.
-      actions: ``horizon`` rows in [-1, 1]; rows from ``steps`` on are zero.
+        end-effector frame e_g, float32, the start first; ``T + 1`` rows, T the most steps any
+        plan of the call took (a single query: its own ``steps``), rows after a plan's ``steps``
+        repeat its last pose.
+      actions: ``T`` rows in [-1, 1], float32; rows from a plan's ``steps`` on are zero.
       poses_camera: the same poses in the camera frame (only from :meth:`Policy.plan_from_camera`),
-        the same shape as ``poses`` (``horizon + 1`` rows, padded with the last pose): the
-        trajectory itself is ``trajectory("camera")``, ``steps + 1`` rows.
+        the same shape as ``poses`` (padded with the last pose): the trajectory itself is
+        ``trajectory("camera")``, ``steps + 1`` rows.
       nearest_grasp_distance: distance of the needle pose to the nearest of the valid-grasp library
         (``regrasp_mjx.grasps``; mm + deg / 5), when checked.
       joints: with ``plan_from_camera(..., psm=...)``, the regrasping PSM's
@@ -292,6 +293,8 @@ class Policy:
     def _finish(self, out: PlanArrays, single: bool, nearest) -> Plan:
         o = out.outcome
         pick = _first if single else (lambda x: x)  # one query: its row of every field  # noqa: E731
+        steps = int(o.steps.max()) if o.steps.size else 0  # the longest plan's (the JAX planner cut there)
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (what was computed: no copy of a batch)
         return Plan(
             success=pick(o.success),
             collision=pick(o.collision),
@@ -299,9 +302,9 @@ class Policy:
             start_valid=pick(o.start_valid),
             steps=pick(o.steps.astype(np.int64)),
             path_length_mm=pick(o.path_length_mm),
-            poses=pick(np.asarray(out.poses, np.float64)),
-            actions=pick(np.asarray(out.actions, np.float64)),
-            poses_camera=pick(None if out.poses_camera is None else np.asarray(out.poses_camera, np.float64)),
+            poses=pick(f32(out.poses[:, : steps + 1])),
+            actions=pick(f32(out.actions[:, :steps])),
+            poses_camera=pick(None if out.poses_camera is None else f32(out.poses_camera[:, : steps + 1])),
             nearest_grasp_distance=pick(nearest),
         )
 

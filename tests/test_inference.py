@@ -56,8 +56,12 @@ def test_shipped_policy_plans_the_test_problems(policy, problems):
     steps = np.linalg.norm(np.diff(traj[:, :3], axis=0), axis=1)
     assert steps.max() <= np.sqrt(3) * 0.5e-3 + 1e-9
     assert plan.path_length_mm[i] == pytest.approx(steps.sum() * 1e3, rel=1e-4)
-    # Rows after the end repeat the last pose; one query alone plans the same as in a batch.
+    # The trajectories end with the longest plan of the batch (not the horizon); rows after a plan's
+    # end repeat its last pose, its actions there are zero; one query alone plans the same as in a batch.
+    assert plan.poses.shape == (len(plan.steps), plan.steps.max() + 1, 7) and plan.poses.dtype == np.float32
+    assert plan.actions.shape == (len(plan.steps), plan.steps.max(), 6)
     assert np.all(plan.poses[i, plan.steps[i] :] == plan.poses[i, plan.steps[i]])
+    assert not plan.actions[i, plan.steps[i] :].any()
     one = policy.plan(problems[0][i], problems[1][i], problems[2][i], check_grasp=False)
     assert one.success and one.steps == plan.steps[i]
     np.testing.assert_allclose(one.trajectory(), traj, atol=1e-6)
@@ -90,7 +94,7 @@ def test_shield_turns_the_colliding_test_problems_into_collision_free_plans(poli
     # A plan does not depend on the other queries of its batch.
     one = policy.plan(needle[1], start[1], goal[1], check_grasp=False)
     assert one.steps == shielded.steps[1]
-    np.testing.assert_allclose(one.poses, shielded.poses[1], atol=1e-5)
+    np.testing.assert_allclose(one.poses, shielded.poses[1, : one.steps + 1], atol=1e-5)
 
 
 def test_shield_candidates_order_and_range():
