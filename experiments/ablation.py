@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from regrasp_mjx import analysis
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import write_figure, write_results
 
 
 def first_epoch(epochs: np.ndarray, values: np.ndarray, level: float) -> list[float | None]:
@@ -143,7 +143,7 @@ def figure(runs: list[str], path: Path) -> None:
         ax.grid(alpha=0.3)
     axes[0].legend(loc="lower right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    write_figure(path, fig, dpi=120)
     plt.close(fig)
 
 

@@ -13,7 +13,6 @@ ends, as the auto-reset does.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import subprocess
@@ -25,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
+from regrasp_mjx.atomic import write_json, write_text
 from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import HostEnv
@@ -189,9 +189,7 @@ def main() -> None:
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "bench_env.json").write_text(
-            json.dumps({"machine": machine(), "cpu": cpu, "cpu_raw": raw, "mjx": rows}, indent=2)
-        )
+        write_json(out / "bench_env.json", {"machine": machine(), "cpu": cpu, "cpu_raw": raw, "mjx": rows})
         lines = [
             f"Machine: {machine()}",
             "",
@@ -205,7 +203,7 @@ def main() -> None:
             f"{r['env_steps_per_s']:,.0f} | {r['ratio_vs_cpu']:,.0f} | {r['ratio_vs_cpu_raw']:,.0f} | {r['compile_s']} |"
             for r in rows
         ]
-        (out / "bench_env.md").write_text("\n".join(lines) + "\n")
+        write_text(out / "bench_env.md", "\n".join(lines) + "\n")
         print(f"wrote {out / 'bench_env.md'}")
 
 

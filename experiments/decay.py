@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from regrasp_mjx import analysis
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import write_figure, write_results
 
 RUNS = {
     "paper_learner_paper_scale": ("paper's learner", "paper scale (5 envs)"),
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> None:
         "ours (clipped double Q, target smoothing, exploration floor, actor EMA, cosine LR) does not"
     )
     fig.tight_layout()
-    fig.savefig(Path(args.out) / "decay.png", dpi=110)
+    write_figure(Path(args.out) / "decay.png", fig, dpi=110)
     plt.close(fig)
 
 

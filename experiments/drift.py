@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import write_results  # noqa: E402
+from regrasp_mjx.atomic import write_figure, write_results  # noqa: E402
 
 EPOCHS = (50, 100, 150, 200, 250, 300, 400)
 COLUMNS = (
@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     axes[1].set_ylim(0.0, 0.08)
     axes[0].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    fig.savefig(Path(args.out) / f"{args.name}.png", dpi=120)
+    write_figure(Path(args.out) / f"{args.name}.png", fig, dpi=120)
 
 
 if __name__ == "__main__":

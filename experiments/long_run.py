@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from regrasp_mjx import analysis  # noqa: E402
-from regrasp_mjx.atomic import write_results  # noqa: E402
+from regrasp_mjx.atomic import write_figure, write_results  # noqa: E402
 
 LABEL = {"ddpg_bc": "DDPG+BC", "targeted": "DDPG+BC (targeted)", "mixed": "DDPG+BC (mixed)"}
 CHECKPOINTS = (50, 100, 200, 300, 400)
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> None:
     ax.set_ylabel("test success on paper300 (bare)")
     ax.legend(loc="lower left")
     fig.tight_layout()
-    fig.savefig(Path(args.out) / "long_run.png", dpi=120)
+    write_figure(Path(args.out) / "long_run.png", fig, dpi=120)
 
 
 if __name__ == "__main__":

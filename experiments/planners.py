@@ -13,7 +13,6 @@ successes, and the mean over all problems with failures counted at their full ti
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import json
 import os
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from regrasp_mjx.atomic import write_csv, write_text
 from regrasp_mjx.config import SceneConfig
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import PLANNERS, PlannerConfig
@@ -148,10 +148,7 @@ def main() -> None:
         pass
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / f"{args.name}.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / f"{args.name}.csv", list(rows[0]), [[r[k] for k in rows[0]] for r in rows])
     lines = [
         f"Test set `{args.testset}` ({len(episodes.needle_pos)} problems, seed {meta.get('seed')}); "
         f"budget {args.budget_s:g} s per plan, first solution + {args.simplify_s:g} s shortcutting; RRT range "
@@ -166,7 +163,7 @@ def main() -> None:
             f"{_fmt(r['plan_time_mean_s'], '.4f')} | {_fmt(r['plan_time_median_s'], '.4f')} | "
             f"{r['plan_time_mean_all_s']:.4f} | {_fmt(r['path_length_mm'], '.2f')} |"
         )
-    (out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
+    write_text(out / f"{args.name}.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from regrasp_mjx import analysis
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import write_figure, write_results
 
 SETTINGS = ("mixed", "ddpg_bc")
 LABEL = {"mixed": "DDPG+BC (mixed)", "ddpg_bc": "DDPG+BC"}
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> None:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    fig.savefig(Path(args.out) / "scale.png", dpi=120)
+    write_figure(Path(args.out) / "scale.png", fig, dpi=120)
     plt.close(fig)
 
 

@@ -21,7 +21,6 @@ seed, planned again through ``Policy.plan``).
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import json
 import shutil
@@ -29,6 +28,7 @@ import sys
 from pathlib import Path
 
 from regrasp_mjx import analysis
+from regrasp_mjx.atomic import write_csv, write_figure, write_json, write_text
 
 SETTINGS = ("ddpg_bc", "targeted", "mixed")
 LABEL = {"ddpg_bc": "DDPG+BC", "targeted": "DDPG+BC (targeted)", "mixed": "DDPG+BC (mixed)"}
@@ -98,16 +98,11 @@ def report(args: argparse.Namespace) -> None:
     lines.append(
         f"\nTraining wall-clock (all settings and seeds in one program): {max(r['wall_s'] for r in rows.values()) / 60:.1f} min (the log's clock, compilation included)."
     )
-    (out / "table1.md").write_text("\n".join(lines) + "\n")
-    (out / "table1.json").write_text(json.dumps({"rows": rows}, indent=2))
-    with open(out / "table1.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["setting", "seed", "last", "last10", "best", "exported", "exported_shielded", "best_epoch"])
-        for setting, r in rows.items():
-            for row in zip(
-                r["seeds"], r["last"], r["last10"], r["best"], r["exported"], r["exported_shielded"], r["best_epoch"]
-            ):
-                w.writerow([setting, *row])
+    write_text(out / "table1.md", "\n".join(lines) + "\n")
+    write_json(out / "table1.json", {"rows": rows})
+    header = ["setting", "seed", "last", "last10", "best", "exported", "exported_shielded", "best_epoch"]
+    fields = ("seeds", "last", "last10", "best", "exported", "exported_shielded", "best_epoch")
+    write_csv(out / "table1.csv", header, [[s, *row] for s, r in rows.items() for row in zip(*(r[k] for k in fields))])
     for k, runs in enumerate(dict.fromkeys(where.values())):  # ship the logs the table is made from
         dest = out if len(args.runs) == 1 else out / f"run{k}"
         dest.mkdir(exist_ok=True)
@@ -148,7 +143,7 @@ def figure(logs: dict[str, Path], path: Path) -> None:
     axes[0].legend(loc="lower right")
     fig.suptitle("Fig. 3: test success during training (mean, range over seeds); dashed: paper's mixed 0.97")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    write_figure(path, fig, dpi=120)
     plt.close(fig)
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from regrasp_mjx import analysis
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import write_figure, write_results
 
 
 def first_time(times: np.ndarray, values: np.ndarray, level: float) -> float | None:
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> None:
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(Path(args.out) / "wallclock.png", dpi=120)
+    write_figure(Path(args.out) / "wallclock.png", fig, dpi=120)
     plt.close(fig)
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx import geometry
-from regrasp_mjx.atomic import atomic_write
+from regrasp_mjx.atomic import write_figure
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.sampling import Episode
 
@@ -54,7 +54,7 @@ def save_figure(figure: Any, name: str) -> Path | None:
         from regrasp_mjx.render import write_gif
 
         return write_gif(path, figure)
-    atomic_write(path, lambda f: figure.savefig(f, format="png", dpi=110, bbox_inches="tight"))
+    write_figure(path, figure, dpi=110, bbox_inches="tight")
     return path
 
 

@@ -49,6 +49,24 @@ def write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode()))
 
 
+def write_figure(path: str | os.PathLike, figure: Any, dpi: int = 120, **savefig: Any) -> None:
+    """A matplotlib figure saved whole to ``path`` (format from its suffix, PNG by default)."""
+    fmt = Path(path).suffix.lstrip(".") or "png"
+    atomic_write(path, lambda f: figure.savefig(f, format=fmt, dpi=dpi, **savefig))
+
+
+def write_csv(path: str | os.PathLike, header: list[str], rows: Any) -> None:
+    """A CSV file of a ``header`` and ``rows`` (sequences in its order), written whole."""
+    import csv
+    import io
+
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(header)
+    writer.writerows(rows)
+    write_text(path, text.getvalue())
+
+
 def write_results(out: str | os.PathLike | None, name: str, lines: list[str], data: Any) -> None:
     """An experiment's results: ``OUT/NAME.md`` (a table's lines, for people) and ``OUT/NAME.json``
     (``data``, for scripts), each written atomically; nothing when ``out`` is None."""

@@ -29,7 +29,7 @@ from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.planner import mean_action
 from regrasp_mjx.rollout import rollout
 from regrasp_mjx.sampling import Episode
-from regrasp_mjx.shield import shield_candidates, step_key
+from regrasp_mjx.shield import shield_rows
 
 DEG_PER_MM = 5.0  # rotation noise (deg) per mm of position noise: the success test's scale
 
@@ -128,24 +128,18 @@ def _at_goal(env: RegraspEnv, state, needle: jax.Array, scale: float = 1.0) -> j
     return (dist <= scale * c.success_pos_mm * 1e-3) & (angle <= scale * math.radians(c.success_rot_deg))
 
 
-def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array, shield: bool):
-    """The policy's action on ``state`` (whose needle is the estimate) and, with ``shield``, the
-    first of the shield's alternatives that the estimate says is free where the action is not."""
+def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array, shield: bool, live=None):
+    """The policy's action on ``state`` (whose needle is the estimate) and, with ``shield``, for
+    the ``live`` rows (default all) whose action the estimate says collides, the first of the
+    shield's alternatives that it says is free (:func:`regrasp_mjx.shield.shield_rows`)."""
     step = jax.vmap(env.step)
-    members = apply(weights, state.obs)
-    a = mean_action(members)
+    a = mean_action(apply(weights, state.obs))
     if not shield:
         return a
-    collides = step(state, a).metrics["collision"] > 0
-
-    def safer():
-        cands = shield_candidates(members, a, step_key(t))  # [K, B, 6]
-        free = jax.vmap(step, in_axes=(None, 0))(state, cands).metrics["collision"] == 0
-        first = jnp.argmax(free, axis=0)
-        pick = cands[first, jnp.arange(a.shape[0])]
-        return jnp.where((collides & jnp.any(free, axis=0))[:, None], pick, a)
-
-    return jax.lax.cond(jnp.any(collides), safer, lambda: a)
+    nxt = step(state, a)
+    need = nxt.metrics["collision"] > 0
+    need = need if live is None else need & live
+    return shield_rows(step, lambda sub: apply(weights, sub.obs), state, t, a, nxt, need)[0]
 
 
 def evaluate_noisy(env: RegraspEnv, act: Callable, episodes: Episode, key: jax.Array, noise_mm: float, bias_mm: float):
@@ -230,7 +224,7 @@ def make_executor(
             )
             live = live & ~ended
             seen_state = seen_state.replace(obs=jax.vmap(env.observe)(seen_state.pipeline_state))
-            a = choose_action(shield_env, apply, weights, seen_state, t, shield)
+            a = choose_action(shield_env, apply, weights, seen_state, t, shield, live)
             nxt = step(state, a)
             collided = live & (nxt.metrics["collision"] > 0)
             result = jnp.where(
@@ -269,7 +263,7 @@ def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: flo
         episode = Episode.from_poses(needle, ee, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
         done = _at_goal(env, state, needle, stop_scale)
-        a = jnp.where(done[:, None], 0.0, choose_action(env, apply, weights, state, t, shield))
+        a = jnp.where(done[:, None], 0.0, choose_action(env, apply, weights, state, t, shield, ~done))
         es = jax.vmap(env.step)(state, a).pipeline_state
         nxt = jnp.where(done[:, None], ee, jnp.concatenate([es.ee_pos, es.ee_quat], axis=1))
         return jnp.clip(a, -1.0, 1.0), nxt, done

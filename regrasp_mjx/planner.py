@@ -20,7 +20,7 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
 from regrasp_mjx.rollout import Rollout, rollout
-from regrasp_mjx.shield import SHIELD_CHUNK, shield_candidates, step_key
+from regrasp_mjx.shield import shield_rows
 
 PLANNERS: dict[tuple, Any] = {}  # planners by (hidden, members, env, camera, shield)
 CUT_ON_DEVICE = 1 << 20  # action numbers (B x horizon x 6) from which a batch's trajectories are cut before the copy
@@ -147,34 +147,10 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
             es, binv = st.pipeline_state, base_inv if rows is None else base_inv[rows]
             return jax.vmap(dvrk.within_limits_jax)(binv, es.ee_pos, es.ee_quat)
 
-        def safer(state, t, a, nxt, need):
-            """Replaces the actions of the rows in ``need`` (their policy action collides), a
-            chunk of at most SHIELD_CHUNK rows at a time, so the work follows the colliding
-            rows, not the batch; each row's alternatives depend only on its own state and t."""
-            b = a.shape[0]
-            size = min(b, SHIELD_CHUNK)
-            key = step_key(t)
-
-            def chunk(c):
-                a, nxt, need = c
-                rows = jnp.nonzero(need, size=size, fill_value=b)[0]  # b: no row (dropped below)
-                safe_rows = jnp.minimum(rows, b - 1)
-                sub = jax.tree.map(lambda x: x[safe_rows], state)
-                cands = shield_candidates(apply(weights, sub.obs), a[safe_rows], key)
-                tried = jax.vmap(step, in_axes=(None, 0))(sub, cands)  # [K, size, ...]
-                free = (tried.metrics["collision"] == 0) & jax.vmap(lambda s: reach(s, safe_rows))(tried)
-                first, cols = jnp.argmax(free, axis=0), jnp.arange(size)  # the first free candidate
-                found = jnp.any(free, axis=0)
-                put = lambda x, y: x.at[jnp.where(found, rows, b)].set(y[first, cols], mode="drop")  # noqa: E731
-                return put(a, cands), jax.tree.map(put, nxt, tried), need.at[rows].set(False, mode="drop")
-
-            a, nxt, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), chunk, (a, nxt, need))
-            return a, nxt
-
         def hook(state, t, a, nxt, live):
             need = ((nxt.metrics["collision"] > 0) | ~reach(nxt)) & live
-            # only steps where some live query's action collides pay for the alternatives
-            return jax.lax.cond(jnp.any(need), lambda: safer(state, t, a, nxt, need), lambda: (a, nxt))
+            members = lambda sub: apply(weights, sub.obs)  # noqa: E731
+            return shield_rows(step, members, state, t, a, nxt, need, None if base_inv is None else reach)
 
         return hook
 

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx.atomic import write_json
+from regrasp_mjx.atomic import write_figure, write_json, write_text
 from regrasp_mjx.config import ConfigError
 
 FORMAT = "regrasp_mjx.sweep"
@@ -242,9 +242,9 @@ def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tu
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
         fig.tight_layout()
-        fig.savefig(out / "sweep.png", dpi=120)
+        write_figure(out / "sweep.png", fig, dpi=120)
         plt.close(fig)
-    (out / "sweep.md").write_text("\n".join(lines) + "\n")
+    write_text(out / "sweep.md", "\n".join(lines) + "\n")
     return lines, rows
 
 

@@ -34,6 +34,35 @@ def test_write_results_writes_the_table_and_the_rows_whole_and_nothing_without_a
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
 
 
+def test_figures_and_csv_tables_are_written_whole(tmp_path):
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from regrasp_mjx.atomic import write_csv, write_figure
+
+    write_csv(tmp_path / "t.csv", ["name", "rate"], [["a, b", 0.5], ["c", 1]])
+    assert list(csv.reader((tmp_path / "t.csv").open(newline=""))) == [["name", "rate"], ["a, b", "0.5"], ["c", "1"]]
+    fig, ax = plt.subplots()
+    ax.plot([0, 1])
+    write_figure(tmp_path / "f.png", fig, dpi=50)
+    plt.close(fig)
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    class Broken:  # a figure that fails half-way leaves the earlier file as it was
+        def savefig(self, f, **kw):
+            f.write(b"half")
+            raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        write_figure(tmp_path / "f.png", Broken())
+    assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.png", "t.csv"]  # no temporary left
+
+
 def test_read_log_groups_seeds_sorts_epochs_and_flattens(tmp_path):
     rows = [
         {"epoch": 2, "seed": 1, "test": {"success_rate": 0.5}, "wall_s": 20.0},
