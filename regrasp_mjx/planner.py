@@ -140,27 +140,32 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
     apply = members_apply(tuple(hidden))
     step = jax.vmap(env.step)
 
-    def make_shield(weights, base_inv):
+    def make_shield(weights, limits: bool):
         def reach(st, rows=None):
-            if base_inv is None:
+            """Within the joint limits (each row's base frame rides in its state's info)."""
+            if not limits:
                 return jnp.ones(st.pipeline_state.t.shape, bool)
-            es, binv = st.pipeline_state, base_inv if rows is None else base_inv[rows]
-            return jax.vmap(dvrk.within_limits_jax)(binv, es.ee_pos, es.ee_quat)
+            es = st.pipeline_state
+            return jax.vmap(dvrk.within_limits_jax)(st.info["base_inv"], es.ee_pos, es.ee_quat)
 
         def hook(state, t, a, nxt, live):
             need = ((nxt.metrics["collision"] > 0) | ~reach(nxt)) & live
             members = lambda sub: apply(weights, sub.obs)  # noqa: E731
-            return shield_rows(step, members, state, t, a, nxt, need, None if base_inv is None else reach)
+            return shield_rows(step, members, state, t, a, nxt, need, reach if limits else None)
 
         return hook
 
     def plan(weights, needle, start, goal, radii, base_inv=None) -> PlanArrays:
         episodes = Episode.from_poses(needle, start, goal, radii)
+        first = jax.vmap(env.reset_from)(episodes)
+        if base_inv is not None:  # per-row data rides in the states, so the rollout may narrow to some rows
+            first = first.replace(info={**first.info, "base_inv": base_inv})
         out = rollout(
             env,
             lambda state, t: mean_action(apply(weights, state.obs)),
-            jax.vmap(env.reset_from)(episodes),
-            shield=make_shield(weights, base_inv) if shield else None,
+            first,
+            compact=True,
+            shield=make_shield(weights, base_inv is not None) if shield else None,
             trace=lambda state, a, nxt: (
                 jnp.concatenate([nxt.pipeline_state.ee_pos, nxt.pipeline_state.ee_quat], 1),
                 a,

@@ -55,12 +55,19 @@ def rollout(
     gamma: float = 0.99,
     shield: Shield | None = None,
     trace: Trace | None = None,
+    compact: bool = False,
 ) -> Rollout:
     """Steps a batch of environment states ``start`` (``jax.vmap(env.reset_from)(episodes)``, or any
     states: rows already done end where they are) with ``act`` until each episode has ended or
     ``max_steps`` (default: the horizon) were taken. An ended episode's state is held, so ``act``
     and ``shield`` may see it again; only live rows count. Jit-able and vmap-able; the loop stops as
-    soon as every episode has ended."""
+    soon as every episode has ended.
+
+    ``compact``: once at most 1/:data:`COMPACT` of the batch is live, the loop carries on with
+    those rows only, so a few long episodes (time-outs) no longer cost the whole batch a step each
+    until the horizon. Only for ``act``, ``shield`` and ``trace`` that treat each row by its own
+    state and ``t`` alone (per-row data in ``state.info``, not closed over); the outcomes are the
+    same."""
     max_steps = env.config.horizon if max_steps is None else max_steps
     b = start.done.shape[0]
     step = jax.vmap(env.step)
@@ -103,8 +110,25 @@ def rollout(
         return t + 1, state, ended | now, out, buffers
 
     carry = (jnp.int32(0), start, ended0, out0, buffers)
-    _, _, _, out, buffers = jax.lax.while_loop(cond, body, carry)
+    size = b // COMPACT
+    if not compact or size < 1:
+        _, _, _, out, buffers = jax.lax.while_loop(cond, body, carry)
+        return out._replace(trace=buffers)
+    # the whole batch while more than `size` rows are live, then those rows alone
+    wide = lambda c: cond(c) & (jnp.sum(~c[2]) > size)  # noqa: E731
+    t, state, ended, out, buffers = jax.lax.while_loop(wide, body, carry)
+    rows = jnp.nonzero(~ended, size=size, fill_value=b)[0]  # b: no row (held as ended, dropped below)
+    safe = jnp.minimum(rows, b - 1)
+    take = lambda x: x[safe]  # noqa: E731
+    narrow = (t, jax.tree.map(take, state), ended[safe] | (rows == b), jax.tree.map(take, out))
+    narrow += (jax.tree.map(lambda x: x[:, safe], buffers),)
+    _, _, _, sub_out, sub_buffers = jax.lax.while_loop(cond, body, narrow)
+    out = jax.tree.map(lambda x, y: x.at[rows].set(y, mode="drop"), out, sub_out)
+    buffers = jax.tree.map(lambda x, y: x.at[:, rows].set(y, mode="drop"), buffers, sub_buffers)
     return out._replace(trace=buffers)
+
+
+COMPACT = 16  # rollout(compact=True) narrows to the live rows once at most 1/16 of the batch is left
 
 
 def start_outcome(b: int) -> Rollout:
@@ -139,7 +163,7 @@ def evaluate_actor(
 ) -> Rollout:
     """A deterministic network ``act(obs[B, O]) -> action[B, 6]`` rolled out from test-set rows."""
     start = jax.vmap(env.reset_from)(episodes)
-    return rollout(env, lambda state, t: act(state.obs), start, gamma=gamma)
+    return rollout(env, lambda state, t: act(state.obs), start, gamma=gamma, compact=True)
 
 
 def summarize(result: Any, rollout_name: str, q_start: Any = None) -> dict[str, Any]:

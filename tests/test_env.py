@@ -129,6 +129,37 @@ def test_rollout_ends_each_episode_as_a_hand_stepped_loop_does(env, jit_env, pap
     assert (out.steps[64:] == 0).all() and (out.trace[:, 64:] == 0).all() and (out.discounted_return[64:] == 0).all()
 
 
+def test_a_compacted_rollout_ends_every_episode_as_the_whole_batch_does(env, jit_env, paper_testset):
+    """``rollout(compact=True)`` carries on with the few live rows alone: same outcomes and traces."""
+    from regrasp_mjx.rollout import COMPACT, rollout
+
+    _, reset_from, _ = jit_env
+    toward = _toward_goal(env)
+    start = reset_from(_rows(paper_testset, range(64)))
+    slow = jnp.arange(64) % 21 == 5  # 3 rows crawl (per-row data in the state's info) and time out
+    start = start.replace(info={**start.info, "slow": slow})
+    widths = []  # the batch sizes act was traced with
+
+    def act(st, t):
+        widths.append(st.obs.shape[0])
+        return jnp.where(st.info["slow"][:, None], 0.01, 1.0) * toward(st.pipeline_state)
+
+    trace = lambda s, a, n: (n.pipeline_state.ee_pos, a)  # noqa: E731
+    whole, narrow = (
+        jax.tree.map(
+            np.asarray, jax.jit(lambda s, c=c: rollout(env, act, s, max_steps=40, trace=trace, compact=c))(start)
+        )
+        for c in (False, True)
+    )
+    assert widths == [64, 64, 64 // COMPACT]  # the compacted program narrowed once
+    assert whole.time_out.sum() == 0 and (whole.steps[np.asarray(slow)] == 40).all()  # ran to the limit
+    assert (whole.steps[~np.asarray(slow)] < 20).all()  # the others ended early
+    for name in ("start_valid", "success", "collision", "time_out", "steps", "path_length_mm", "discounted_return"):
+        np.testing.assert_array_equal(getattr(narrow, name), getattr(whole, name), err_msg=name)
+    for a, b in zip(narrow.trace, whole.trace):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_a_step_that_would_jump_through_the_wire_is_caught(paper_testset):
     # Steps of up to 2.5 mm: the tool at the goal (wire between the jaws) moves 2.5 mm along -y_e.
     # At the end pose jaw a has passed the wire (free); halfway it sits on the wire.

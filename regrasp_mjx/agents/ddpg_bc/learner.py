@@ -506,7 +506,7 @@ class Learner:
         in training, so theirs reads low by at most ``gamma^horizon``); without, ``None``."""
         policy = functools.partial(self.nets.policy, actor, normalizer)
         start = jax.vmap(self.env.reset_from)(episodes)
-        out = rollout(self.env, lambda state, t: policy(state.obs), start, gamma=self.config.gamma)
+        out = rollout(self.env, lambda state, t: policy(state.obs), start, gamma=self.config.gamma, compact=True)
         if critic is None:
             return out, None
         q0 = self.nets.q(critic, normalizer, start.obs, policy(start.obs))
