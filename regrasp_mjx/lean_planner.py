@@ -531,7 +531,8 @@ class LeanPlanner:
             path_length_mm=one(length * 1e3, np.float32),
             discounted_return=one(ret, np.float32),
         )
-        return PlanArrays(out, poses[None], actions[None])
+        n = int(steps)  # the trajectory up to its end, float32 as the JAX planner returns it
+        return PlanArrays(out, poses[None, : n + 1].astype(np.float32), actions[None, :n].astype(np.float32))
 
 
 def _geometry(env: RegraspEnv) -> tuple:

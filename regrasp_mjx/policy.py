@@ -293,8 +293,13 @@ class Policy:
     def _finish(self, out: PlanArrays, single: bool, nearest) -> Plan:
         o = out.outcome
         pick = _first if single else (lambda x: x)  # one query: its row of every field  # noqa: E731
-        steps = int(o.steps.max()) if o.steps.size else 0  # the longest plan's (the JAX planner cut there)
-        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (what was computed: no copy of a batch)
+        # the trajectories up to the longest plan, float32 (both planners return them so already)
+        steps = int(o.steps[0]) if single else int(o.steps.max()) if o.steps.size else 0
+        trajectories = [out.poses, out.actions, out.poses_camera]
+        for i, (x, n) in enumerate(zip(trajectories, (steps + 1, steps, steps + 1))):
+            if x is not None and (x.shape[1] != n or x.dtype != np.float32):
+                trajectories[i] = np.asarray(x[:, :n], np.float32)
+        poses, actions, camera = trajectories
         return Plan(
             success=pick(o.success),
             collision=pick(o.collision),
@@ -302,9 +307,9 @@ class Policy:
             start_valid=pick(o.start_valid),
             steps=pick(o.steps.astype(np.int64)),
             path_length_mm=pick(o.path_length_mm),
-            poses=pick(f32(out.poses[:, : steps + 1])),
-            actions=pick(f32(out.actions[:, :steps])),
-            poses_camera=pick(None if out.poses_camera is None else f32(out.poses_camera[:, : steps + 1])),
+            poses=pick(poses),
+            actions=pick(actions),
+            poses_camera=pick(camera),
             nearest_grasp_distance=pick(nearest),
         )
 
