@@ -1,7 +1,7 @@
 """Success as the needle-pose estimate gets noisier: planning once (open loop) against re-planning
 every step from the latest or the fused estimate (closed loop), with and without a fixed bias.
 
-Noise model (``regrasp_mjx.closed_loop.NeedleNoise``): each camera frame's estimate is the true
+Noise model (``regrasp_mjx.estimates.NeedleNoise``): each camera frame's estimate is the true
 needle moved by Gaussian noise, ``sigma`` mm per axis and ``5 sigma`` degrees about a random axis,
 after a bias fixed for the episode (a shift of ``bias`` mm in a random direction, ``5 bias`` degrees
 about a random axis). Success and collisions are judged on the true needle.
@@ -29,7 +29,7 @@ import numpy as np
 
 from regrasp_mjx import host  # noqa: E402
 from regrasp_mjx.atomic import write_results  # noqa: E402
-from regrasp_mjx.closed_loop import NeedleNoise, episode_bias, frame_estimate  # noqa: E402
+from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate  # noqa: E402
 from regrasp_mjx.env import RegraspEnv  # noqa: E402
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402
 from regrasp_mjx.grasps import GraspLibrary  # noqa: E402

@@ -19,6 +19,7 @@ import numpy as np
 from regrasp_mjx import geometry
 from regrasp_mjx.atomic import write_figure
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.render import write_gif
 from regrasp_mjx.sampling import Episode
 
 FIGURES_ENV = "REGRASP_FIGURES"  # a folder: notebooks save the README's figures there when it is set
@@ -51,8 +52,6 @@ def save_figure(figure: Any, name: str) -> Path | None:
     path = (path if path.is_absolute() else repo_root() / path) / name
     path.parent.mkdir(parents=True, exist_ok=True)
     if isinstance(figure, np.ndarray):
-        from regrasp_mjx.render import write_gif
-
         return write_gif(path, figure)
     write_figure(path, figure, dpi=110, bbox_inches="tight")
     return path

@@ -3,6 +3,8 @@ so a killed process never leaves a half-written checkpoint, policy, dataset or l
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import os
 import tempfile
@@ -57,8 +59,6 @@ def write_figure(path: str | os.PathLike, figure: Any, dpi: int = 120, **savefig
 
 def write_csv(path: str | os.PathLike, header: list[str], rows: Any) -> None:
     """A CSV file of a ``header`` and ``rows`` (sequences in its order), written whole."""
-    import csv
-    import io
 
     text = io.StringIO(newline="")
     writer = csv.writer(text)

@@ -28,13 +28,14 @@ import jax.numpy as jnp
 
 from regrasp_mjx.agents.dagger import DistillConfig, Distiller
 from regrasp_mjx.atomic import write_json
-from regrasp_mjx.closed_loop import evaluate_noisy
 from regrasp_mjx.config import ConfigError, parse_overrides, replace
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.estimates import evaluate_noisy
 from regrasp_mjx.evaluate import outcomes
 from regrasp_mjx.policy import Policy, PolicyError, load_policy, save_policy
 from regrasp_mjx.rollout import evaluate_actor, summarize
 from regrasp_mjx.sampling import PAPER300, Episode, TestsetError, load_testset
+from regrasp_mjx.testset import make_testset
 
 VALIDATION_SEED = 2_000_003  # + the distillation seed; the learner's validation problems use 1_000_003 + seed
 DEFAULT_TESTSET = PAPER300
@@ -50,7 +51,6 @@ def distill(
 ) -> dict[str, Any]:
     """Distils ``teacher`` into a student in ``out`` (see the module docstring); returns the
     contents of ``distill_eval.json``."""
-    from regrasp_mjx.testset import make_testset
 
     log = (lambda msg: None) if quiet else (lambda msg: print(msg, flush=True))
     env_cfg = teacher.env_config

@@ -21,6 +21,7 @@ from typing import Any
 
 import jax
 import numpy as np
+from jax.experimental import multihost_utils
 
 
 def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
@@ -47,8 +48,6 @@ def to_host(tree: Any) -> Any:
 
     def one(x):
         if isinstance(x, jax.Array) and not x.is_fully_addressable:
-            from jax.experimental import multihost_utils
-
             return np.asarray(multihost_utils.process_allgather(x, tiled=True))
         return np.asarray(x)
 
@@ -59,7 +58,6 @@ def broadcast(tree: Any) -> Any:
     """Process 0's value of ``tree`` (numpy leaves of the same shapes on every process) on all."""
     if not multi_process():
         return tree
-    from jax.experimental import multihost_utils
 
     return jax.tree.map(np.asarray, multihost_utils.broadcast_one_to_all(tree))
 
@@ -67,6 +65,4 @@ def broadcast(tree: Any) -> Any:
 def sync(name: str) -> None:
     """Waits until every process reaches the barrier ``name``."""
     if multi_process():
-        from jax.experimental import multihost_utils
-
         multihost_utils.sync_global_devices(name)

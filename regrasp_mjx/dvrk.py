@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.geometry import unit_quaternions
@@ -317,7 +318,6 @@ def within_limits_jax(base_inv, pos, quat):
     verdict of :func:`inverse_kinematics` (the same closed form and residual test; the roll
     within its +-260 degree range whenever some turn of it is), for checks inside jitted planners;
     vmap for batches."""
-    import jax.numpy as jnp
 
     w, x, y, z = quat[0], quat[1], quat[2], quat[3]
     rot = jnp.array(

@@ -25,7 +25,7 @@ from regrasp_mjx.policy import DEFAULT_POLICY, Policy, PolicyError, load_policy,
 
 def export_onnx(policy: Policy, path: str | os.PathLike) -> Path:
     """Writes the policy's actor to ``path`` (ONNX, opset 17+); returns the path."""
-    from jax2onnx import to_onnx
+    from jax2onnx import to_onnx  # optional (the onnx extra)
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -43,7 +43,7 @@ def export_onnx(policy: Policy, path: str | os.PathLike) -> Path:
 def check(policy: Policy, path: str | os.PathLike, n: int = 1000, seed: int = 0) -> float:
     """Largest absolute difference between ONNX Runtime's and JAX's actions on ``n`` observations
     drawn around the policy's normaliser statistics."""
-    import onnxruntime as ort
+    import onnxruntime as ort  # optional (the onnx extra)
 
     rng = np.random.default_rng(seed)
     mean = np.asarray(policy.normalizer.mean)[0]

@@ -13,6 +13,7 @@ two terms on one scale: ``|dp| in mm + angle in degrees / 5`` (1 mm and 5 degree
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import os
@@ -20,7 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import output_file_problem
+from regrasp_mjx.atomic import atomic_write, output_file_problem
+from regrasp_mjx.config import EnvConfig
+from regrasp_mjx.testset import make_testset
 
 DEFAULT_LIBRARY = Path(__file__).resolve().parent / "data" / "grasps1000.npz"
 ANGLE_WEIGHT_DEG = 5.0  # degrees that weigh as much as one millimetre
@@ -43,18 +46,14 @@ class GraspLibrary:
 
     @classmethod
     def make(cls, n: int = 1000, seed: int = 7, env_config=None) -> GraspLibrary:
-        from regrasp_mjx.config import EnvConfig
-        from regrasp_mjx.testset import make_testset
 
         env_config = env_config or EnvConfig(check_actions=False)
         ep = make_testset(n, seed, env_config)
         needle = np.concatenate([ep.needle_pos, ep.needle_quat], axis=1)
-        import dataclasses
 
         return cls(needle, np.asarray(ep.grasp), {"n": n, "seed": seed, "env": dataclasses.asdict(env_config)})
 
     def save(self, path: str | os.PathLike) -> None:
-        from regrasp_mjx.atomic import atomic_write
 
         meta = json.dumps(self.meta)
         atomic_write(Path(path), lambda f: np.savez(f, needle=self.needle, grasp=self.grasp, meta=np.array(meta)))

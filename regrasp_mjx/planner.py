@@ -18,8 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from regrasp_mjx import dvrk, geometry
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
+from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.rollout import Rollout, rollout
+from regrasp_mjx.sampling import Episode
 from regrasp_mjx.shield import shield_rows
 
 PLANNERS: dict[tuple, Any] = {}  # planners by (hidden, members, env, camera, shield)
@@ -131,9 +134,6 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
     ``goal_grasp`` ``[B, 4]``: ``(alpha*, d* [m], theta*, phi*)``; ``base_inv`` ``[B, 4, 4]``
     (optional): the inverse of each query's regrasping PSM base frame in e_g, so that the shield
     also replaces actions that leave the joint limits. Returns :class:`PlanArrays`."""
-    from regrasp_mjx import dvrk, geometry
-    from regrasp_mjx.env import RegraspEnv
-    from regrasp_mjx.sampling import Episode
 
     env = RegraspEnv(env_config)
     horizon = env.config.horizon
@@ -198,7 +198,6 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
 def goal_pose_in_needle(goal_grasp: jax.Array, radius: jax.Array):
     """The goal end-effector poses ``T_n_er*`` of goal grasps ``[..., 4]`` = ``(alpha*, d* [m], theta*,
     phi*)`` on needles of ``radius`` [m] (paper eq. 3)."""
-    from regrasp_mjx import geometry
 
     g = goal_grasp
     return geometry.grasp_pose(g[..., 0], g[..., 1], g[..., 2], g[..., 3], radius)

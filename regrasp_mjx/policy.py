@@ -23,10 +23,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from regrasp_mjx import closed_loop, dvrk, geometry, host
+from regrasp_mjx.closed_loop import FRAMES
 from regrasp_mjx.config import ConfigError, env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE, unit_quaternions
-from regrasp_mjx.planner import PLANNERS, PlanArrays, make_planner, mean_action, members_apply
+from regrasp_mjx.grasps import GraspLibrary
+from regrasp_mjx.planner import PLANNERS, PlanArrays, goal_pose_in_needle, make_planner, mean_action, members_apply
 from regrasp_mjx.policy_file import (
     ACTION_LAYOUT,
     DEFAULT_POLICY,
@@ -317,8 +322,6 @@ class Policy:
     def _closed_loop(
         self, kind: str, shield: bool, frames: str = "fused", margin_mm: float = 0.0, stop: float = 1.0, warmup: int = 1
     ):
-        from regrasp_mjx import closed_loop
-        from regrasp_mjx.env import RegraspEnv
 
         setting = (kind, shield, frames, margin_mm, stop, warmup)
         if setting not in self._planners:
@@ -402,7 +405,7 @@ class Policy:
     ) -> dict[str, np.ndarray]:
         """Simulates regrasping under needle-pose noise (:mod:`regrasp_mjx.closed_loop`) on true
         needle, start and goal poses ``[B, 7]`` (e_g frame): each step the policy acts on an
-        estimate of the needle (``noise``, a :class:`~regrasp_mjx.closed_loop.NeedleNoise`; default
+        estimate of the needle (``noise``, a :class:`~regrasp_mjx.estimates.NeedleNoise`; default
         none) and stops when the estimate says the goal is reached; success and collisions are
         judged on the true needle. ``frames``: ``"fused"`` (the mean of the frames so far, the
         default), ``"each"`` (that step's frame alone) or ``"one"`` (the first frame for the whole
@@ -417,7 +420,6 @@ class Policy:
         reproduces :meth:`plan` exactly. ``task``: the goal grasp and needle keywords of
         :meth:`plan` (a general policy's ranges). Returns numpy arrays per row: ``success``,
         ``collision``, ``time_out``, ``stopped``, ``steps``, ``start_valid``, ``poses``."""
-        from regrasp_mjx.closed_loop import FRAMES, NeedleNoise
 
         noise = NeedleNoise() if noise is None else noise
         defaults = self.closed_loop_defaults
@@ -662,16 +664,12 @@ class Policy:
         )
         nearest = None
         if check_grasp and not self.general:
-            from regrasp_mjx import host
-
             rel = [host.relative(e[:3], e[3:], n[:3], n[3:]) for e, n in zip(c_eg, c_n)]
             rel_p, rel_q = np.stack([r[0] for r in rel]), np.stack([r[1] for r in rel])
             nearest = self._check_grasp(np.concatenate([rel_p, rel_q], axis=1))
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
         base_inv = None
         if psm is not None:
-            from regrasp_mjx import dvrk
-
             unknown = set(psm) - {"regrasping_base", "grasping_base"}
             if "regrasping_base" not in psm or unknown:
                 raise PoseError(
@@ -686,8 +684,6 @@ class Policy:
 
     def _default_goal(self, needle: np.ndarray, grasp: np.ndarray, radii: np.ndarray) -> np.ndarray:
         """The goal end-effector poses ``[n, 7]`` (e_g) of goal grasps ``[n, 4]`` on needles."""
-        from regrasp_mjx import geometry
-        from regrasp_mjx.planner import goal_pose_in_needle
 
         goal = geometry.compose(
             (jnp.asarray(needle[:, :3]), jnp.asarray(needle[:, 3:])),
@@ -696,7 +692,6 @@ class Policy:
         return np.concatenate([np.asarray(goal[0]), np.asarray(goal[1])], axis=1)
 
     def _check_grasp(self, needle: np.ndarray) -> np.ndarray:
-        from regrasp_mjx.grasps import GraspLibrary
 
         dist = GraspLibrary.default().nearest(needle)[1]
         far = dist > OOD_WARN_DISTANCE
@@ -736,7 +731,6 @@ def _check_start_distance(needle: np.ndarray, start: np.ndarray) -> None:
 
 
 def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
-    from regrasp_mjx import dvrk
 
     steps = np.atleast_1d(plan.steps)
     cam = plan.poses_camera[None] if single else plan.poses_camera

@@ -26,6 +26,8 @@ from flax import traverse_util
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
 from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import env_config_from_dict
+from regrasp_mjx.geometry import OBS_SIZE, OBS_SIZE_GENERAL
+from regrasp_mjx.testset import versions
 
 POLICY_FORMAT = "regrasp_mjx.policy"
 POLICY_VERSION = 2
@@ -52,7 +54,6 @@ TASK_OBS_LAYOUT = [
 
 def obs_size(env_config: Any) -> int:
     """Observation width of a policy trained in ``env_config``: 21, or 37 for a general task."""
-    from regrasp_mjx.geometry import OBS_SIZE, OBS_SIZE_GENERAL
 
     return OBS_SIZE_GENERAL if env_config.task.general else OBS_SIZE
 
@@ -94,7 +95,6 @@ def save_policy(
     }
     flat["normalizer/mean"] = lead(normalizer.mean)
     flat["normalizer/std"] = lead(normalizer.std)
-    from regrasp_mjx.testset import versions
 
     contract = {
         "format": POLICY_FORMAT,

@@ -54,7 +54,7 @@ def _gl_context(model: mujoco.MjModel, width: int, height: int):
     module = "glfw" if wanted == "glx" else wanted
     try:
         if module == "glfw":  # without a display GLFW still hands out a (dead) context object
-            import glfw
+            import glfw  # optional: only where a GLFW window system is asked for
 
             if not glfw.init():
                 raise RuntimeError("GLFW could not start (no display?)")
@@ -266,7 +266,7 @@ class SceneRenderer:
 def write_gif(path: str | os.PathLike, frames: np.ndarray, fps: float = 12.0) -> Path:
     """Writes frames ``[F, H, W, 3]`` (uint8) as a looping GIF with Pillow (no ffmpeg needed),
     atomically (a temporary file renamed into place)."""
-    from PIL import Image
+    from PIL import Image  # optional (the analysis extra): only where a GIF is written
 
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) == 0:

@@ -2,7 +2,7 @@
 
 A lab never has the exact needle pose (the paper's real robot fell from 97 % to 73 % on exactly
 this). :func:`measure` runs a policy on test-set problems with each step's needle estimate drawn
-from :class:`~regrasp_mjx.closed_loop.NeedleNoise` and judges success and collisions on the true
+from :class:`~regrasp_mjx.estimates.NeedleNoise` and judges success and collisions on the true
 needle, in one of three modes (:data:`MODES`):
 
 - ``open``: one camera frame, one plan, executed open loop (what the paper's real-robot runs did);
@@ -33,9 +33,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx.closed_loop import NeedleNoise
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.policy_file import resolve
 from regrasp_mjx.sampling import episode_needles, episode_poses
 

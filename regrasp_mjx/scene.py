@@ -334,7 +334,7 @@ def _apply_config(spec: mujoco.MjSpec, config: SceneConfig) -> None:
             geom.size = [config.wire_radius_mm * 1e-3 + inflation, 0.0, 0.0]
     if abs(scale - 1.0) > 1e-12 or abs(config.wire_radius_mm - _DEFAULT_WIRE_RADIUS_MM) > 1e-12:
         # the render mesh of this needle (the file holds the default one): the arc of R, the tube of the wire
-        from regrasp_mjx.needle_mesh import needle_tube
+        from regrasp_mjx.needle_mesh import needle_tube  # here: trimesh's import costs ~0.5 s, rarely needed
 
         tube = needle_tube(radius, config.wire_radius_mm * 1e-3)
         mesh = spec.mesh("needle_tube")

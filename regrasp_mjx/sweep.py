@@ -36,8 +36,11 @@ from typing import Any
 
 import numpy as np
 
+from regrasp_mjx import analysis
+from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.atomic import write_figure, write_json, write_text
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.config import ConfigError, parse_overrides
+from regrasp_mjx.train import run_outputs
 
 FORMAT = "regrasp_mjx.sweep"
 
@@ -92,8 +95,6 @@ def train_args(args: argparse.Namespace, point: dict[str, Any], out: Path) -> li
 
 def command(folder: Path, argv: list[str]) -> list[str]:
     """The process that trains one point: resuming from its checkpoint when it has one."""
-    from regrasp_mjx.train import run_outputs  # noqa: PLC0415 - the CLI module, imported only to build a command
-
     state = status(folder)
     # a point that never reached a checkpoint starts anew: its partial outputs are cleared
     again = ["--resume"] if state == "resume" else (["--overwrite"] if run_outputs(folder) else [])
@@ -195,7 +196,6 @@ def run_all(out: Path, names: list[str], argvs: list[list[str]], slots: list[str
 
 def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tuple[list[str], list[dict]]:
     """``sweep.md`` lines (and the figure) from the points' logs; points without a log are listed as such."""
-    from regrasp_mjx import analysis
 
     rows, curves = [], []
     for name, point in zip(names, grid_points):
@@ -228,10 +228,7 @@ def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tu
             f"{ms(r['best'])} | {ms(r['exported'])} | {ms(r['exported_shielded'])} | {ms(r['collision_last'])} |"
         )
     if curves:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # optional (the analysis extra): only where a sweep has curves to draw
 
         fig, ax = plt.subplots(figsize=(8, 4.5))
         for label, epochs, succ in curves:
@@ -279,9 +276,6 @@ def main(argv: list[str] | None = None) -> int:
     log = lambda msg: print(msg, flush=True)  # noqa: E731
     out = Path(args.out)
     try:
-        from regrasp_mjx.agents.ddpg_bc.config import make_config
-        from regrasp_mjx.config import parse_overrides
-
         if args.seeds < 1:
             raise ConfigError(f"--seeds {args.seeds} is not accepted: at least 1")
         grid = parse_grid(args.grid)

@@ -23,6 +23,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from regrasp_mjx import demos as demos_cli
 from regrasp_mjx import distributed, geometry
 from regrasp_mjx.agents.ddpg_bc import checkpoint
 from regrasp_mjx.agents.ddpg_bc.config import (
@@ -31,10 +32,13 @@ from regrasp_mjx.agents.ddpg_bc.config import (
 from regrasp_mjx.agents.ddpg_bc.exchange import PlannerExchange
 from regrasp_mjx.agents.ddpg_bc.learner import Learner, TrainingState
 from regrasp_mjx.atomic import atomic_write, write_json, write_text
+from regrasp_mjx.distill import distill
+from regrasp_mjx.evaluate import outcomes
 from regrasp_mjx.planning.episodes import DemosError, load_demos
-from regrasp_mjx.policy import save_policy
+from regrasp_mjx.policy import load_policy, save_policy
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import PAPER300, load_testset
+from regrasp_mjx.testset import make_testset
 
 VALIDATION_SEED = 1_000_003
 DEFAULT_TESTSET = PAPER300
@@ -74,7 +78,6 @@ class Run:
         self.ckpt = out / "checkpoint"
         self.testset, _ = load_testset(testset)
         # Model selection uses problems of their own (never the test set): validation_size from another seed.
-        from regrasp_mjx.testset import make_testset
 
         self.valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, cfg.env)
         self.demos = self._demos(demos_dir)
@@ -100,8 +103,6 @@ class Run:
             return load_demos(demos_dir)
         path = self.out / "demos"
         if not (path / "demos.npz").exists() and distributed.is_main():
-            from regrasp_mjx import demos as demos_cli
-
             self.log(f"building {self.cfg.num_demos} demonstrations in {path} (BIT* reverse) ...")
             demos_cli.build(
                 self.cfg.num_demos,
@@ -328,8 +329,6 @@ class Run:
         best seed (by validation) to ``OUT/policy`` (``OUT/SETTING/policy`` for several settings),
         its student to ``.../student/policy``."""
         cfg = self.cfg
-        from regrasp_mjx.evaluate import outcomes
-        from regrasp_mjx.policy import load_policy
 
         host = self._host_policy(ts)  # a collective: every process
         if not distributed.is_main():
@@ -383,8 +382,6 @@ class Run:
 
     def distill(self, members: list[dict[str, Any]]) -> list[dict[str, Any]]:
         """Each member's exported policy teaches a student (``MEMBER_DIR/student``), one after another."""
-        from regrasp_mjx.distill import distill
-        from regrasp_mjx.policy import load_policy
 
         students = []
         for m, mem in enumerate(members):
@@ -397,7 +394,7 @@ class Run:
 
     def _tensorboard(self, folder: Path):
         try:
-            from tensorboardX import SummaryWriter
+            from tensorboardX import SummaryWriter  # here: its import (protobuf) only for runs that log to TensorBoard
         except ImportError:  # optional: the JSONL log has everything
             return None
         return SummaryWriter(str(folder / "tb"))

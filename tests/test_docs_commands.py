@@ -160,3 +160,18 @@ def test_a_documented_command_runs_and_makes_what_it_says(command, tmp_path, mon
     assert {p: p.stat().st_mtime for p in (ROOT / "regrasp_mjx" / "data").iterdir()} == before
     assert not any(p.suffix == ".onnx" for p in ROOT.iterdir()), "a command wrote into the checkout"
     assert os.listdir(tmp_path) == [Path(argv[i + 1]).name]
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "experiments").glob("[!_]*.py")))
+def test_every_experiment_script_answers_help(script, monkeypatch, capsys):
+    """``python experiments/X.py --help`` prints its usage and exits 0 (nothing else runs)."""
+    affinity = os.sched_getaffinity(0)  # bench_plan pins its process to one core as it starts
+    monkeypatch.setattr(sys, "argv", [script, "--help"])
+    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
+    try:
+        with pytest.raises(SystemExit) as done:
+            runpy.run_path(str(ROOT / "experiments" / script), run_name="__main__")
+    finally:
+        os.sched_setaffinity(0, affinity)
+    assert done.value.code in (0, None)
+    assert "usage:" in capsys.readouterr().out

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import evaluate, geometry, load_policy, robustness
-from regrasp_mjx.closed_loop import noisy_observation, seen_from
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.estimates import noisy_observation, seen_from
 from regrasp_mjx.policy_file import shipped_policies
 from regrasp_mjx.sampling import load_testset
 

@@ -32,9 +32,9 @@ from brax.training.acme import running_statistics, specs
 from flax import struct
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
-from regrasp_mjx.closed_loop import noisy_observation
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.estimates import noisy_observation
 from regrasp_mjx.rollout import rollout
 from regrasp_mjx.shield import shield_candidates
 
@@ -60,7 +60,7 @@ class DistillConfig:
       seed: PRNG seed; validation_size: problems (of their own seed) that pick the exported iteration.
       obs_noise_mm, obs_bias_mm: needle-pose noise the student learns to act under (0 = off): its
         rollouts act on, and the buffer stores, observations of a needle estimate
-        (:func:`regrasp_mjx.closed_loop.noisy_observation`: a new frame each step, sigma drawn per
+        (:func:`regrasp_mjx.estimates.noisy_observation`: a new frame each step, sigma drawn per
         problem from U[0, obs_noise_mm], a bias of U[0, obs_bias_mm] fixed per episode), while the
         teacher labels the true state (privileged: it sees the needle exactly). With noise the
         exported iteration is the one best on validation problems under the same noise.

@@ -21,7 +21,7 @@ import numpy as np
 
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.geometry import unit_quaternions
-from regrasp_mjx.host import HostChecker
+from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
 
 PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar", "RRTConnect")
 DIRECTIONS = ("forward", "reverse")
@@ -79,9 +79,8 @@ class PlanResult:
 
 
 def _import_ompl():
-    from ompl import base as ob
-    from ompl import geometric as og
-    from ompl import util as ou
+    # imported where a planner is built: OMPL's C++ libraries load only in the planner processes
+    from ompl import base as ob, geometric as og, util as ou  # noqa: I001
 
     return ob, og, ou
 
@@ -207,7 +206,6 @@ def straight_line(
 ) -> PlanResult:
     """The straight-line baseline (SPEC): position interpolated, orientation slerped, checked at the
     planners' motion resolution (no tool point moves more than ``check_step_mm`` between checks)."""
-    from regrasp_mjx.host import quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
 
     t0 = time.perf_counter()
     needle, start, goal = (_unit_pose(name, v) for name, v in (("needle", needle), ("start", start), ("goal", goal)))

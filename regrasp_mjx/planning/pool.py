@@ -26,6 +26,11 @@ from typing import Any
 
 import numpy as np
 
+from regrasp_mjx.config import SceneConfig
+from regrasp_mjx.host import HostChecker
+from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
+from regrasp_mjx.scene import load_scene
+
 PlanFn = Callable[[dict[str, Any], dict[str, Any]], dict[str, Any]]
 
 
@@ -57,10 +62,6 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
     planner per worker and options, built on first use. A problem that names its needle
     (``needle_radius``, ``wire_radius`` in metres) is planned around that one.
     """
-    from regrasp_mjx.config import SceneConfig
-    from regrasp_mjx.host import HostChecker
-    from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
-    from regrasp_mjx.scene import load_scene
 
     key = repr(sorted(options.items()))
     cache = plan_with_ompl.__dict__.setdefault("_planners", {})

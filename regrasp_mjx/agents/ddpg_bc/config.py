@@ -6,7 +6,7 @@ import dataclasses
 import math
 
 from regrasp_mjx.agents.dagger import DistillConfig
-from regrasp_mjx.config import GENERAL_TASK, ConfigError, EnvConfig
+from regrasp_mjx.config import GENERAL_TASK, ConfigError, EnvConfig, replace
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +74,7 @@ class TrainConfig:
         policy's own for the critic to rank (see experiments/RESULTS.md, "Why training decayed").
       obs_noise_mm, obs_bias_mm: domain randomisation over needle-pose noise (ours; 0 = off): in
         training rollouts the policy acts on, and the buffer stores, observations of a needle
-        estimate (:mod:`regrasp_mjx.closed_loop`'s model) with per-step noise of sigma drawn per
+        estimate (:mod:`regrasp_mjx.estimates`' model) with per-step noise of sigma drawn per
         environment and iteration from U[0, obs_noise_mm], after a bias of U[0, obs_bias_mm] mm in
         a random direction, fixed per environment and iteration (its episodes). Evaluation stays
         noise-free.
@@ -364,7 +364,6 @@ def grow_with_devices(cfg: TrainConfig, devices: int) -> TrainConfig:
 def make_config(preset: str, exploration: str = "mixed", learner: str = "ours", **overrides) -> TrainConfig:
     """A preset with Table I's exploration setting (or several, comma-separated, trained side by
     side), the learner (``ours`` or ``paper``) and dotted overrides (``env.horizon=50``)."""
-    from regrasp_mjx.config import replace
 
     if preset not in PRESETS:
         raise ConfigError(f"preset={preset!r} is not accepted: one of {sorted(PRESETS)}")

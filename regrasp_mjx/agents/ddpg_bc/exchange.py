@@ -20,6 +20,8 @@ from regrasp_mjx import distributed
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.learner import TRANSITION, Learner, TrainingState
 from regrasp_mjx.planning.episodes import make_replay, replay_paths
+from regrasp_mjx.planning.ompl_planner import PlannerConfig
+from regrasp_mjx.planning.pool import PlannerPool
 from regrasp_mjx.sampling import Episode
 
 Chunk = tuple[int, dict[str, np.ndarray]]  # (member, one demo_chunk of transitions)
@@ -52,9 +54,6 @@ class PlannerExchange:
         self.replay = None
 
     def _pool(self):
-        from regrasp_mjx.planning.ompl_planner import PlannerConfig
-        from regrasp_mjx.planning.pool import PlannerPool
-
         cfg = self.cfg
         planner = PlannerConfig(planner="BITstar", direction="reverse", budget_s=cfg.planner_budget_s)
         options = {"planner": dataclasses.asdict(planner), "scene": dataclasses.asdict(cfg.env.scene), "seed": cfg.seed}

@@ -45,7 +45,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from regrasp_mjx import closed_loop
+from regrasp_mjx import estimates
 from regrasp_mjx.agents.ddpg_bc import losses
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
@@ -321,9 +321,9 @@ class Learner:
                 return state.obs
             es = state.pipeline_state
             needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
-            biased = jax.vmap(closed_loop.episode_bias)(jax.random.split(k_bias, n), needle, bias)
-            seen = jax.vmap(closed_loop.frame_estimate)(jax.random.split(k, n), biased, sigma)
-            return jax.vmap(env.observe)(closed_loop.seen_from(es, seen))
+            biased = jax.vmap(estimates.episode_bias)(jax.random.split(k_bias, n), needle, bias)
+            seen = jax.vmap(estimates.frame_estimate)(jax.random.split(k, n), biased, sigma)
+            return jax.vmap(env.observe)(estimates.seen_from(es, seen))
 
         def step(carry, k):
             state, outcome = carry

@@ -1,0 +1,103 @@
+"""The package's layers as docs/architecture.md draws them: no module imports from a layer above its
+own, no import cycles (imports inside functions counted), and few imports inside functions, each
+saying why (an optional dependency or start-up time)."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "regrasp_mjx"
+MAX_LOCAL_IMPORTS = 10
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        name = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        out[name.removesuffix(".__init__")] = path
+    return out
+
+
+def layers() -> dict[str, float]:
+    """Module -> layer from the table in docs/architecture.md (``4b`` is 4.5: beside 4a, above it)."""
+    out = {}
+    for line in (ROOT / "docs" / "architecture.md").read_text().splitlines():
+        m = re.match(r"\| (\d)([ab]?)\. [^|]+\| ([^|]+)\|", line)
+        if not m:
+            continue
+        level = int(m.group(1)) + (0.5 if m.group(2) == "b" else 0.0)
+        for name in re.findall(r"`([^`]+)`", m.group(3)):
+            if ".{" in name:  # agents.ddpg_bc.{config, networks}
+                base, rest = name.split(".{")
+                out.update({f"regrasp_mjx.{base}.{x}": level for x in rest.rstrip("}").split(", ")})
+            else:
+                out[f"regrasp_mjx.{name}"] = level
+    return out
+
+
+def imports(mods: dict[str, Path]) -> tuple[dict[str, set[str]], list[tuple[str, int, str]]]:
+    """Each module's imports of package modules (anywhere in it) and the imports inside functions
+    ``(module, line, source line)``."""
+    graph: dict[str, set[str]] = {name: set() for name in mods}
+    local = []
+    for name, path in mods.items():
+        text = path.read_text()
+        tree = ast.parse(text)
+        in_function = set()
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                in_function |= {id(n) for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom))}
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.Import, ast.ImportFrom)):
+                continue
+            if id(node) in in_function:
+                local.append((name, node.lineno, text.splitlines()[node.lineno - 1]))
+            if isinstance(node, ast.ImportFrom):
+                if not (node.module or "").startswith("regrasp_mjx"):
+                    continue
+                subs = {f"{node.module}.{a.name}" for a in node.names} & set(mods)
+                targets = subs or {node.module}
+            else:
+                targets = {a.name for a in node.names if a.name.startswith("regrasp_mjx")}
+            graph[name] |= {t for t in targets if t in mods and t != name}
+    return graph, local
+
+
+def test_every_module_has_a_layer_and_imports_only_from_its_own_or_lower_ones():
+    mods, level = modules(), layers()
+    packages = {"regrasp_mjx", "regrasp_mjx.agents", "regrasp_mjx.agents.ddpg_bc", "regrasp_mjx.planning"}
+    assert sorted(set(mods) - set(level) - packages) == [], "modules missing from docs/architecture.md's table"
+    assert sorted(set(level) - set(mods)) == [], "docs/architecture.md names modules that do not exist"
+    graph, _ = imports(mods)
+    up = [(a, level[a], b, level[b]) for a in level for b in graph[a] if b in level and level[b] > level[a]]
+    assert up == [], f"imports from a higher layer: {up}"
+
+
+def test_no_import_cycles_counting_imports_inside_functions():
+    graph, _ = imports(modules())
+    state: dict[str, int] = {}  # 1: on the path, 2: done
+
+    def visit(name, path):
+        state[name] = 1
+        for nxt in sorted(graph[name]):
+            if state.get(nxt) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(path[path.index(nxt) :] + [nxt]))
+            if nxt not in state:
+                visit(nxt, path + [nxt])
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
+
+
+def test_imports_inside_functions_are_few_and_each_says_why():
+    mods = modules()
+    _, local = imports(mods)
+    assert len(local) <= MAX_LOCAL_IMPORTS, [f"{m}:{n}" for m, n, _ in local]
+    for name, line, source in local:
+        above = mods[name].read_text().splitlines()[line - 2]
+        assert "#" in source or "#" in above, f"{name}:{line} imports inside a function without saying why"
