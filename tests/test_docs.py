@@ -38,3 +38,21 @@ def test_the_manual_links_resolve():
             if target.startswith("http"):
                 continue
             assert (page.parent / target).exists(), f"{page.name} links to {target}, which does not exist"
+
+
+def test_the_readme_command_table_lists_every_cli_and_exactly_its_options():
+    """README.md's command table: one row per command line of the package (every module that runs as
+    ``__main__``, but the mesh-building development script), and each row's options are exactly
+    those its ``--help`` lists."""
+    rows = {}
+    for line in (ROOT / "README.md").read_text().splitlines():
+        m = re.match(r"\| `python -m regrasp_mjx\.(\w+)` \|[^|]*\|(.*)\|[^|]*\|$", line)
+        if m:
+            rows[m.group(1)] = set(re.findall(r"`(--[a-z][a-z0-9-]*)", m.group(2)))
+    mains = {p.stem for p in (ROOT / "regrasp_mjx").glob("*.py") if 'if __name__ == "__main__":' in p.read_text()}
+    assert set(rows) == mains == set(CLIS), (sorted(rows), sorted(mains))
+    for module, listed in rows.items():
+        options = _options(module)
+        assert listed == options, (
+            f"{module}: README lists {sorted(listed - options)} too many, {sorted(options - listed)} missing"
+        )
