@@ -129,7 +129,7 @@ def main() -> None:
     rows, data = [], {"margins": {}}
     for m in (float(x) for x in args.margins.split(",")):
         policy = base.with_env(clearance_mm=m)
-        gate = host.HostChecker(clearance=m * 1e-3)
+        gate = host.HostChecker(clearance_mm=m)
         valid = gate.clear_problems(needle, start, goal)
         entry = {"valid": len(valid), "substeps": policy_substeps(policy)}
         for shield in (False, True):

@@ -29,8 +29,8 @@ import numpy as np
 
 from regrasp_mjx import host  # noqa: E402
 from regrasp_mjx.atomic import write_results  # noqa: E402
-from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate  # noqa: E402
 from regrasp_mjx.env import RegraspEnv  # noqa: E402
+from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate  # noqa: E402
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402
 from regrasp_mjx.grasps import GraspLibrary  # noqa: E402
 from regrasp_mjx.planning.episodes import make_replay, replayed  # noqa: E402

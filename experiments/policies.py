@@ -32,7 +32,7 @@ from regrasp_mjx.testset import make_testset
 def valid_at_margin(episodes, env_config):
     """The problems whose start and goal keep ``env_config.clearance_mm`` (as
     ``experiments/clearance.py`` counts them): the others fail before a step is taken."""
-    gate = host.HostChecker(scene=load_scene(env_config.scene), clearance=env_config.clearance_mm * 1e-3)
+    gate = host.HostChecker(scene=load_scene(env_config.scene), clearance_mm=env_config.clearance_mm)
     keep = gate.clear_problems(*episode_poses(episodes))
     return type(episodes)(**{f.name: getattr(episodes, f.name)[keep] for f in dataclasses.fields(episodes)})
 

@@ -66,24 +66,24 @@ def quat_angle(q1: np.ndarray, q2: np.ndarray) -> float:
 class HostChecker:
     """Collision verdicts and clearances for a needle pose and a regrasping end-effector pose.
 
-    ``clearance`` (m, kept as ``margin``): a pose collides when a counted pair is closer than this
-    (0: when it penetrates), as in :class:`regrasp_mjx.env.RegraspEnv`. Not thread-safe (it owns one
+    ``clearance_mm`` (kept in metres as ``margin``): a pose collides when a counted pair is closer
+    than this (0: when it penetrates), as ``EnvConfig.clearance_mm`` in :class:`regrasp_mjx.env.RegraspEnv`. Not thread-safe (it owns one
     ``MjData``); give each worker process its own.
     """
 
-    def __init__(self, scene: Scene | None = None, clearance: float = 0.0):
-        if not (math.isfinite(clearance) and clearance >= 0.0):
-            raise ValueError(f"clearance={clearance!r} is not accepted: a margin >= 0 in metres")
+    def __init__(self, scene: Scene | None = None, clearance_mm: float = 0.0):
+        if not (isinstance(clearance_mm, (int, float)) and math.isfinite(clearance_mm) and clearance_mm >= 0.0):
+            raise ValueError(f"clearance_mm={clearance_mm!r} is not accepted: a margin >= 0 in millimetres")
         self.scene = scene if scene is not None else load_scene()
         self.model = self.scene.model
         self.data = mujoco.MjData(self.model)
-        self.margin = float(clearance)
+        self.margin = float(clearance_mm) * 1e-3
 
     def for_needle(self, radius: float | None, wire: float | None) -> HostChecker:
         """A checker of the same margin around another needle (radius and wire radius [m]; None
         keeps this one's): this checker itself when the needle is its scene's."""
         scene = needle_scene(self.scene, radius, wire)
-        return self if scene is self.scene else HostChecker(scene, self.margin)
+        return self if scene is self.scene else HostChecker(scene, self.margin * 1e3)
 
     def _set(self, needle_pos, needle_quat, ee_pos, ee_quat) -> None:
         self.data.qpos[:] = self.scene.qpos(
@@ -150,7 +150,7 @@ class HostEnv:
     def __init__(self, config: EnvConfig = EnvConfig(), scene: Scene | None = None):
         self.config = config
         clearance = config.clearance_mm * 1e-3
-        self.scene_checker = HostChecker(scene if scene is not None else load_scene(config.scene), clearance)
+        self.scene_checker = HostChecker(scene if scene is not None else load_scene(config.scene), config.clearance_mm)
         self.checker = self.scene_checker
         self.max_dp = config.max_dp_mm * 1e-3
         self.max_drot = math.radians(config.max_drot_deg)

@@ -320,16 +320,24 @@ class Policy:
 
     # ---- closed loop ----------------------------------------------------------------------
     def _closed_loop(
-        self, kind: str, shield: bool, frames: str = "fused", margin_mm: float = 0.0, stop: float = 1.0, warmup: int = 1
+        self,
+        kind: str,
+        shield: bool,
+        frames: str = "fused",
+        clearance_mm: float = 0.0,
+        stop: float = 1.0,
+        warmup: int = 1,
     ):
 
-        setting = (kind, shield, frames, margin_mm, stop, warmup)
+        setting = (kind, shield, frames, clearance_mm, stop, warmup)
         if setting not in self._planners:
             key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
             key += setting
             if key not in PLANNERS:
                 env = RegraspEnv(self.env_config)
-                guard = RegraspEnv(dataclasses.replace(self.env_config, clearance_mm=margin_mm)) if margin_mm else env
+                guard = (
+                    RegraspEnv(dataclasses.replace(self.env_config, clearance_mm=clearance_mm)) if clearance_mm else env
+                )
                 apply = members_apply(tuple(self.contract["network"]["hidden"]))
                 PLANNERS[key] = (
                     closed_loop.make_executor(env, apply, shield, frames, guard, stop, warmup)
@@ -364,7 +372,7 @@ class Policy:
         goal_depth_mm: Any = None,
         t: int = 0,
         shield: bool = True,
-        shield_margin_mm: float = 0.0,
+        clearance_mm: float = 0.0,
         stop_tolerance: float | None = None,
         **task: Any,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -374,7 +382,7 @@ class Policy:
         estimate says the goal is already reached (then stop: the action is zero, ``next_ee`` is
         ``ee``). ``t`` is the step index (it seeds the shield's alternatives, as in :meth:`plan`);
         the shield checks the alternatives against the estimated needle, keeping
-        ``shield_margin_mm`` from it (room for the estimate's error). ``at_goal`` holds within
+        ``clearance_mm`` from it (room for the estimate's error). ``at_goal`` holds within
         ``stop_tolerance`` of the success tolerances (None: the policy's own,
         :attr:`closed_loop_defaults`), as in :meth:`execute`. ``task``: the goal grasp and needle
         keywords of :meth:`plan` (``goal_alpha_rad``, ``needle_radius_mm``, ...)."""
@@ -383,7 +391,7 @@ class Policy:
             needle, "ee", ee, goal, {"goal_depth_mm": goal_depth_mm, **task}
         )
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
-        step = self._closed_loop("step", shield, margin_mm=float(shield_margin_mm), stop=float(stop_tolerance))
+        step = self._closed_loop("step", shield, clearance_mm=float(clearance_mm), stop=float(stop_tolerance))
         a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii)))
         a, nxt, done = np.asarray(a, np.float64), np.asarray(nxt, np.float64), np.asarray(done)
         return (a[0], nxt[0], done[0]) if single else (a, nxt, done)
@@ -398,7 +406,7 @@ class Policy:
         shield: bool = True,
         seed: int = 0,
         goal_depth_mm: Any = None,
-        shield_margin_mm: float = 0.0,
+        clearance_mm: float = 0.0,
         stop_tolerance: float | None = None,
         warmup_frames: int | None = None,
         **task: Any,
@@ -409,7 +417,7 @@ class Policy:
         none) and stops when the estimate says the goal is reached; success and collisions are
         judged on the true needle. ``frames``: ``"fused"`` (the mean of the frames so far, the
         default), ``"each"`` (that step's frame alone) or ``"one"`` (the first frame for the whole
-        episode: a plan made once, executed open loop). ``shield_margin_mm``: the shield keeps this
+        episode: a plan made once, executed open loop). ``clearance_mm``: the shield keeps this
         clearance from the estimated needle (room for the estimate's error); ``stop_tolerance``:
         stop when the estimate is within this fraction of the success tolerances (below 1: room
         for the estimate's error at the goal); ``warmup_frames``: with ``"fused"``, frames fused
@@ -436,7 +444,7 @@ class Policy:
         )
         f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
         warmup = int(warmup_frames) if frames == "fused" else 1
-        run = self._closed_loop("execute", shield, frames, float(shield_margin_mm), float(stop_tolerance), warmup)
+        run = self._closed_loop("execute", shield, frames, float(clearance_mm), float(stop_tolerance), warmup)
         key = jax.random.PRNGKey(seed)
         out = run(f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii))
         return {k: np.asarray(v) for k, v in jax.device_get(out).items()}

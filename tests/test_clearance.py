@@ -143,8 +143,8 @@ def test_margin_in_host_checker_and_environment(paper_testset):
     clear = HostChecker().clearance(needle[0, :3], needle[0, 3:], goal[0, :3], goal[0, 3:])
     assert 0 < clear < 1e-3  # the goal grasp straddles the wire
     below, above = (clear - 2e-5) * 1e3, (clear + 2e-5) * 1e3  # margins in mm either side
-    assert not HostChecker(clearance=below * 1e-3).collides(needle[0, :3], needle[0, 3:], goal[0, :3], goal[0, 3:])
-    assert HostChecker(clearance=above * 1e-3).collides(needle[0, :3], needle[0, 3:], goal[0, :3], goal[0, 3:])
+    assert not HostChecker(clearance_mm=below).collides(needle[0, :3], needle[0, 3:], goal[0, :3], goal[0, 3:])
+    assert HostChecker(clearance_mm=above).collides(needle[0, :3], needle[0, 3:], goal[0, :3], goal[0, 3:])
     # The environment: a problem starting at that goal pose starts free below the margin only.
     ep = jax.tree.map(lambda x: x[:1], episodes)
     ep = ep.replace(start_pos=ep.goal_pos, start_quat=ep.goal_quat)
@@ -160,7 +160,7 @@ def test_problems_that_keep_a_margin(paper_testset):
     under the 18-chord needle model before issue 30, which reported up to 41 um less clearance)."""
     poses = episode_poses(paper_testset[0])
     assert HostChecker().clear_problems(*poses) == list(range(300))
-    kept = HostChecker(clearance=1e-4).clear_problems(*poses)
+    kept = HostChecker(clearance_mm=0.1).clear_problems(*poses)
     assert len(kept) == 282 and kept == sorted(kept)
 
 

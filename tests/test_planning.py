@@ -65,7 +65,7 @@ def test_planned_paths_are_collision_free_when_rechecked_densely(paper_testset, 
         np.testing.assert_allclose(result.poses[-1], goal, atol=1e-9)
         assert _dense_free(checker, needle, result.poses) or checker.path_clearance(needle, result.poses) > -5e-6
     planner = OmplPlanner(
-        PlannerConfig(planner="BITstar", direction="reverse", budget_s=5.0), HostChecker(clearance=5e-5), seed=1
+        PlannerConfig(planner="BITstar", direction="reverse", budget_s=5.0), HostChecker(clearance_mm=0.05), seed=1
     )
     for i, _ in bit_reverse_plans:
         needle, start, goal = _problem(episodes, i)
@@ -82,7 +82,7 @@ def test_rrt_connect_plans_start_to_goal_around_the_needle(paper_testset, direct
     checker = HostChecker()
     for simplify in (0.0, 0.2):
         cfg = PlannerConfig(planner="RRTConnect", direction=direction, budget_s=5.0, simplify_s=simplify)
-        planner = OmplPlanner(cfg, HostChecker(clearance=5e-5), seed=2)
+        planner = OmplPlanner(cfg, HostChecker(clearance_mm=0.05), seed=2)
         for i in range(3):
             needle, start, goal = _problem(episodes, i)
             result = planner.plan(needle, start, goal)

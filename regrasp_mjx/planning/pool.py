@@ -69,7 +69,7 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
         scene = load_scene(SceneConfig(**options.get("scene", {})))
         cache[key] = OmplPlanner(
             PlannerConfig(**options.get("planner", {})),
-            HostChecker(scene, options.get("clearance_mm", 0.0) * 1e-3),
+            HostChecker(scene, options.get("clearance_mm", 0.0)),
             options.get("seed", 0),
         )
     planner = cache[key]
