@@ -26,7 +26,7 @@ from regrasp_mjx.sampling import Episode
 from regrasp_mjx.shield import shield_rows
 
 PLANNERS: dict[tuple, Any] = {}  # planners by (hidden, members, env, camera, shield)
-CUT_ON_DEVICE = 1 << 20  # action numbers (B x horizon x 6) from which a batch's trajectories are cut before the copy
+CUT_FROM_QUERIES = 2048  # batches this large, off the CPU, copy only the planned part of their trajectories
 
 
 def members_apply(hidden: tuple[int, ...]):
@@ -50,36 +50,43 @@ class Planner:
     """A jitted planning program and how to read its output: calling it returns
     :class:`PlanArrays` of numpy arrays, the trajectories cut after the longest plan of the batch.
 
-    The program returns each query's outcome packed into one float32 array ``[B, n]`` (one
-    transfer to the host costs a fifth of several on a CPU, ~20 against ~100 us; the layout to
-    unpack it is recorded while the program is traced) and the horizon-long trajectories, which
-    stay on the device until the outcome says how long the longest plan is: only that many steps
-    are copied to the host (a batch's plans take ~7 steps of a horizon of 100, and the copy of
-    whole trajectories, not the planning, was most of a large batch's time on a GPU)."""
+    A small batch (under :data:`CUT_FROM_QUERIES` queries) or any batch on the CPU comes back packed
+    into one float32 array ``[B, n]`` (one transfer to the host costs a fifth of several, ~20
+    against ~100 us on a CPU; the layout to unpack it is recorded while the program is traced) and
+    is cut on the host. A large one on an accelerator returns its outcome packed and its
+    horizon-long trajectories apart; these stay on the device until the outcome says how long the
+    longest plan is, and only that many steps are copied (a batch's plans take ~7 steps of a horizon
+    of 100, and the copy of whole trajectories, not the planning, was most of a large batch's time on
+    a GPU)."""
 
     def __init__(self, program):
-        self._layout = None
+        self._layouts: dict[str, Any] = {}
 
         def packed(*args):
             out = program(*args)
             # runs only while tracing; every batch size has the same per-query layout
-            self._layout = jax.tree.map(lambda x: (x.shape[1:], x.dtype), out.outcome)
+            self._layouts["all"] = jax.tree.map(lambda x: (x.shape[1:], x.dtype), out)
+            return pack(out)
+
+        def outcome_packed(*args):
+            out = program(*args)
+            self._layouts["outcome"] = jax.tree.map(lambda x: (x.shape[1:], x.dtype), out.outcome)
             return pack(out.outcome), out._replace(outcome=None)
 
         self._packed = jax.jit(packed)
+        self._outcome_packed = jax.jit(outcome_packed)
         self._cut = jax.jit(_cut, static_argnums=1)
 
     def __call__(self, *args) -> PlanArrays:
-        packed, trajectories = self._packed(*args)
-        if trajectories.actions.size < CUT_ON_DEVICE or _on_cpu(trajectories.actions):
-            # small (a few queries: one round trip beats two) or already in host memory
-            packed, trajectories = jax.device_get((packed, trajectories))
-        outcome = unpack(np.asarray(packed), self._layout)
+        if len(args[1]) < CUT_FROM_QUERIES or jax.default_backend() == "cpu":
+            out = unpack(np.asarray(self._packed(*args)), self._layouts["all"])
+            return _cut(out, int(out.outcome.steps.max()) if len(out.outcome.steps) else 0)
+        packed, trajectories = self._outcome_packed(*args)
+        outcome = unpack(np.asarray(packed), self._layouts["outcome"])
         steps = int(outcome.steps.max()) if outcome.steps.size else 0
-        if not isinstance(trajectories.actions, np.ndarray):
-            # cut on the device to a multiple of 8 steps (few compiled cuts), then copied
-            horizon = trajectories.actions.shape[1]
-            trajectories = jax.device_get(self._cut(trajectories, min(-(-steps // 8) * 8, horizon)))
+        # cut on the device to a multiple of 8 steps (few compiled cuts), then copied
+        horizon = trajectories.actions.shape[1]
+        trajectories = jax.device_get(self._cut(trajectories, min(-(-steps // 8) * 8, horizon)))
         return _cut(trajectories, steps)._replace(outcome=outcome)
 
 
@@ -90,10 +97,6 @@ def _cut(trajectories: PlanArrays, steps: int) -> PlanArrays:
     return t._replace(
         poses=cut(t.poses, steps + 1), actions=cut(t.actions, steps), poses_camera=cut(t.poses_camera, steps + 1)
     )
-
-
-def _on_cpu(x: jax.Array) -> bool:
-    return all(d.platform == "cpu" for d in x.devices())
 
 
 class PlanArrays(NamedTuple):
