@@ -51,7 +51,8 @@ def profile(policy, episodes, batch: int, shield: bool, repeats: int) -> dict:
     grasp, radii = policy._task_inputs(batch, **kw)
     f32 = lambda x: jax.device_put(np.asarray(x, np.float32))  # noqa: E731
     args = (planner.args[0], f32(needle), f32(start), f32(goal), f32(radii))
-    device = median_s(lambda: jax.block_until_ready(planner.func._packed(*args)), repeats)
+    program = planner.func.program(batch)  # the one this batch runs: whole, or outcome first
+    device = median_s(lambda: jax.block_until_ready(program(*args)), repeats)
     called = median_s(lambda: planner.func(*args), repeats)  # the program and the copy of what it returns
     out = planner.func(*args)
     finish = median_s(lambda: policy._finish(out, False, None), repeats)

@@ -77,13 +77,14 @@ class HostChecker:
         self.scene = scene if scene is not None else load_scene()
         self.model = self.scene.model
         self.data = mujoco.MjData(self.model)
-        self.margin = float(clearance_mm) * 1e-3
+        self.clearance_mm = float(clearance_mm)
+        self.margin = self.clearance_mm * 1e-3
 
     def for_needle(self, radius: float | None, wire: float | None) -> HostChecker:
         """A checker of the same margin around another needle (radius and wire radius [m]; None
         keeps this one's): this checker itself when the needle is its scene's."""
         scene = needle_scene(self.scene, radius, wire)
-        return self if scene is self.scene else HostChecker(scene, self.margin * 1e3)
+        return self if scene is self.scene else HostChecker(scene, self.clearance_mm)
 
     def _set(self, needle_pos, needle_quat, ee_pos, ee_quat) -> None:
         self.data.qpos[:] = self.scene.qpos(

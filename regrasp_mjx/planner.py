@@ -61,6 +61,7 @@ class Planner:
 
     def __init__(self, program):
         self._layouts: dict[str, Any] = {}
+        self._on_cpu = jax.default_backend() == "cpu"  # looked up once: the backend stays for the process
 
         def packed(*args):
             out = program(*args)
@@ -77,17 +78,30 @@ class Planner:
         self._outcome_packed = jax.jit(outcome_packed)
         self._cut = jax.jit(_cut, static_argnums=1)
 
+    def whole(self, queries: int) -> bool:
+        """Whether a batch of ``queries`` comes back whole in one packed array (else outcome first)."""
+        return queries < CUT_FROM_QUERIES or self._on_cpu
+
+    def program(self, queries: int):
+        """The jitted program a batch of ``queries`` runs (what a profile times)."""
+        return self._packed if self.whole(queries) else self._outcome_packed
+
     def __call__(self, *args) -> PlanArrays:
-        if len(args[1]) < CUT_FROM_QUERIES or jax.default_backend() == "cpu":
+        if self.whole(len(args[1])):
             out = unpack(np.asarray(self._packed(*args)), self._layouts["all"])
-            return _cut(out, int(out.outcome.steps.max()) if len(out.outcome.steps) else 0)
+            return _cut(out, _longest(out.outcome))
         packed, trajectories = self._outcome_packed(*args)
         outcome = unpack(np.asarray(packed), self._layouts["outcome"])
-        steps = int(outcome.steps.max()) if outcome.steps.size else 0
+        steps = _longest(outcome)
         # cut on the device to a multiple of 8 steps (few compiled cuts), then copied
         horizon = trajectories.actions.shape[1]
         trajectories = jax.device_get(self._cut(trajectories, min(-(-steps // 8) * 8, horizon)))
         return _cut(trajectories, steps)._replace(outcome=outcome)
+
+
+def _longest(outcome: Rollout) -> int:
+    """The most steps any plan of a batch took (0 for an empty batch)."""
+    return int(outcome.steps.max()) if outcome.steps.size else 0
 
 
 def _cut(trajectories: PlanArrays, steps: int) -> PlanArrays:
@@ -125,7 +139,7 @@ def unpack(packed: np.ndarray, layout: Any) -> Any:
     parts = np.split(packed, np.cumsum(sizes)[:-1], axis=1)
     b = packed.shape[0]
     return jax.tree.unflatten(
-        treedef, [p.reshape((b,) + shape).astype(dtype) for p, (shape, dtype) in zip(parts, specs)]
+        treedef, [p.reshape((b,) + shape).astype(dtype, copy=False) for p, (shape, dtype) in zip(parts, specs)]
     )
 
 
@@ -137,15 +151,15 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
     ``goal_grasp`` ``[B, 4]``: ``(alpha*, d* [m], theta*, phi*)``; ``base_inv`` ``[B, 4, 4]``
     (optional): the inverse of each query's regrasping PSM base frame in e_g, so that the shield
     also replaces actions that leave the joint limits. Returns :class:`PlanArrays`."""
-
     env = RegraspEnv(env_config)
     horizon = env.config.horizon
     apply = members_apply(tuple(hidden))
     step = jax.vmap(env.step)
 
     def make_shield(weights, limits: bool):
-        def reach(st, rows=None):
-            """Within the joint limits (each row's base frame rides in its state's info)."""
+        def reach(st, _rows=None):
+            """Within the joint limits (each row's base frame rides in its state's info, so the
+            rows' indices that :func:`shield_rows` passes are not needed)."""
             if not limits:
                 return jnp.ones(st.pipeline_state.t.shape, bool)
             es = st.pipeline_state
@@ -201,6 +215,5 @@ def make_planner(env_config: Any, hidden: tuple[int, ...], camera: bool, shield:
 def goal_pose_in_needle(goal_grasp: jax.Array, radius: jax.Array):
     """The goal end-effector poses ``T_n_er*`` of goal grasps ``[..., 4]`` = ``(alpha*, d* [m], theta*,
     phi*)`` on needles of ``radius`` [m] (paper eq. 3)."""
-
     g = goal_grasp
     return geometry.grasp_pose(g[..., 0], g[..., 1], g[..., 2], g[..., 3], radius)

@@ -24,7 +24,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx import closed_loop, dvrk, geometry, host
-from regrasp_mjx.closed_loop import FRAMES
 from regrasp_mjx.config import ConfigError, env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
 from regrasp_mjx.env import RegraspEnv
@@ -298,13 +297,7 @@ class Policy:
     def _finish(self, out: PlanArrays, single: bool, nearest) -> Plan:
         o = out.outcome
         pick = _first if single else (lambda x: x)  # one query: its row of every field  # noqa: E731
-        # the trajectories up to the longest plan, float32 (both planners return them so already)
-        steps = int(o.steps[0]) if single else int(o.steps.max()) if o.steps.size else 0
-        trajectories = [out.poses, out.actions, out.poses_camera]
-        for i, (x, n) in enumerate(zip(trajectories, (steps + 1, steps, steps + 1))):
-            if x is not None and (x.shape[1] != n or x.dtype != np.float32):
-                trajectories[i] = np.asarray(x[:, :n], np.float32)
-        poses, actions, camera = trajectories
+        # both planners return the trajectories cut after the longest plan, float32: no copy here
         return Plan(
             success=pick(o.success),
             collision=pick(o.collision),
@@ -312,9 +305,9 @@ class Policy:
             start_valid=pick(o.start_valid),
             steps=pick(o.steps.astype(np.int64)),
             path_length_mm=pick(o.path_length_mm),
-            poses=pick(poses),
-            actions=pick(actions),
-            poses_camera=pick(camera),
+            poses=pick(out.poses),
+            actions=pick(out.actions),
+            poses_camera=pick(out.poses_camera),
             nearest_grasp_distance=pick(nearest),
         )
 
@@ -328,7 +321,6 @@ class Policy:
         stop: float = 1.0,
         warmup: int = 1,
     ):
-
         setting = (kind, shield, frames, clearance_mm, stop, warmup)
         if setting not in self._planners:
             key = (tuple(self.contract["network"]["hidden"]), self.members, json.dumps(self.contract["env"]))
@@ -433,8 +425,8 @@ class Policy:
         defaults = self.closed_loop_defaults
         stop_tolerance = defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
         warmup_frames = defaults["warmup_frames"] if warmup_frames is None else warmup_frames
-        if frames not in FRAMES:
-            raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
+        if frames not in closed_loop.FRAMES:
+            raise ConfigError(f"frames={frames!r} is not accepted: one of {closed_loop.FRAMES}")
         if not (isinstance(warmup_frames, int) and warmup_frames >= 1):
             raise ConfigError(f"warmup_frames={warmup_frames!r} is not accepted: an integer >= 1")
         if not (math.isfinite(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
@@ -692,7 +684,6 @@ class Policy:
 
     def _default_goal(self, needle: np.ndarray, grasp: np.ndarray, radii: np.ndarray) -> np.ndarray:
         """The goal end-effector poses ``[n, 7]`` (e_g) of goal grasps ``[n, 4]`` on needles."""
-
         goal = geometry.compose(
             (jnp.asarray(needle[:, :3]), jnp.asarray(needle[:, 3:])),
             goal_pose_in_needle(jnp.asarray(grasp), jnp.asarray(radii[:, 0])),

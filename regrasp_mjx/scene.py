@@ -78,17 +78,23 @@ class Scene:
         return mjx.put_model(self.model, device=jax.local_devices()[0])
 
     @functools.cached_property
-    def mjx_body_model(self) -> mjx.Model:
-        """The scene's two free bodies without their geoms, on this process's first device: what
-        ``mjx.kinematics`` needs to pose them. The counted capsules are then placed from their
-        bodies' frames (:attr:`capsule_frames`), only those, instead of every geom of the scene."""
+    def body_model(self) -> mujoco.MjModel:
+        """The scene's two free bodies without their geoms, their joints in the scene's ``qpos``
+        order: what ``mjx.kinematics`` needs to pose them (:attr:`mjx_body_model`). The counted
+        capsules are then placed from their bodies' frames (:attr:`capsule_frames`), only those,
+        instead of every geom of the scene."""
         spec = mujoco.MjSpec()
         order = [NEEDLE_BODY, REGRASP_BODY] if self.needle_qpos < self.regrasp_qpos else [REGRASP_BODY, NEEDLE_BODY]
         for name in order:
             body = spec.worldbody.add_body(name=name)
             body.add_freejoint()
             body.explicitinertial, body.mass, body.inertia = True, 1.0, [1e-6] * 3  # a moving body needs mass
-        return mjx.put_model(spec.compile(), device=jax.local_devices()[0])
+        return spec.compile()
+
+    @functools.cached_property
+    def mjx_body_model(self) -> mjx.Model:
+        """:attr:`body_model` on this process's first device."""
+        return mjx.put_model(self.body_model, device=jax.local_devices()[0])
 
     def qpos(self, needle_pos, needle_quat, ee_pos, ee_quat) -> np.ndarray | jax.Array:
         """The model's ``qpos`` for a needle pose and a regrasping end-effector pose (world = e_g)."""
@@ -219,7 +225,7 @@ class Scene:
         other_radii = jnp.asarray(f.other_radii, jnp.float32)
         inflation0 = jnp.asarray(f.inflation, jnp.float32)
         radius0 = self.config.needle_radius_mm * 1e-3
-        needle_body, tool_body = (1, 2) if self.needle_qpos < self.regrasp_qpos else (2, 1)
+        needle_body, tool_body = (self.body_model.body(n).id for n in (NEEDLE_BODY, REGRASP_BODY))
 
         def place(ends, d, body, scale=1.0):
             # products and sums, not a matmul: on the GPU a float32 matmul may run in TF32 (10-bit
