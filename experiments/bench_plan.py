@@ -3,10 +3,11 @@
 Every method plans the same queries in the same process, pinned to one core, in alternating order
 (each repeat rotates which method goes first, so drift of the machine falls on all of them), and
 the script prints each method's median per repeat, the median over all, and the ratio to the first
-method. Methods: the shipped policy through ``Policy.plan`` (shielded) on the lean path (numba,
-:mod:`regrasp_mjx.lean_planner`, the default for one query on the CPU) and on the JAX path (one
-compiled rollout per query, numpy in and out), the lean rollout alone (``LeanPlanner`` called with
-the poses, no input checks), and OMPL RRT-Connect (forward and reverse, with and without 0.2 s of
+method. Methods: the shipped policy through ``Policy.plan`` as a user calls it (shielded, the
+grasp-library check on) on the lean path (numba, :mod:`regrasp_mjx.lean_planner`, the default for
+one query on the CPU) and on the JAX path (one compiled rollout per query, numpy in and out), the
+lean planner's compiled call alone (``LeanPlanner``: the same checks and rollout, no ``Plan``
+built), and OMPL RRT-Connect (forward and reverse, with and without 0.2 s of
 shortcutting, range ``--range-mm``; collision checks with CPU MuJoCo, the same model). Problems
 that collide at the start or goal under the host checker are left out for every method.
 
@@ -40,9 +41,12 @@ import jax
 import numpy as np
 
 from regrasp_mjx.atomic import write_results
+from regrasp_mjx.grasps import GraspLibrary
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig
+from regrasp_mjx.plans import NO_LIBRARY
 from regrasp_mjx.policy import load_policy
+from regrasp_mjx.queries import TaskSpec
 from regrasp_mjx.robustness import policy_hash
 from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
 
@@ -87,17 +91,18 @@ def main() -> None:
     def policy_query(engine):
         def query(i):
             kw = {k: v[i] for k, v in needles.items()}
-            plan = policy.plan(needle[i], start[i], goal[i], check_grasp=False, engine=engine, **kw)
+            plan = policy.plan(needle[i], start[i], goal[i], engine=engine, **kw)
             return bool(plan.success), float(plan.path_length_mm)
 
         return query
 
-    _, radii = policy._task_inputs(len(needle), **needles)
-    lean = policy._lean_planner(True)
+    lean = policy.lean(True)
+    tasks = [policy.task_ranges.vector(TaskSpec.of({k: v[i] for k, v in needles.items()})) for i in range(len(needle))]
+    library = GraspLibrary.default().unit_arrays if not policy.general else NO_LIBRARY
 
     def lean_core(i):
-        out = lean(needle[i], start[i], goal[i], radii[i])
-        return bool(out.outcome.success[0]), float(out.outcome.path_length_mm[0])
+        out = lean(needle[i], start[i], goal[i], tasks[i], library)
+        return bool(out.outcome[1] > 0), float(out.outcome[5] * 1e3)
 
     def rrt(direction, simplify):
         cfg = PlannerConfig("RRTConnect", direction, budget_s=10.0, simplify_s=simplify, rrt_range_mm=args.range_mm)
@@ -114,7 +119,7 @@ def main() -> None:
     methods = {
         f"policy `{name}`, shielded, lean path (`Policy.plan`)": policy_query("lean"),
         f"policy `{name}`, shielded, JAX path (`Policy.plan`)": policy_query("jax"),
-        "its lean rollout alone (no input checks)": lean_core,
+        "its compiled query alone (`LeanPlanner` called: checks, grasp library, rollout; no `Plan`)": lean_core,
         "RRT-Connect (F)": rrt("forward", 0.0),
         "RRT-Connect (R)": rrt("reverse", 0.0),
         "RRT-Connect (F) + 0.2 s shortcutting": rrt("forward", 0.2),

@@ -22,8 +22,10 @@ from datetime import date
 import jax
 import numpy as np
 
+from regrasp_mjx import plans
 from regrasp_mjx.atomic import write_results
 from regrasp_mjx.policy import load_policy
+from regrasp_mjx.queries import TaskSpec
 from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
 
 
@@ -47,15 +49,15 @@ def profile(policy, episodes, batch: int, shield: bool, repeats: int) -> dict:
     total = median_s(plan, repeats)
     result = plan()
 
-    planner = policy._planner(False, shield)  # functools.partial(Planner, weights)
-    grasp, radii = policy._task_inputs(batch, **kw)
+    planner = policy.program((False, shield))  # functools.partial(Planner, weights)
+    grasp, radii = policy.task_ranges.resolve(batch, TaskSpec.of(kw))
     f32 = lambda x: jax.device_put(np.asarray(x, np.float32))  # noqa: E731
     args = (planner.args[0], f32(needle), f32(start), f32(goal), f32(radii))
     program = planner.func.program(batch)  # the one this batch runs: whole, or outcome first
     device = median_s(lambda: jax.block_until_ready(program(*args)), repeats)
     called = median_s(lambda: planner.func(*args), repeats)  # the program and the copy of what it returns
     out = planner.func(*args)
-    finish = median_s(lambda: policy._finish(out, False, None), repeats)
+    finish = median_s(lambda: plans._finish(out, False, None), repeats)
     steps = np.asarray(result.steps)
     return {
         "batch": batch,

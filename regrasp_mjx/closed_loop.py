@@ -6,23 +6,30 @@ enough to act on every one: each step the policy acts on the latest estimate (or
 estimate of all frames so far: the needle does not move relative to the grasping tool, so the
 frames can simply be averaged), and the regrasp stops when the estimate says the goal is reached.
 In simulation (:func:`make_executor`) success and collision are judged on the true needle.
+:func:`execute` and :func:`closed_loop_step` are the host entry points (``Policy.execute``,
+``Policy.closed_loop_step``).
 
 The needle-estimate noise model and the noisy observation are in :mod:`regrasp_mjx.estimates`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from regrasp_mjx import geometry
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.estimates import episode_bias, frame_estimate, fuse, mean_pose, seen_from
-from regrasp_mjx.planner import mean_action
+from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate, fuse, mean_pose, seen_from
+from regrasp_mjx.planner import mean_action, members_apply
+from regrasp_mjx.plans import default_goal
+from regrasp_mjx.queries import PoseError, TaskSpec, batch_poses, check_poses
 from regrasp_mjx.sampling import Episode
 from regrasp_mjx.shield import shield_rows
 
@@ -170,3 +177,132 @@ def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: flo
         return jnp.clip(a, -1.0, 1.0), nxt, done
 
     return jax.jit(one)
+
+
+# ---- the host entry points (Policy.closed_loop_step, Policy.execute) ------------------------------
+
+# the closed loop's settings where a policy file names none (chosen for `student_v1` on validation)
+DEFAULT_STOP, DEFAULT_WARMUP = 0.7, 10
+
+
+def defaults(contract: dict[str, Any]) -> dict[str, Any]:
+    """A policy's closed-loop settings: ``stop_tolerance`` and ``warmup_frames`` from its file's
+    ``closed_loop`` entry (chosen for it on validation problems), else :data:`DEFAULT_STOP` and
+    :data:`DEFAULT_WARMUP`."""
+    given = contract.get("closed_loop") or {}
+    return {
+        "stop_tolerance": float(given.get("stop_tolerance", DEFAULT_STOP)),
+        "warmup_frames": int(given.get("warmup_frames", DEFAULT_WARMUP)),
+    }
+
+
+def _estimate_inputs(policy: Any, needle: Any, ee_name: str, ee: Any, goal: Any, spec: TaskSpec):
+    """Checked ``[B, 7]`` needle, end-effector and goal poses (the goal grasp on ``needle`` by
+    default), each needle's radii ``[B, 2]`` (m) and whether one query was given."""
+    (needle, ee), single = batch_poses(needle=needle, **{ee_name: ee})
+    grasp, radii = policy.task_ranges.resolve(len(needle), spec)
+    goal = default_goal(needle, grasp, radii) if goal is None else goal
+    goal = np.atleast_2d(check_poses("goal", goal))
+    if goal.shape != needle.shape:
+        raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
+    return needle, ee, goal, radii, single
+
+
+def _program(
+    policy: Any,
+    kind: str,
+    shield: bool,
+    frames: str = "fused",
+    clearance_mm: float = 0.0,
+    stop: float = 1.0,
+    warmup: int = 1,
+):
+    """The jitted executor (``kind="execute"``) or stepper of a setting, built once per network shape."""
+
+    def build():
+        env = RegraspEnv(policy.env_config)
+        guard = RegraspEnv(dataclasses.replace(policy.env_config, clearance_mm=clearance_mm)) if clearance_mm else env
+        apply = members_apply(policy.hidden)
+        if kind == "execute":
+            return make_executor(env, apply, shield, frames, guard, stop, warmup)
+        return make_stepper(guard, apply, shield, stop)
+
+    return policy.program((kind, shield, frames, clearance_mm, stop, warmup), build)
+
+
+def closed_loop_step(
+    policy: Any,
+    needle: Any,
+    ee: Any,
+    goal: Any = None,
+    t: int = 0,
+    shield: bool = True,
+    clearance_mm: float = 0.0,
+    stop_tolerance: float | None = None,
+    **task: Any,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One closed-loop step from the current estimates (e_g frame, 7-vectors or ``[B, 7]``): the
+    latest (or fused) needle estimate and the regrasping end-effector's current pose. Returns
+    ``(action, next_ee, at_goal)``: the action, the pose to command next, and whether the
+    estimate says the goal is already reached (then stop: the action is zero, ``next_ee`` is
+    ``ee``). ``t`` is the step index (it seeds the shield's alternatives, as in a plan); the
+    shield checks the alternatives against the estimated needle, keeping ``clearance_mm`` from it
+    (room for the estimate's error). ``at_goal`` holds within ``stop_tolerance`` of the success
+    tolerances (None: the policy's own, ``Policy.closed_loop_defaults``), as in :func:`execute`.
+    ``task``: the goal grasp and needle keywords (:class:`~regrasp_mjx.queries.TaskSpec`)."""
+    stop_tolerance = policy.closed_loop_defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
+    needle, ee, goal, radii, single = _estimate_inputs(policy, needle, "ee", ee, goal, TaskSpec.of(task))
+    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    step = _program(policy, "step", shield, clearance_mm=float(clearance_mm), stop=float(stop_tolerance))
+    a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii)))
+    a, nxt, done = np.asarray(a, np.float64), np.asarray(nxt, np.float64), np.asarray(done)
+    return (a[0], nxt[0], done[0]) if single else (a, nxt, done)
+
+
+def execute(
+    policy: Any,
+    needle: Any,
+    start: Any,
+    goal: Any = None,
+    noise: NeedleNoise | None = None,
+    frames: str = "fused",
+    shield: bool = True,
+    seed: int = 0,
+    clearance_mm: float = 0.0,
+    stop_tolerance: float | None = None,
+    warmup_frames: int | None = None,
+    **task: Any,
+) -> dict[str, np.ndarray]:
+    """Simulates regrasping under needle-pose noise on true needle, start and goal poses ``[B, 7]``
+    (e_g frame): each step the policy acts on an estimate of the needle (``noise``, a
+    :class:`~regrasp_mjx.estimates.NeedleNoise`; default none) and stops when the estimate says the
+    goal is reached; success and collisions are judged on the true needle. ``frames``: ``"fused"``
+    (the mean of the frames so far, the default), ``"each"`` (that step's frame alone) or ``"one"``
+    (the first frame for the whole episode: a plan made once, executed open loop).
+    ``clearance_mm``: the shield keeps this clearance from the estimated needle (room for the
+    estimate's error); ``stop_tolerance``: stop when the estimate is within this fraction of the
+    success tolerances (below 1: room for the estimate's error at the goal); ``warmup_frames``:
+    with ``"fused"``, frames fused before the first step (the tool holds still meanwhile). Their
+    defaults (None) are the policy's own (``Policy.closed_loop_defaults``: chosen for it on
+    validation problems of their own seed by experiments/closed_loop_select.py; 10 frames and 0.7
+    where its file names none); ``frames="one", stop_tolerance=1`` with no noise reproduces a plan
+    exactly. ``task``: the goal grasp and needle keywords (a general policy's ranges). Returns
+    numpy arrays per row: ``success``, ``collision``, ``time_out``, ``stopped``, ``steps``,
+    ``start_valid``, ``poses``."""
+    noise = NeedleNoise() if noise is None else noise
+    defaults = policy.closed_loop_defaults
+    stop_tolerance = defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
+    warmup_frames = defaults["warmup_frames"] if warmup_frames is None else warmup_frames
+    if frames not in FRAMES:
+        raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
+    if not (isinstance(warmup_frames, int) and warmup_frames >= 1):
+        raise ConfigError(f"warmup_frames={warmup_frames!r} is not accepted: an integer >= 1")
+    if not (math.isfinite(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
+        raise ConfigError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
+    needle, start, goal, radii, _ = _estimate_inputs(policy, needle, "start", start, goal, TaskSpec.of(task))
+    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    warmup = int(warmup_frames) if frames == "fused" else 1
+    run = _program(policy, "execute", shield, frames, float(clearance_mm), float(stop_tolerance), warmup)
+    key = jax.random.PRNGKey(seed)
+    out = run(f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii))
+    return {k: np.asarray(v) for k, v in jax.device_get(out).items()}

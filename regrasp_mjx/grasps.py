@@ -81,6 +81,15 @@ class GraspLibrary:
         idx = np.argmin(d, axis=-1)
         return idx, np.take_along_axis(d, idx[..., None], axis=-1)[..., 0]
 
+    @functools.cached_property
+    def unit_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions ``[n, 3]`` and unit quaternions ``[n, 4]`` of the library's needle poses as
+        contiguous float64, and both as float32 columns ``[7, n]`` (what the lean planner's compiled
+        nearest-grasp search takes)."""
+        q = self.needle[:, 3:] / np.linalg.norm(self.needle[:, 3:], axis=1, keepdims=True)
+        columns = np.ascontiguousarray(np.concatenate([self.needle[:, :3], q], axis=1).T, np.float32)
+        return np.ascontiguousarray(self.needle[:, :3], np.float64), np.ascontiguousarray(q, np.float64), columns
+
     def project(self, needle: np.ndarray) -> np.ndarray:
         """The nearest valid library pose for each needle pose ``[..., 7]``."""
         return self.needle[self.nearest(needle)[0]]

@@ -9,16 +9,26 @@ import jax
 import numpy as np
 import pytest
 
+from regrasp_mjx import lean_collision, lean_geometry
+from regrasp_mjx.grasps import GraspLibrary
+from regrasp_mjx.lean_geometry import nearest_grasp
+from regrasp_mjx.plans import default_goal
 from regrasp_mjx.policy import load_policy
+from regrasp_mjx.queries import TASK_FIELDS, PoseError
 from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
 from regrasp_mjx.testset import make_testset
 
 # The JAX path computes in float32 and this one its geometry in float64 (the network in float32 in
 # both): the observations round differently, the network amplifies it and a plan carries it along.
-# Seen (experiments/results/bench_plan/agreement.md): up to 2.1e-5 in an action of a plan that ends
-# before the horizon, 1.8e-4 by the last step of a 100-step time-out.
-ACTION_ATOL = 1e-4
+# Seen (experiments/results/bench_plan/agreement.md): up to 2.4e-5 in an action of a plan that ends
+# before the horizon on the default and the generalist, 1.8e-4 by the last step of a 100-step
+# time-out; and on an AMD EPYC host (XLA compiles for the host's CPU, so the JAX side rounds
+# differently there), 1.05e-4 by the end of ensemble3's 36-step plan of paper300 row 53 (1.4e-4
+# with the lean code before 2026-11-25). The verdicts are the contract; the actions only to this.
+ACTION_ATOL = 2e-4
 ACTION_ATOL_TIME_OUT = 1e-3
+# poses carry the actions' differences step after step (seen: 1.1e-5 on that 36-step plan)
+POSE_ATOL, POSE_ATOL_TIME_OUT = 5e-5, 1e-4
 
 
 def _agree(policy, episodes, shield=True):
@@ -40,8 +50,11 @@ def _agree(policy, episodes, shield=True):
         assert diff <= ACTION_ATOL_TIME_OUT, i
         if not one.time_out:
             worst = max(worst, diff)
-        np.testing.assert_allclose(one.poses, batch.poses[i, : n + 1], atol=1e-4 if one.time_out else 1e-5)
-        assert one.path_length_mm == pytest.approx(batch.path_length_mm[i], abs=1e-4)
+        np.testing.assert_allclose(
+            one.poses, batch.poses[i, : n + 1], atol=POSE_ATOL_TIME_OUT if one.time_out else POSE_ATOL
+        )
+        # each step's translation within ACTION_ATOL x 0.5 mm (the largest step) of the JAX path's
+        assert one.path_length_mm == pytest.approx(batch.path_length_mm[i], abs=max(1e-4, 0.5 * ACTION_ATOL * n))
     assert worst <= ACTION_ATOL
     return batch
 
@@ -70,7 +83,7 @@ def test_policy_plan_takes_the_lean_path_for_one_query_on_the_cpu():
     policy = load_policy("exact")
     needle, start, goal = (x[0] for x in episode_poses(load_testset("paper300")[0]))
     auto = policy.plan(needle, start, goal)
-    assert ("lean", True) in policy._planners and (False, True) not in policy._planners
+    assert ("lean", True) in policy._programs and (False, True) not in policy._programs
     ref = policy.plan(needle, start, goal, engine="jax")
     assert auto.success == ref.success and auto.steps == ref.steps
     assert auto.poses.shape == ref.poses.shape == (ref.steps + 1, 7)
@@ -85,12 +98,77 @@ def test_policy_plan_takes_the_lean_path_for_one_query_on_the_cpu():
 def test_the_default_goal_on_the_lean_path_is_the_jax_one():
     """Policy.plan without a goal computes it from the goal grasp: in numba on the lean path."""
     policy = load_policy("general")
-    lean = policy._lean_planner(True)
+    lean = policy.lean(True)
     rng = np.random.default_rng(3)
     needle, _, _ = episode_poses(load_testset("general1000")[0])
-    lo, hi = (np.array(x) for x in zip(*[policy.trained_ranges()[k] for k in policy._TASK_INPUTS[:4]]))
+    lo, hi = (np.array(x) for x in zip(*[policy.trained_ranges()[k] for k in TASK_FIELDS[:4]]))
     grasp = rng.uniform(lo, hi, (50, 4)) * np.array([1, 1e-3, 1, 1])
     radii = rng.uniform(0.004, 0.012, 50)
-    ref = policy._default_goal(needle[:50], grasp, np.stack([radii, radii], 1))
+    ref = default_goal(needle[:50], grasp, np.stack([radii, radii], 1))
     for i in range(50):
         np.testing.assert_allclose(lean.goal(needle[i], grasp[i], radii[i]), ref[i], atol=2e-6)
+
+
+def test_the_collision_test_gives_the_verdict_of_the_closest_pair():
+    """lean_collision.collides (bounding spheres, chord groups, early exit) against the minimum over
+    every counted pair, at thresholds just below and above each pose's own smallest distance: a
+    bound that skipped the closest pair would miss the collision just above it."""
+    policy = load_policy("general")  # varies needles: the chords and their bounds are scaled
+    geo = policy.lean(True).geo
+    needle, start, goal = episode_poses(load_testset("general1000")[0])
+    rng = np.random.default_rng(5)
+    tool, tool_mid = np.empty_like(geo.tool_local), np.empty((len(geo.tool_local), 3))
+    checked = 0
+    for i in range(40):
+        radius, wire = rng.uniform(0.004, 0.012), rng.uniform(0.00015, 0.00035)
+        n = needle[i] / np.r_[1, 1, 1, [np.linalg.norm(needle[i, 3:])] * 4]
+        fixed = lean_collision.fixed_ends(geo, True, tuple(n[:3]), tuple(n[3:]), radius, wire)
+        for ee in (start[i], goal[i], start[i] + np.r_[rng.normal(0, 2e-3, 3), 0, 0, 0, 0]):
+            q = ee[3:] / np.linalg.norm(ee[3:])
+            m = np.array(lean_geometry.matrix(tuple(q))).reshape(3, 3)
+            placed = ee[:3] + geo.tool_local @ m.T  # [T, 2, 3]
+            closest = min(
+                lean_collision.segment_distance(placed, t, fixed.other, o) - fixed.sums[geo.pair_index[t, o]]
+                for t in range(len(placed))
+                for o in range(len(fixed.other))
+            )
+            for threshold, expected in ((closest - 1e-9, False), (closest + 1e-9, True)):
+                got = lean_collision.collides(geo, fixed, tuple(ee[:3]), tuple(q), tool, tool_mid, threshold)
+                assert got == expected, (i, threshold)
+            checked += 1
+    assert checked == 120
+
+
+def test_the_nearest_grasp_is_the_librarys():
+    """The compiled nearest-grasp search (a float32 bound, then exact distances) finds the distance
+    GraspLibrary.nearest finds, on test-set needles and on needles moved off the library."""
+    library = GraspLibrary.default()
+    needle = episode_poses(load_testset("paper300")[0])[0]
+    rng = np.random.default_rng(2)
+    moved = needle + np.c_[rng.normal(0, 2e-3, (300, 3)), rng.normal(0, 0.2, (300, 4))]
+    for poses in (needle, moved):
+        poses = np.c_[poses[:, :3], poses[:, 3:] / np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)]
+        got = np.array([nearest_grasp(*library.unit_arrays, p) for p in poses])
+        np.testing.assert_allclose(got, library.nearest(poses)[1], atol=1e-9)
+
+
+def test_a_single_query_names_its_bad_pose_as_a_batch_does():
+    """The lean path checks poses inside its compiled call; what it refuses gets the checks' message."""
+    policy = load_policy("default")
+    needle, start, goal = (x[0] for x in episode_poses(load_testset("paper300")[0]))
+    bad_goal = goal.copy()
+    bad_goal[0] = np.nan  # a NaN where no goal is given would be read as "the default goal" if unchecked
+    for args, message in (
+        ((needle, start, bad_goal), "goal has NaN or inf"),
+        ((np.r_[needle[:3], needle[3:] * 1.1], start, goal), "needle: quaternion norm"),
+        ((needle, np.r_[start[:6], np.inf], goal), "start has NaN or inf"),
+    ):
+        with pytest.raises(PoseError, match=message):
+            policy.plan(*args)
+    far = start.copy()
+    far[:3] *= 1000  # millimetres given as metres
+    with pytest.warns(UserWarning, match="mm from its needle"):
+        plan = policy.plan(needle, far, goal)
+    assert plan.nearest_grasp_distance == pytest.approx(
+        policy.plan(needle, start, goal, engine="jax").nearest_grasp_distance
+    )
