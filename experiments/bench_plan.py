@@ -70,6 +70,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0, help="OMPL's seed")
     p.add_argument("--out", default=None, help="folder for bench_plan.md and bench_plan.json")
     p.add_argument("--agreement", action="store_true", help="only compare the lean and JAX paths' plans")
+    p.add_argument("--no-rrt", action="store_true", help="time the policy's paths only (no OMPL needed)")
     args = p.parse_args()
     if args.queries < 1 or args.repeats < 1:
         p.error("--queries and --repeats are accepted as integers >= 1")
@@ -120,11 +121,14 @@ def main() -> None:
         f"policy `{name}`, shielded, lean path (`Policy.plan`)": policy_query("lean"),
         f"policy `{name}`, shielded, JAX path (`Policy.plan`)": policy_query("jax"),
         "its compiled query alone (`LeanPlanner` called: checks, grasp library, rollout; no `Plan`)": lean_core,
-        "RRT-Connect (F)": rrt("forward", 0.0),
-        "RRT-Connect (R)": rrt("reverse", 0.0),
-        "RRT-Connect (F) + 0.2 s shortcutting": rrt("forward", 0.2),
-        "RRT-Connect (R) + 0.2 s shortcutting": rrt("reverse", 0.2),
     }
+    if not args.no_rrt:
+        methods |= {
+            "RRT-Connect (F)": rrt("forward", 0.0),
+            "RRT-Connect (R)": rrt("reverse", 0.0),
+            "RRT-Connect (F) + 0.2 s shortcutting": rrt("forward", 0.2),
+            "RRT-Connect (R) + 0.2 s shortcutting": rrt("reverse", 0.2),
+        }
     for query in methods.values():  # compile and warm up outside the timing
         query(clear[0])
     times = {m: [] for m in methods}

@@ -33,7 +33,7 @@ BOUND_SLACK = 1e-12
 @njit(cache=True)
 def segment_distance(e, i, f, j):
     """Ericson's closest points of segments ``e[i]`` and ``f[j]`` (``[., 2, 3]`` end points), as
-    :func:`regrasp_mjx.scene.segment_distance`; scalar code, nothing allocated."""
+    :func:`regrasp_mjx.geometry.segment_distance`; scalar code, nothing allocated."""
     d1x, d1y, d1z = e[i, 1, 0] - e[i, 0, 0], e[i, 1, 1] - e[i, 0, 1], e[i, 1, 2] - e[i, 0, 2]
     d2x, d2y, d2z = f[j, 1, 0] - f[j, 0, 0], f[j, 1, 1] - f[j, 0, 1], f[j, 1, 2] - f[j, 0, 2]
     rx, ry, rz = e[i, 0, 0] - f[j, 0, 0], e[i, 0, 1] - f[j, 0, 1], e[i, 0, 2] - f[j, 0, 2]

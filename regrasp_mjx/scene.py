@@ -23,6 +23,7 @@ import numpy as np
 from mujoco import mjx
 
 from regrasp_mjx.config import SceneConfig
+from regrasp_mjx.geometry import segment_distance  # re-exported: the capsule distance lives with the other geometry
 
 MJCF_PATH = Path(__file__).resolve().parent / "models" / "regrasp_scene.xml"  # package data
 
@@ -264,27 +265,6 @@ class CapsuleFrames:
     other_radii: np.ndarray
     inflation: np.ndarray
     chords: np.ndarray
-
-
-def segment_distance(a0: jax.Array, a1: jax.Array, b0: jax.Array, b1: jax.Array) -> jax.Array:
-    """Exact distance between segments ``[a0, a1]`` and ``[b0, b1]`` (batched over leading axes).
-
-    Ericson, Real-Time Collision Detection, §5.1.9: minimise over s for the unclamped t, clamp t to
-    [0, 1] and re-solve s for a clamped t. Both segments must have non-zero length (capsules do).
-    """
-    d1, d2, r = a1 - a0, b1 - b0, a0 - b0
-    a = jnp.sum(d1 * d1, -1)
-    e = jnp.sum(d2 * d2, -1)
-    b = jnp.sum(d1 * d2, -1)
-    c = jnp.sum(d1 * r, -1)
-    f = jnp.sum(d2 * r, -1)
-    denom = a * e - b * b
-    # Parallel segments (denom ~ 0): any s works; s = 0 and the clamps below give the distance.
-    s = jnp.where(denom > 1e-9 * a * e, jnp.clip((b * f - c * e) / jnp.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
-    t = (b * s + f) / e
-    s = jnp.where(t < 0.0, jnp.clip(-c / a, 0.0, 1.0), jnp.where(t > 1.0, jnp.clip((b - c) / a, 0.0, 1.0), s))
-    t = jnp.clip(t, 0.0, 1.0)
-    return jnp.linalg.norm(a0 + d1 * s[..., None] - (b0 + d2 * t[..., None]), axis=-1)
 
 
 def chord_placement(radius: float, half_angle: float, conservative: bool = True) -> tuple[float, float]:
