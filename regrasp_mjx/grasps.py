@@ -75,11 +75,21 @@ class GraspLibrary:
         return cls.load(DEFAULT_LIBRARY)
 
     def nearest(self, needle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Index and distance of the nearest library pose for each needle pose ``[..., 7]``."""
+        """Index and distance of the nearest library pose for each needle pose ``[..., 7]``
+        (:func:`pose_distance`, against the library's unit quaternions made once; 1024 needles at a
+        time, so a large batch holds no ``[n, library]`` array)."""
         needle = np.asarray(needle, np.float64)
-        d = pose_distance(needle[..., None, :], self.needle)
-        idx = np.argmin(d, axis=-1)
-        return idx, np.take_along_axis(d, idx[..., None], axis=-1)[..., 0]
+        flat = needle.reshape(-1, 7)
+        positions, quats, _ = self.unit_arrays
+        index, dist = np.empty(len(flat), np.int64), np.empty(len(flat))
+        for a in range(0, len(flat), 1024):
+            x = flat[a : a + 1024]
+            q = x[:, 3:] / np.linalg.norm(x[:, 3:], axis=1, keepdims=True)
+            d = np.linalg.norm(x[:, None, :3] - positions, axis=-1) * 1e3
+            d += np.degrees(2.0 * np.arccos(np.minimum(np.abs(q @ quats.T), 1.0))) / ANGLE_WEIGHT_DEG
+            index[a : a + 1024] = np.argmin(d, axis=1)
+            dist[a : a + 1024] = d[np.arange(len(x)), index[a : a + 1024]]
+        return index.reshape(needle.shape[:-1]), dist.reshape(needle.shape[:-1])
 
     @functools.cached_property
     def unit_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

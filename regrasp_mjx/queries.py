@@ -80,10 +80,9 @@ class TaskSpec:
             )
         return cls(**task)
 
-    @property
-    def plain(self) -> bool:
-        """Nothing given: the policy's own goal grasp and needle."""
-        return self is PLAIN or all(getattr(self, f) is None for f in TASK_FIELDS)
+    def __post_init__(self) -> None:
+        # nothing given: the policy's own goal grasp and needle (looked at on every plan: kept)
+        object.__setattr__(self, "plain", all(getattr(self, f) is None for f in TASK_FIELDS))
 
 
 TASK_FIELDS = tuple(f.name for f in dataclasses.fields(TaskSpec))
@@ -169,9 +168,40 @@ class TaskRanges:
         return grasp, values[:, 4:] * 1e-3
 
     def vector(self, spec: TaskSpec) -> np.ndarray:
-        """One query's ``(alpha*, d*, theta*, phi*, R, wire)`` [m], as the lean planner takes it."""
+        """One query's ``(alpha*, d*, theta*, phi*, R, wire)`` [m], as the lean planner takes it.
+        Scalars are checked in plain floats (numpy's calls would cost a fifth of a lean plan); any
+        other input, or a value out of range, goes through :meth:`resolve` (which names it)."""
+        if spec.plain:
+            return self._plain_vector
+        (lo, hi), values = self._bounds, self._default_list.copy()
+        for col, name in enumerate(TASK_FIELDS):
+            given = getattr(spec, name)
+            if given is None:
+                continue
+            if not isinstance(given, (float, int, np.floating, np.integer)):
+                return self._vector_of(spec)
+            values[col] = float(given)
+        if hi[2][0] - lo[2][0] >= 2 * math.pi - 1e-6:  # any azimuth: wrapped into the trained turn
+            values[2] = lo[2][0] + (values[2] - lo[2][0]) % (2 * math.pi)
+        if not all(math.isfinite(v) and lo[c][1] <= v <= hi[c][1] for c, v in enumerate(values)):
+            return self._vector_of(spec)
+        return np.array([values[0], values[1] * 1e-3, values[2], values[3], values[4] * 1e-3, values[5] * 1e-3])
+
+    def _vector_of(self, spec: TaskSpec) -> np.ndarray:
         grasp, radii = self.resolve(1, spec)
-        return self._plain_vector if spec.plain else np.concatenate([grasp[0], radii[0]])
+        return np.concatenate([grasp[0], radii[0]])
+
+    @functools.cached_property
+    def _default_list(self) -> list[float]:
+        return self.default.tolist()
+
+    @functools.cached_property
+    def _bounds(self) -> tuple[list, list]:
+        """``(low, low less tolerance)`` and ``(high, high plus tolerance)`` per field, as :meth:`values` checks."""
+        tol = 1e-6 * np.maximum(1.0, np.abs(self.high))
+        return list(zip(self.low.tolist(), (self.low - tol).tolist())), list(
+            zip(self.high.tolist(), (self.high + tol).tolist())
+        )
 
     @functools.cached_property
     def _plain(self) -> tuple[np.ndarray, np.ndarray]:
