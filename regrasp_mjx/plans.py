@@ -154,6 +154,8 @@ def plan(
     if engine == "lean":  # a batch of one
         task = np.concatenate([grasp[0], radii[0]])
         one = policy.lean(shield)(needle[0], start[0], goal[0], task, NO_LIBRARY)
+        if one.status:  # checked above in float64 already: the compiled check must agree
+            raise PoseError(f"pose {('needle', 'start', 'goal')[one.status - 1]} failed the lean planner's check")
         return _lean_plan(one, False, nearest)
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
     out = policy.program((False, shield))(f32(needle), f32(start), f32(goal), f32(radii))
