@@ -17,7 +17,7 @@ def test_one_querys_scalar_path_gives_resolves_values_and_errors(name):
     ranges = load_policy(name).task_ranges
     rng = np.random.default_rng(0)
     refused = 0
-    for k in range(300):
+    for _ in range(300):
         spec = {}
         for field, (lo, hi) in ranges.as_dict().items():
             if rng.random() < 0.5:
