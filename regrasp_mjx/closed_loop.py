@@ -30,6 +30,7 @@ from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate, fus
 from regrasp_mjx.planner import mean_action, members_apply
 from regrasp_mjx.plans import default_goal
 from regrasp_mjx.queries import PoseError, TaskSpec, batch_poses, check_poses
+from regrasp_mjx.rollout import rollout
 from regrasp_mjx.sampling import Episode
 from regrasp_mjx.shield import shield_rows
 
@@ -83,11 +84,12 @@ def make_executor(
     estimated needle: one with a clearance margin keeps that much away from the estimate. Returns
     per row: ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on
     the true needle), ``time_out`` (no stop within the horizon), ``stopped`` (the estimate said the
-    goal was reached), ``steps`` and ``poses`` ``[B, horizon + 1, 7]``."""
+    goal was reached), ``steps`` and ``poses`` ``[B, horizon + 1, 7]``. The loop is
+    :func:`regrasp_mjx.rollout.rollout` with a stopping rule (the estimate's) and the policy acting
+    on the estimated needle."""
     if frames not in FRAMES:
         raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
     horizon = env.config.horizon
-    step = jax.vmap(env.step)
     shield_env = env if shield_env is None else shield_env
     fused = frames == "fused"
 
@@ -95,65 +97,50 @@ def make_executor(
         b = needle.shape[0]
         episode = Episode.from_poses(needle, start, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
-        valid = state.metrics["reset_valid"] > 0
         biased = episode_bias(jax.random.fold_in(key, horizon + 1), needle, bias_mm)
-        poses = jnp.repeat(start[:, None], horizon + 1, axis=1)
-        # [ended, success, collision, time_out, stopped, steps]
-        result = jnp.zeros((b, 6)).at[:, 0].set(~valid).at[:, 2].set(~valid)
         total = jnp.zeros((b, 7))
         if fused:  # frames before the first step: keys beyond the horizon's
             for i in range(warmup - 1):
                 frame = frame_estimate(jax.random.fold_in(key, horizon + 2 + i), biased, sigma_mm)
                 total = fuse(total, frame, biased)
         seen0 = warmup - 1 if fused else 0
+        # the rule's per-row data rides in state.info: the fused frames, the estimate acted on, and
+        # which rows act at this step (the shield works on those alone)
+        info = {**state.info, "needle_total": total, "needle_seen": needle, "acting": jnp.ones(b, bool)}
+        state = state.replace(info=info)
 
-        def cond(c):
-            t, _, _, result, _ = c
-            return (t <= horizon) & jnp.any(result[:, 0] == 0)
-
-        def body(c):
-            t, state, total, result, poses = c
+        def stop(state, t, live):
+            """This step's frame: stop where the estimate says the goal is reached (a success
+            where the true needle agrees)."""
             estimate = frame_estimate(jax.random.fold_in(key, 0 if frames == "one" else t), biased, sigma_mm)
-            total = fuse(total, estimate, biased)
+            total = fuse(state.info["needle_total"], estimate, biased)
             seen = mean_pose(total, (t + 1 + seen0).astype(jnp.float32)) if fused else estimate
-            seen_state = _with_needle(state, seen)
-            live = result[:, 0] == 0
-            stop = live & _at_goal(env, seen_state, seen, stop_scale)
-            truly = _at_goal(env, state, needle)
-            out_of_time = live & ~stop & (t >= horizon)
-            ended = stop | out_of_time
-            result = jnp.where(
-                ended[:, None],
-                jnp.stack(
-                    [jnp.ones(b), (stop & truly).astype(jnp.float32), jnp.zeros(b), out_of_time, stop, jnp.full(b, t)],
-                    axis=1,
-                ).astype(jnp.float32),
-                result,
-            )
-            live = live & ~ended
-            seen_state = seen_state.replace(obs=jax.vmap(env.observe)(seen_state.pipeline_state))
-            a = choose_action(shield_env, apply, weights, seen_state, t, shield, live)
-            nxt = step(state, a)
-            collided = live & (nxt.metrics["collision"] > 0)
-            result = jnp.where(
-                collided[:, None],
-                jnp.stack([jnp.ones(b), jnp.zeros(b), jnp.ones(b), jnp.zeros(b), jnp.zeros(b), jnp.full(b, t + 1)], 1),
-                result,
-            )
-            es = nxt.pipeline_state
-            pose = jnp.concatenate([es.ee_pos, es.ee_quat], axis=1)
-            poses = jnp.where(live[:, None, None] & (jnp.arange(horizon + 1) > t)[None, :, None], pose[:, None], poses)
-            state = jax.tree.map(lambda x, y: jnp.where(live.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), nxt, state)
-            return t + 1, state, total, result, poses
+            stopping = _at_goal(env, _with_needle(state, seen), seen, stop_scale)
+            acting = live & ~stopping & (t < horizon)
+            info = {**state.info, "needle_total": total, "needle_seen": seen, "acting": acting}
+            return state.replace(info=info), stopping, _at_goal(env, state, needle)
 
-        _, _, _, result, poses = jax.lax.while_loop(cond, body, (jnp.int32(0), state, total, result, poses))
+        def act(state, t):
+            """The policy (and the shield) on the estimated needle."""
+            seen = _with_needle(state, state.info["needle_seen"])
+            seen = seen.replace(obs=jax.vmap(env.observe)(seen.pipeline_state))
+            return choose_action(shield_env, apply, weights, seen, t, shield, state.info["acting"])
+
+        def pose(state, a, nxt):
+            return jnp.concatenate([nxt.pipeline_state.ee_pos, nxt.pipeline_state.ee_quat], axis=1)
+
+        out = rollout(env, act, state, max_steps=horizon, stop=stop, trace=pose)
+        # [B, horizon + 1, 7]: the start, the pose after each step, the last one held after the end
+        trace = jnp.concatenate([start[None].astype(out.trace.dtype), out.trace], axis=0)
+        held = jnp.minimum(jnp.arange(horizon + 1)[:, None], out.steps[None, :])
+        poses = jnp.take_along_axis(trace, held[..., None], axis=0).transpose(1, 0, 2)
         return {
-            "start_valid": valid,
-            "success": result[:, 1] > 0,
-            "collision": result[:, 2] > 0,
-            "time_out": result[:, 3] > 0,
-            "stopped": result[:, 4] > 0,
-            "steps": result[:, 5].astype(jnp.int32),
+            "start_valid": out.start_valid,
+            "success": out.success,
+            "collision": out.collision,
+            "time_out": out.time_out,
+            "stopped": out.stopped,
+            "steps": out.steps.astype(jnp.int32),
             "poses": poses,
         }
 

@@ -2,8 +2,10 @@
 
 Every loop that runs whole episodes goes through :func:`rollout`: the learner's per-epoch
 evaluation and distillation's (a network's actions), ``Policy.plan`` (the networks' actions, with
-the collision shield as a per-step hook, recording the trajectory), the replay of planner paths
-(given actions, recording the transitions) and DAgger's rollouts and lookaheads. Each returns one
+the collision shield as a per-step hook, recording the trajectory), the closed loop under
+needle-estimate noise (the policy and its shield on the estimate, with a stopping rule in place of
+the environment's ends), the replay of planner paths (given actions, recording the transitions)
+and DAgger's rollouts and lookaheads. Each returns one
 :class:`Rollout`: how every episode ended, by name.
 """
 
@@ -24,6 +26,10 @@ Act = Callable[[Any, jax.Array], jax.Array]
 Shield = Callable[[Any, jax.Array, jax.Array, Any, jax.Array], tuple[jax.Array, Any]]
 # trace(state, action, next_state) -> a pytree of [B, ...] arrays kept for every step
 Trace = Callable[[Any, jax.Array, Any], Any]
+# stop(state, t, live) -> (state, stop, success): before the step at t, the rows a stopping rule ends
+# there and whether each counts as a success; the state it returns is carried on (a rule may keep
+# its own per-row data in state.info, e.g. a fused needle estimate)
+Stop = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array]]
 
 
 class Rollout(NamedTuple):
@@ -44,6 +50,7 @@ class Rollout(NamedTuple):
     path_length_mm: Any
     discounted_return: Any
     trace: Any = None
+    stopped: Any = None  # with a stopping rule: the rows it ended (``[B]`` bool)
 
 
 def rollout(
@@ -56,6 +63,7 @@ def rollout(
     shield: Shield | None = None,
     trace: Trace | None = None,
     compact: bool = False,
+    stop: Stop | None = None,
 ) -> Rollout:
     """Steps a batch of environment states ``start`` (``jax.vmap(env.reset_from)(episodes)``, or any
     states: rows already done end where they are) with ``act`` until each episode has ended or
@@ -67,7 +75,13 @@ def rollout(
     those rows only, so a few long episodes (time-outs) no longer cost the whole batch a step each
     until the horizon. Only for ``act``, ``shield`` and ``trace`` that treat each row by its own
     state and ``t`` alone (per-row data in ``state.info``, not closed over); the outcomes are the
-    same."""
+    same.
+
+    ``stop``: a stopping rule in place of the environment's own ends (the closed loop's: stop when
+    the needle estimate says the goal is reached). Before each step it may end live rows, as
+    successes or not (``Rollout.stopped``); otherwise only a collision ends an episode, reaching
+    the true goal does not, and the rows still live after ``max_steps`` steps time out (the rule
+    is asked once more then, at ``t = max_steps``)."""
     max_steps = env.config.horizon if max_steps is None else max_steps
     b = start.done.shape[0]
     step = jax.vmap(env.step)
@@ -84,19 +98,30 @@ def rollout(
         discounted_return=jnp.zeros(b, jnp.float32),
         trace=None,
     )
+    if stop is not None:
+        out0 = out0._replace(stopped=jnp.zeros(b, bool))
     ended0 = done0 | ~valid
     buffers = None
     if trace is not None:
         example = jax.eval_shape(lambda s: trace(s, jnp.zeros((b, env.action_size)), s), start)
-        buffers = jax.tree.map(lambda x: jnp.zeros((max_steps,) + x.shape, x.dtype), example)
+        length = max_steps + (stop is not None)  # a stopping rule's loop runs to t = max_steps
+        buffers = jax.tree.map(lambda x: jnp.zeros((length,) + x.shape, x.dtype), example)
 
     def cond(c):
         t, _, ended, _, _ = c
-        return (t < max_steps) & ~jnp.all(ended)
+        return ((t <= max_steps) if stop is not None else (t < max_steps)) & ~jnp.all(ended)
 
     def body(c):
         t, state, ended, out, buffers = c
         live = ~ended
+        if stop is not None:
+            state, stopping, won = stop(state, t, live)
+            stopping = live & stopping
+            late = live & ~stopping & (t >= max_steps)
+            success, time_out = jnp.where(stopping, won, out.success), out.time_out | late
+            out = out._replace(success=success, time_out=time_out, stopped=out.stopped | stopping)
+            ended = ended | stopping | late
+            live = ~ended
         a = act(state, t)
         nxt = step(state, a)
         if shield is not None:
@@ -105,7 +130,11 @@ def rollout(
             kept = trace(state, a, nxt)
             put = lambda buf, x: buf.at[t].set(jnp.where(_rows(live, x), x, jnp.zeros_like(x)))  # noqa: E731
             buffers = jax.tree.map(put, buffers, kept)
-        out, now = record_step(out, live, nxt, gamma**t)
+        if stop is None:
+            out, now = record_step(out, live, nxt, gamma**t)
+        else:  # only a collision ends an episode between the rule's stops
+            now = live & (nxt.metrics["collision"] > 0)
+            out = _record_collisions(out, live, now, nxt, gamma**t)
         state = jax.tree.map(lambda x, y: jnp.where(_rows(live, x), x, y), nxt, state)
         return t + 1, state, ended | now, out, buffers
 
@@ -151,6 +180,17 @@ def record_step(out: Rollout, live: jax.Array, nxt: Any, discount: jax.Array) ->
         discounted_return=out.discounted_return + jnp.where(live, discount * nxt.reward, 0.0),
     )
     return out, now
+
+
+def _record_collisions(out: Rollout, live: jax.Array, now: jax.Array, nxt: Any, discount: jax.Array) -> Rollout:
+    """``out`` after the step into ``nxt`` of the ``live`` rows under a stopping rule: the rows that
+    collided (``now``) end as collisions; the environment's success and time-out do not count."""
+    return out._replace(
+        collision=out.collision | now,
+        steps=jnp.where(live, nxt.pipeline_state.t, out.steps),
+        path_length_mm=jnp.where(live, nxt.metrics["path_length_mm"], out.path_length_mm),
+        discounted_return=out.discounted_return + jnp.where(live, discount * nxt.reward, 0.0),
+    )
 
 
 def _rows(mask: jax.Array, x: jax.Array) -> jax.Array:

@@ -160,6 +160,46 @@ def test_a_compacted_rollout_ends_every_episode_as_the_whole_batch_does(env, jit
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_stopping_rule_ends_episodes_in_place_of_the_environment(env, jit_env, paper_testset):
+    """``rollout(stop=...)``: the rule ends rows before a step (its success or not, ``stopped``),
+    reaching the true goal no longer ends an episode, a collision still does, and the rows the rule
+    never stops time out after ``max_steps`` steps; the rule's per-row data rides in ``state.info``."""
+    from regrasp_mjx.rollout import rollout
+
+    _, reset_from, _ = jit_env
+    problems = _rows(paper_testset, range(12))
+    at_goal = jnp.arange(12)[:, None] < 6  # rows 4 and 5 start at their goal (rows 0-3 too: harmless)
+    problems = problems.replace(
+        start_pos=jnp.where(at_goal, problems.goal_pos, problems.start_pos),
+        start_quat=jnp.where(at_goal, problems.goal_quat, problems.start_quat),
+    )
+    start = reset_from(problems)
+    # rows 0-3 are stopped before their step 2 + row (the rule counts in info), rows 4-7 hold still
+    # and are never stopped, rows 8-11 dive into the grasping tool (at the origin of e_g)
+    when = jnp.where(jnp.arange(12) < 4, 2 + jnp.arange(12), 10_000)
+    start = start.replace(info={**start.info, "seen": jnp.zeros(12, jnp.int32)})
+
+    def stop(state, t, live):
+        seen = state.info["seen"] + live.astype(jnp.int32)
+        state = state.replace(info={**state.info, "seen": seen})
+        return state, seen - 1 >= when, jnp.arange(12) % 2 == 0  # even rows count as successes
+
+    def act(st, t):
+        ee = st.pipeline_state.ee_pos
+        dive = -ee / jnp.maximum(jnp.linalg.norm(ee, axis=1), 1e-9)[:, None]
+        return jnp.where((jnp.arange(12) >= 8)[:, None], jnp.concatenate([dive, jnp.zeros((12, 3))], 1), 0.0)
+
+    out = jax.tree.map(np.asarray, jax.jit(lambda s: rollout(env, act, s, max_steps=25, stop=stop))(start))
+    rows = np.arange(12)
+    assert out.start_valid.all()
+    np.testing.assert_array_equal(out.stopped, rows < 4)
+    np.testing.assert_array_equal(out.steps[:4], 2 + rows[:4])  # stopped before their step 2 + row
+    np.testing.assert_array_equal(out.success, (rows < 4) & (rows % 2 == 0))  # the rule's successes alone
+    assert out.time_out[4:8].all() and (out.steps[4:8] == 25).all()  # at the true goal all along: the limit
+    assert out.collision[8:].all() and not out.time_out[8:].any() and (out.steps[8:] < 25).all()
+    assert not (out.collision[:8].any() or out.time_out[:4].any() or out.stopped[4:].any())
+
+
 def test_a_step_that_would_jump_through_the_wire_is_caught(paper_testset):
     # Steps of up to 2.5 mm: the tool at the goal (wire between the jaws) moves 2.5 mm along -y_e.
     # At the end pose jaw a has passed the wire (free); halfway it sits on the wire.
