@@ -171,7 +171,11 @@ def _lean_one(policy: Any, needle: Any, start: Any, goal: Any, spec: TaskSpec, c
         return None
     checked = check_grasp and not policy.general
     library = GraspLibrary.default().unit_arrays if checked else NO_LIBRARY
-    one = policy.lean(shield)(*poses, policy.task_ranges.vector(spec), library)
+    try:
+        task = policy.task_ranges.vector(spec)
+    except PoseError:
+        return None  # the checks below look at the poses first, then name the value
+    one = policy.lean(shield)(*poses, task, library)
     if one.status:
         return None
     nearest = np.float64(one.nearest) if checked else None
