@@ -28,8 +28,8 @@ from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate, fuse, mean_pose, seen_from
 from regrasp_mjx.planner import mean_action, members_apply
-from regrasp_mjx.plans import default_goal
-from regrasp_mjx.queries import PoseError, TaskSpec, batch_poses, check_poses
+from regrasp_mjx.plans import checked_goals
+from regrasp_mjx.queries import TaskSpec, batch_poses
 from regrasp_mjx.rollout import rollout
 from regrasp_mjx.sampling import Episode
 from regrasp_mjx.shield import shield_rows
@@ -188,11 +188,7 @@ def _estimate_inputs(policy: Any, needle: Any, ee_name: str, ee: Any, goal: Any,
     default), each needle's radii ``[B, 2]`` (m) and whether one query was given."""
     (needle, ee), single = batch_poses(needle=needle, **{ee_name: ee})
     grasp, radii = policy.task_ranges.resolve(len(needle), spec)
-    goal = default_goal(needle, grasp, radii) if goal is None else goal
-    goal = np.atleast_2d(check_poses("goal", goal))
-    if goal.shape != needle.shape:
-        raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
-    return needle, ee, goal, radii, single
+    return needle, ee, checked_goals(needle, goal, grasp, radii), radii, single
 
 
 def _program(

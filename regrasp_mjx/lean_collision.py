@@ -209,7 +209,8 @@ def fixed_ends(geo, varies, needle_p, needle_q, radius, wire):
         for i in range(g * geo.group_size, min((g + 1) * geo.group_size, geo.chords.shape[0])):
             for t in range(n_tools):
                 group_sums[t, g] = max(group_sums[t, g], sums[geo.pair_index[t, geo.chords[i]]])
-                needle_sums[t] = max(needle_sums[t], group_sums[t, g])
+        for t in range(n_tools):
+            needle_sums[t] = max(needle_sums[t], group_sums[t, g])
     c = geo.needle_centre
     c = rotate(m, scale * c[0], scale * c[1], scale * c[2])
     needle = (needle_p[0] + c[0], needle_p[1] + c[1], needle_p[2] + c[2], scale * geo.needle_ball)

@@ -90,29 +90,13 @@ def _pose(v):
 
 
 @njit(cache=True)
-def _rollout(
-    kernels,
-    biases,
-    layers,
-    mean,
-    std,
-    geo,
-    consts,
-    rewards,
-    varies,
-    general,
-    noise,
-    shield,
-    needle,
-    start,
-    goal,
-    radii,
-    outcome,
-):
+def _rollout(state, needle, start, goal, radii, outcome):
     """The rollout of one query (poses and radii rounded to float32 first, as the JAX path takes
     them) into ``outcome[:7]``: ``start_valid, success, collision, time_out, steps, path_length
     [m], discounted return`` (``rewards``: a step's, a collision's, a success's reward and gamma).
-    Returns ``(poses[H+1, 7], actions[H, 6])``."""
+    ``state``: :attr:`LeanPlanner.state`. Returns ``(poses[H+1, 7], actions[H, 6])``."""
+    (kernels, biases, layers, mean, std), geo, consts, rewards, varies, general, noise, shield = state
+    geo = Capsules(*geo)
     radius, wire = _f32(radii[0]), _f32(radii[1])
     horizon = noise.shape[0]
     poses = np.empty((horizon + 1, 7))
@@ -231,24 +215,7 @@ def _checked(v, tolerance, out):
 
 
 @njit(cache=True)
-def _query(
-    net,
-    geo,
-    consts,
-    rewards,
-    varies,
-    general,
-    noise,
-    shield,
-    needle,
-    start,
-    goal,
-    task,
-    library_p,
-    library_q,
-    columns,
-    tolerance,
-):
+def _query(state, needle, start, goal, task, library_p, library_q, columns, tolerance):
     """One query from unchecked input: ``needle``, ``start`` and ``goal`` ``[7]`` (an empty goal: the
     goal grasp ``task[:4]`` on the needle), ``task`` ``(alpha*, d*, theta*, phi*, R, wire)`` [m].
     Checks the poses, makes the goal, measures the start's distance from the needle and the
@@ -268,11 +235,7 @@ def _query(
     outcome[START_MM] = math.sqrt(dx * dx + dy * dy + dz * dz) * 1e3
     if library_p.shape[0]:
         outcome[NEAREST] = nearest_grasp(library_p, library_q, columns, checked[0])
-    kernels, biases, layers, mean, std = net
-    trajectory, actions = _rollout(
-        kernels, biases, layers, mean, std, Capsules(*geo), consts, rewards, varies, general, noise, shield,
-        checked[0], checked[1], checked[2], task[4:], outcome,
-    )  # fmt: skip
+    trajectory, actions = _rollout(state, checked[0], checked[1], checked[2], task[4:], outcome)
     n = int(outcome[4])
     return outcome, trajectory[: n + 1].astype(np.float32), actions[:n].astype(np.float32)
 
@@ -353,7 +316,7 @@ class LeanPlanner:
         f64 = np.ascontiguousarray  # one compiled signature: contiguous float64
         goal = NO_GOAL if goal is None else f64(goal, np.float64)
         outcome, trajectory, actions = _query(
-            *self.state, f64(needle, np.float64), f64(start, np.float64), goal, task, *library, QUAT_NORM_TOLERANCE
+            self.state, f64(needle, np.float64), f64(start, np.float64), goal, task, *library, QUAT_NORM_TOLERANCE
         )
         return LeanResult(outcome[:7], int(outcome[STATUS]), outcome[START_MM], outcome[NEAREST], trajectory, actions)
 

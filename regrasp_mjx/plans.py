@@ -143,10 +143,7 @@ def plan(
         engine = auto_engine(len(needle))
     if engine == "lean" and len(needle) != 1:
         raise ValueError(f"engine='lean' plans one query at a time; got {len(needle)}: use engine='jax'")
-    goal = default_goal(needle, grasp, radii) if goal is None else goal
-    goal = np.atleast_2d(check_poses("goal", goal))
-    if goal.shape != needle.shape:
-        raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
+    goal = checked_goals(needle, goal, grasp, radii)
     nearest = nearest_grasps(needle) if check_grasp and not policy.general else None
     if nearest is not None:
         warn_far_grasps(nearest)
@@ -190,17 +187,11 @@ def _lean_plan(one: Any, single: bool, nearest: Any = None) -> Plan:
     """A :class:`Plan` of the lean planner's :class:`~regrasp_mjx.lean_planner.LeanResult` (numpy
     scalars for one query, as the JAX path's single plans hold, or arrays of one)."""
     valid, success, collision, time_out, steps, length = one.outcome[:6].tolist()
+    fields = (np.bool_(success > 0), np.bool_(collision > 0), np.bool_(time_out > 0), np.bool_(valid > 0))
+    fields += (np.int64(steps), np.float32(length * 1e3))
     if single:
-        return Plan(
-            np.bool_(success > 0), np.bool_(collision > 0), np.bool_(time_out > 0), np.bool_(valid > 0),
-            np.int64(steps), np.float32(length * 1e3), one.poses, one.actions, nearest_grasp_distance=nearest,
-        )  # fmt: skip
-    row = lambda x, dtype: np.array([x], dtype)  # noqa: E731
-    return Plan(
-        row(success > 0, bool), row(collision > 0, bool), row(time_out > 0, bool), row(valid > 0, bool),
-        row(steps, np.int64), row(length * 1e3, np.float32), one.poses[None], one.actions[None],
-        nearest_grasp_distance=nearest,
-    )  # fmt: skip
+        return Plan(*fields, one.poses, one.actions, nearest_grasp_distance=nearest)
+    return Plan(*(np.array([x]) for x in fields), one.poses[None], one.actions[None], nearest_grasp_distance=nearest)
 
 
 def _first(x):
@@ -223,6 +214,15 @@ def _finish(out: PlanArrays, single: bool, nearest) -> Plan:
         poses_camera=pick(out.poses_camera),
         nearest_grasp_distance=pick(nearest),
     )
+
+
+def checked_goals(needle: np.ndarray, goal: Any, grasp: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Goals ``[n, 7]`` for checked needles ``[n, 7]``: ``goal`` checked, or by default the goal grasps
+    ``[n, 4]`` on the needles of radii ``[n, 2]``; a :class:`PoseError` when the batch sizes differ."""
+    goal = np.atleast_2d(check_poses("goal", default_goal(needle, grasp, radii) if goal is None else goal))
+    if goal.shape != needle.shape:
+        raise PoseError(f"goal {goal.shape} and needle {needle.shape} poses differ in batch size")
+    return goal
 
 
 def default_goal(needle: np.ndarray, grasp: np.ndarray, radii: np.ndarray) -> np.ndarray:

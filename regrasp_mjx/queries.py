@@ -160,9 +160,10 @@ class TaskRanges:
     def resolve(self, n: int, spec: TaskSpec) -> tuple[np.ndarray, np.ndarray]:
         """Each query's goal grasp ``[n, 4]`` = ``(alpha*, d* [m], theta*, phi*)`` and needle ``[n, 2]``
         = ``(R, wire radius)`` [m] (see :meth:`values`); one plain query's is made once (read-only)."""
-        if n == 1 and spec.plain:
-            return self._plain
-        values = self.values(n, spec)
+        return self._plain if n == 1 and spec.plain else self._in_metres(self.values(n, spec))
+
+    @staticmethod
+    def _in_metres(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         grasp = values[:, :4].copy()
         grasp[:, 1] *= 1e-3
         return grasp, values[:, 4:] * 1e-3
@@ -205,8 +206,7 @@ class TaskRanges:
 
     @functools.cached_property
     def _plain(self) -> tuple[np.ndarray, np.ndarray]:
-        out = self.resolve(2, PLAIN)  # two rows: resolve(1, PLAIN) is this property
-        out = out[0][:1].copy(), out[1][:1].copy()
+        out = self._in_metres(self.values(1, PLAIN))
         for x in out:
             x.flags.writeable = False
         return out
