@@ -32,6 +32,7 @@ from regrasp_mjx.config import ConfigError, parse_overrides, replace
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.estimates import evaluate_noisy
 from regrasp_mjx.evaluate import outcomes
+from regrasp_mjx.host_loop import BestOf, Phases, RunLog, eta
 from regrasp_mjx.policy import Policy, PolicyError, load_policy, save_policy
 from regrasp_mjx.rollout import evaluate_actor, summarize
 from regrasp_mjx.sampling import PAPER300, Episode, TestsetError, load_testset
@@ -84,10 +85,10 @@ def distill(
         f"{cfg.validation_size} validation problems {teacher_val['success_rate']:.3f}"
     )
     out.mkdir(parents=True, exist_ok=True)
-    log_path = out / "distill_log.jsonl"
-    log_path.unlink(missing_ok=True)
+    run_log = RunLog(out / "distill_log.jsonl")
+    run_log.path.unlink(missing_ok=True)  # a distillation starts anew
     ds = distiller.init()
-    best, best_it, compile_s = -1.0, 0, None
+    best, compile_s, phases = BestOf.fresh(1), None, Phases()
     training = {
         "teacher": teacher_name,
         "teacher_training": teacher.contract.get("training"),
@@ -98,30 +99,31 @@ def distill(
     )
     for it in range(cfg.iterations):
         t_it = time.perf_counter()
-        ds, metrics = distiller.iteration(ds, it == 0)
-        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        with phases("iterations"):
+            ds, metrics = distiller.iteration(ds, it == 0)
+            metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
         if compile_s is None and it == 1:  # iteration 0 and 1 are two programs; count both compiles
             compile_s = time.perf_counter() - t0
-        va = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, val)), "bare")
-        te = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, test)), "bare")
-        # with noise the student is chosen under the noise it learned (one new frame a step, bare)
-        vn = (
-            summarize(jax.device_get(student_eval_noisy(ds.params, ds.normalizer, val)), "noisy")
-            if distiller.noisy
-            else None
-        )
-        score = (vn or va)["success_rate"]
-        if score >= best:
-            best, best_it = score, it + 1
-            save(
-                out / "policy",
-                ds,
-                {
-                    "iteration": it + 1,
-                    "validation_success": va["success_rate"],
-                    "validation_noisy_success": vn and vn["success_rate"],
-                },
+        with phases("evaluate"):
+            va = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, val)), "bare")
+            te = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, test)), "bare")
+            # with noise the student is chosen under the noise it learned (one new frame a step, bare)
+            vn = (
+                summarize(jax.device_get(student_eval_noisy(ds.params, ds.normalizer, val)), "noisy")
+                if distiller.noisy
+                else None
             )
+        if best.update([(vn or va)["success_rate"]], it + 1):
+            with phases("export"):
+                save(
+                    out / "policy",
+                    ds,
+                    {
+                        "iteration": it + 1,
+                        "validation_success": va["success_rate"],
+                        "validation_noisy_success": vn and vn["success_rate"],
+                    },
+                )
         row = {
             "stage": "distill",
             "iteration": it + 1,
@@ -131,17 +133,16 @@ def distill(
             **metrics,
             "iteration_s": time.perf_counter() - t_it,
             "wall_s": time.perf_counter() - t0,
+            "timing": phases.take(),
         }
-        with open(log_path, "a") as f:
-            f.write(json.dumps(row) + "\n")
-        per_it = row["wall_s"] / (it + 1)
+        run_log.write([row], step_key="iteration")
         log(
             f"distill {it + 1}/{cfg.iterations}  val success {va['success_rate']:.3f}"
             + (f" (noisy {vn['success_rate']:.3f})" if vn else "")
             + f"  test success "
             f"{te['success_rate']:.3f} (collision {te['collision_rate']:.3f})  rollouts {metrics['rollout_success']:.3f}  "
             f"overridden {metrics['overridden']:.3f}  teacher reaches {metrics['teacher_reaches']:.3f}  "
-            f"loss {metrics['loss']:.5f}  {row['iteration_s']:.1f} s/it  ETA {per_it * (cfg.iterations - it - 1) / 60:.1f} min"
+            f"loss {metrics['loss']:.5f}  {row['iteration_s']:.1f} s/it  {eta(it + 1, cfg.iterations, row['wall_s'])}"
         )
     save(out / "policy_last", ds, {"iteration": cfg.iterations})
     final = {
@@ -149,8 +150,8 @@ def distill(
         "teacher_validation": teacher_val,
         "teacher_test": outcomes(teacher, testset),
         "student": str(out / "policy"),
-        "best_iteration": best_it,
-        "best_validation_success": best,
+        "best_iteration": best.step[0],
+        "best_validation_success": best.score[0],
         "test": outcomes(load_policy(out / "policy"), testset),
         "hidden": list(cfg.hidden),
         "compile_s": compile_s,
@@ -159,7 +160,7 @@ def distill(
     write_json(out / "distill_eval.json", final)
     st, tt = final["test"], final["teacher_test"]
     log(
-        f"student (iteration {best_it}, best on validation) on the test set: bare {st['bare']['success_rate']:.3f}, "
+        f"student (iteration {best.step[0]}, best on validation) on the test set: bare {st['bare']['success_rate']:.3f}, "
         f"shielded {st['shielded']['success_rate']:.3f}; teacher bare {tt['bare']['success_rate']:.3f}, "
         f"shielded {tt['shielded']['success_rate']:.3f}"
     )

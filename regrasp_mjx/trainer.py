@@ -12,8 +12,6 @@ this loop; process 0 writes (:mod:`regrasp_mjx.distributed`).
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import os
 import time
 import uuid
@@ -31,9 +29,10 @@ from regrasp_mjx.agents.ddpg_bc.config import (
 )
 from regrasp_mjx.agents.ddpg_bc.exchange import PlannerExchange
 from regrasp_mjx.agents.ddpg_bc.learner import Learner, TrainingState
-from regrasp_mjx.atomic import atomic_write, write_json, write_text
+from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.distill import distill
 from regrasp_mjx.evaluate import outcomes
+from regrasp_mjx.host_loop import BestOf, Phases, RunLog, epoch_line, eta, mm, tensorboard_writer
 from regrasp_mjx.planning.episodes import DemosError, load_demos
 from regrasp_mjx.policy import load_policy, save_policy
 from regrasp_mjx.rollout import summarize
@@ -49,39 +48,23 @@ def _copy_policy(src: Path, dst: Path) -> None:
         atomic_write(dst / name, lambda f, src=src / name: f.write(src.read_bytes()))
 
 
-def _mm(v: float | None) -> str:
-    return "-" if v is None else f"{v:.2f} mm"
-
-
-def _progress_line(cfg: TrainConfig, rows: list[dict[str, Any]], meta: dict[str, Any], eta_s: float) -> str:
-    """The epoch's log line: every member's numbers, separated by slashes."""
-    each = lambda xs, f="{:.3f}": "/".join(f.format(x) for x in xs)  # noqa: E731
-    col = lambda k, sub=None: [r[k] if sub is None else r[k][sub] for r in rows]  # noqa: E731
-    r0 = rows[0]
-    return (
-        f"epoch {r0['epoch']}/{cfg.epochs}  val success {each(col('validation', 'success_rate'))}  "
-        f"test success {each(col('test', 'success_rate'))} "
-        f"(collision {each(col('test', 'collision_rate'))}, path {'/'.join(_mm(x) for x in col('test', 'path_length_mm'))})  "
-        f"return {each(col('return'), '{:+.3f}')}  critic {each(col('critic_loss'), '{:.4f}')}  "
-        f"actor {each(col('actor_loss'), '{:+.5f}')}  Q {each(col('q'), '{:+.3f}')}  "
-        f"E_R {each(col('E_R'))}  E_T {each(col('E_T'))}  demos+ {each(meta['demos_received'], '{}')}  "
-        f"{r0['env_steps_per_s']:,.0f} env-steps/s  {r0['updates_per_s']:,.0f} updates/s  "
-        f"ETA {eta_s / 60:.1f} min"
-    )
-
-
 class Run:
     """One training run in ``out``; :meth:`train` is resumable."""
 
     def __init__(self, cfg: TrainConfig, out: Path, demos_dir: Path | None, testset: Path, quiet: bool = False):
         self.cfg, self.out, self.quiet = cfg, out, quiet
         self.ckpt = out / "checkpoint"
-        self.testset, _ = load_testset(testset)
-        # Model selection uses problems of their own (never the test set): validation_size from another seed.
-
-        self.valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, cfg.env)
-        self.demos = self._demos(demos_dir)
-        self.learner = Learner(cfg)
+        self.phases = Phases()  # where the run's time goes; every log row and final_eval.json say
+        with self.phases("setup"):
+            self.testset, _ = load_testset(testset)
+            # Model selection uses problems of their own (never the test set): validation_size from another seed.
+            self.valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, cfg.env)
+        with self.phases("demos"):
+            self.demos = self._demos(demos_dir)
+        with self.phases("setup"):
+            self.learner = Learner(cfg)
+        self.setup_timing = self.phases.take()  # reported in final_eval.json and the first epoch's rows
+        self.epoch_timing: dict[str, float] = {}
 
     def log(self, msg: str) -> None:
         if not self.quiet and distributed.is_main():
@@ -157,32 +140,34 @@ class Run:
         """Every member's exported actor and normaliser as numpy (a collective across processes)."""
         return distributed.to_host((self.learner.policy_params(ts), ts.normalizer))
 
-    def _truncate_log(self, epoch: int) -> None:
-        """Drops log rows of epochs after the checkpoint (they will be run again)."""
-        path = self.out / "log.jsonl"
-        if path.exists() and distributed.is_main():
-            keep = [x for x in path.read_text().splitlines() if x.strip() and json.loads(x)["epoch"] <= epoch]
-            write_text(path, "".join(x + "\n" for x in keep))
-
     def train(self, resume: bool = False) -> dict[str, Any]:
-        cfg, learner, seeds = self.cfg, self.learner, self.cfg.num_members
+        cfg, learner, seeds, phases = self.cfg, self.learner, self.cfg.num_members, self.phases
+        main = distributed.is_main()
         demos = {k: np.asarray(getattr(self.demos, k), np.float32) for k in ("obs", "action", "reward", "next_obs")}
         demos["terminal"] = np.asarray(self.demos.done, np.float32)
-        ts = learner.init(demos)
+        with phases("setup"):
+            ts = learner.init(demos)
+        best = BestOf.fresh(seeds)
         meta: dict[str, Any] = {
             "epoch": 0,
             "iteration": 0,
             "demos_received": [0] * seeds,
             "planned": [0] * seeds,
-            "best_val": [-1.0] * seeds,
-            "best_epoch": [None] * seeds,
+            "best_val": best.score,
+            "best_epoch": best.step,
             "rng": np.random.default_rng(cfg.seed).bit_generator.state,
         }
+        log = RunLog(
+            self.out / "log.jsonl",
+            [tensorboard_writer(self.member_dir(m) / "tb") if main else None for m in range(seeds)],
+        )
         if resume:
             ts, meta = checkpoint.load(self.ckpt, ts, cfg)
             ts = learner.place(ts)
+            best = BestOf(meta["best_val"], meta["best_epoch"])
             self.log(f"resumed from {self.ckpt} at epoch {meta['epoch']}")
-            self._truncate_log(meta["epoch"])
+            if main:
+                log.drop_after("epoch", meta["epoch"])  # epochs after the checkpoint run again
         # one id per run, kept across resumes (a checkpoint from before run ids gets one now)
         meta.setdefault("run_id", uuid.uuid4().hex[:12])
         rng = np.random.default_rng()
@@ -194,49 +179,51 @@ class Run:
         explos = [cfg.member_setting(m)[1] for m in range(seeds)]
         targeted = any(x.targeted_eps > 0 for x in explos)
         exchange = PlannerExchange(cfg, learner) if targeted else None
-        log_path = self.out / "log.jsonl"
-        main = distributed.is_main()
-        writers = [self._tensorboard(self.member_dir(m)) if main else None for m in range(seeds)]
         steps_per_iter = seeds * cfg.num_envs * cfg.env.horizon
         t_start, compile_s, last, epochs_run = time.perf_counter(), None, [], 0
+        writer = checkpoint.Writer()
         try:
             for epoch in range(meta["epoch"], cfg.epochs):
                 t_epoch = time.perf_counter()
                 metrics_acc: list[dict[str, np.ndarray]] = []
                 outcomes = []
-                iter_s, timed = 0.0, 0
-                for _ in range(cfg.iterations_per_epoch):
-                    e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
-                    t_it = time.perf_counter()
-                    ts, metrics, outcome, problems = learner.iteration(ts, e_r)
-                    outcome = distributed.to_host(outcome)  # Rollout of [seed, env]; waits for the device
-                    if compile_s is None:
-                        compile_s = time.perf_counter() - t_it
-                        self.log(
-                            f"compiled the iteration program in {compile_s:.1f} s (backend {jax.default_backend()})"
-                        )
-                    else:
-                        iter_s, timed = iter_s + time.perf_counter() - t_it, timed + 1
-                    metrics_acc.append(distributed.to_host(dict(metrics)))
-                    outcomes.append(outcome)
-                    meta["iteration"] += 1
-                    if exchange is not None:  # every process draws the same choices from the same generator
-                        chosen = []
-                        for m in range(seeds):
-                            failed = np.flatnonzero(~outcome.success[m])
-                            chosen.append(failed[rng.random(len(failed)) < e_t[m]])
-                        if any(len(rows) for rows in chosen):
-                            exchange.submit(distributed.to_host(problems), chosen, meta)  # to_host: every process
-                        ts = exchange.receive(ts, meta)
+                done = None  # the iteration whose host work is pending: it runs while the next is on the device
+                for i in range(cfg.iterations_per_epoch + 1):
+                    if i < cfg.iterations_per_epoch:
+                        e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
+                        first = compile_s is None and done is None
+                        t_it = time.perf_counter()
+                        ts, metrics, outcome, problems = learner.iteration(ts, e_r)  # queued behind `done`
+                        if first:
+                            compile_s = time.perf_counter() - t_it  # tracing and compiling block the call
+                            phases.add("compile", compile_s)
+                            self.log(
+                                f"compiled the iteration program in {compile_s:.1f} s (backend {jax.default_backend()})"
+                            )
+                        meta["iteration"] += 1
+                    if done is not None:
+                        ts = self._after_iteration(ts, *done, exchange, rng, metrics_acc, outcomes, meta)
+                    done = (outcome, metrics, problems, e_t) if i < cfg.iterations_per_epoch else None
+                # the iterations' rate, host work overlapped; the process's first epoch less the compile
+                iter_s = time.perf_counter() - t_epoch - ((compile_s or 0.0) if epochs_run == 0 else 0.0)
                 eval_s = time.perf_counter()
-                evs, vas = self._evaluate_and_select(ts, test, val, meta, epoch + 1)
+                evs, vas = self._evaluate_and_select(ts, test, val, best, epoch + 1)
                 eval_s = time.perf_counter() - eval_s
                 epoch_s = time.perf_counter() - t_epoch
                 mean = {k: np.mean([x[k] for x in metrics_acc], axis=0) for k in metrics_acc[0]}  # [seed]
                 out = jax.tree.map(lambda *x: np.concatenate(x, axis=1), *outcomes)
                 e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos]).T
-                iter_s = max(iter_s, 1e-9)
-                per_s = timed / iter_s if timed else float("nan")  # iterations per second
+                per_s = cfg.iterations_per_epoch / max(iter_s, 1e-9)  # iterations per second
+                meta["epoch"] = epoch + 1
+                meta["rng"] = rng.bit_generator.state
+                meta["config"] = checkpoint.config_json(cfg)
+                if (epoch + 1) % cfg.checkpoint_every == 0 or epoch + 1 == cfg.epochs:
+                    with phases("checkpoint"):  # the copy to the host; the file is written beside the training
+                        writer.save(self.ckpt, ts, meta)
+                # the seconds of this epoch's phases (the first epoch's rows add the run's set-up)
+                timing = {**(self.setup_timing if epochs_run == 0 else {}), **phases.take()}
+                for k, v in timing.items():  # and the run's sums, for final_eval.json
+                    self.epoch_timing[k] = self.epoch_timing.get(k, 0.0) + v
                 rows = []
                 for m in range(seeds):
                     rows.append(
@@ -266,70 +253,77 @@ class Run:
                             "epoch_s": epoch_s,
                             "eval_s": eval_s,
                             "wall_s": time.perf_counter() - t_start,
+                            "timing": timing,  # the whole run's, the same in every member's row
                         }
                     )
-                meta["epoch"] = epoch + 1
-                meta["rng"] = rng.bit_generator.state
-                meta["config"] = checkpoint.config_json(cfg)
-                if (epoch + 1) % cfg.checkpoint_every == 0 or epoch + 1 == cfg.epochs:
-                    checkpoint.save(self.ckpt, ts, meta)
                 if main:
-                    self._write_logs(log_path, writers, rows)
+                    with phases("log"):
+                        log.write(rows)
                 epochs_run += 1
-                per_epoch = (time.perf_counter() - t_start - (compile_s or 0.0)) / epochs_run
-                self.log(_progress_line(cfg, rows, meta, eta_s=per_epoch * (cfg.epochs - epoch - 1)))
+                trained_s = time.perf_counter() - t_start - (compile_s or 0.0)
+                self.log(
+                    epoch_line(
+                        cfg.epochs,
+                        rows,
+                        meta["demos_received"],
+                        eta(epochs_run, epochs_run + cfg.epochs - epoch - 1, trained_s),
+                    )
+                )
                 last = rows
+            with phases("checkpoint"):
+                writer.wait()  # the last checkpoint is on disk before the run reports
         finally:
             if exchange is not None:
                 exchange.close()
-            for writer in writers:
-                if writer is not None:
-                    writer.close()
-        return self.finish(ts, last, compile_s, meta)
+            log.close()
+        return self.finish(ts, last, compile_s, meta, time.perf_counter() - t_start)
 
-    def _evaluate_and_select(self, ts: TrainingState, test: Any, val: Any, meta: dict[str, Any], epoch: int):
+    def _after_iteration(self, ts, outcome, metrics, problems, e_t, exchange, rng, metrics_acc, outcomes, meta):
+        """The host's part of a finished iteration, run while the next one is on the device: its
+        outcome and metrics fetched (waiting for it), its chosen failed episodes sent to the planners
+        and the demonstrations that came back inserted (behind the queued iteration)."""
+        with self.phases("iterations"):  # waiting for the device
+            outcome = distributed.to_host(outcome)  # Rollout of [seed, env]
+        with self.phases("exchange"):
+            metrics_acc.append(distributed.to_host(dict(metrics)))
+            outcomes.append(outcome)
+            if exchange is not None:
+                ts = exchange.after_iteration(ts, outcome.success, problems, e_t, rng, meta)
+        return ts
+
+    def _evaluate_and_select(self, ts: TrainingState, test: Any, val: Any, best: BestOf, epoch: int):
         """Each member's bare success on the test set and the validation problems; the members whose
-        validation success is at least their best so far export this epoch's policy (``meta``
+        validation success is at least their best so far export this epoch's policy (``best``
         records it). Returns the two lists of summaries."""
-        learner, members = self.learner, self.cfg.num_members
-        actor = learner.policy_params(ts)
-        ev_all = distributed.to_host(learner.evaluate(actor, ts.normalizer, test))
-        va_all = distributed.to_host(learner.evaluate_q(actor, ts.normalizer, val, ts.critic))
-        member = lambda tree, m: jax.tree.map(lambda x: x[m], tree)  # noqa: E731
-        evs = [summarize(member(ev_all[0], m), "bare") for m in range(members)]
-        vas = [summarize(member(va_all[0], m), "bare", q_start=va_all[1][m]) for m in range(members)]
-        best = [m for m, va in enumerate(vas) if va["success_rate"] >= meta["best_val"][m]]
-        host = self._host_policy(ts) if best else None
-        for m in best:  # export the best by validation
-            success = vas[m]["success_rate"]
-            meta["best_val"][m], meta["best_epoch"][m] = success, epoch
-            self._export(self.member_dir(m) / "policy", host, m, {"epoch": epoch, "validation_success": success})
+        learner, members, phases = self.learner, self.cfg.num_members, self.phases
+        with phases("evaluate"):
+            actor = learner.policy_params(ts)
+            ev_all = distributed.to_host(learner.evaluate(actor, ts.normalizer, test))
+            va_all = distributed.to_host(learner.evaluate_q(actor, ts.normalizer, val, ts.critic))
+            member = lambda tree, m: jax.tree.map(lambda x: x[m], tree)  # noqa: E731
+            evs = [summarize(member(ev_all[0], m), "bare") for m in range(members)]
+            vas = [summarize(member(va_all[0], m), "bare", q_start=va_all[1][m]) for m in range(members)]
+        with phases("export"):
+            better = best.update([va["success_rate"] for va in vas], epoch)
+            host = self._host_policy(ts) if better else None
+            for m in better:  # export the best by validation
+                training = {"epoch": epoch, "validation_success": vas[m]["success_rate"]}
+                self._export(self.member_dir(m) / "policy", host, m, training)
         return evs, vas
 
-    @staticmethod
-    def _write_logs(log_path: Path, writers: list, rows: list[dict[str, Any]]) -> None:
-        """One JSONL row per member, and its scalars to the member's TensorBoard writer."""
-        with open(log_path, "a") as f:
-            f.write("".join(json.dumps(r) + "\n" for r in rows))
-        for writer, row in zip(writers, rows):
-            if writer is None:
-                continue
-            scalars = {**{f"test/{k}": v for k, v in row["test"].items()}, **row}
-            scalars.update({f"validation/{k}": v for k, v in row["validation"].items()})
-            for k, v in scalars.items():
-                if isinstance(v, float) and math.isfinite(v):
-                    writer.add_scalar(k, v, row["epoch"])
-            writer.flush()
-
     def finish(
-        self, ts: TrainingState, last: list[dict[str, Any]], compile_s: float | None, meta: dict[str, Any]
+        self,
+        ts: TrainingState,
+        last: list[dict[str, Any]],
+        compile_s: float | None,
+        meta: dict[str, Any],
+        train_s: float = 0.0,
     ) -> dict[str, Any]:
         """Exports each member's last policy beside its best (by validation), tests the best ones
         bare and shielded, distils them when ``distill.iterations`` > 0, and copies each setting's
         best seed (by validation) to ``OUT/policy`` (``OUT/SETTING/policy`` for several settings),
         its student to ``.../student/policy``."""
-        cfg = self.cfg
-
+        cfg, t_finish = self.cfg, time.perf_counter()
         host = self._host_policy(ts)  # a collective: every process
         if not distributed.is_main():
             return {}  # the tests, distillation and the summary are process 0's
@@ -344,7 +338,7 @@ class Run:
                     "policy": str(policy_dir),
                     "best_epoch": meta["best_epoch"][m],
                     "best_validation_success": meta["best_val"][m],
-                    "test": outcomes(load_policy(policy_dir), self.testset),  # the exported file, as deployed
+                    "test": self._final_test(policy_dir),
                     "last_epoch": last[m] if last else None,
                 }
             )
@@ -353,9 +347,10 @@ class Run:
                 f"{members[-1]['setting'] or 'seed'} {members[-1]['seed']}: exported {policy_dir} (epoch "
                 f"{meta['best_epoch'][m]}, best on validation); on the test set: success {ev['bare']['success_rate']:.3f} "
                 f"bare, {ev['shielded']['success_rate']:.3f} shielded; collision {ev['bare']['collision_rate']:.3f} bare; "
-                f"path {_mm(ev['bare']['path_length_mm'])}"
+                f"path {mm(ev['bare']['path_length_mm'])}"
             )
-        students = self.distill(members) if cfg.distill.iterations > 0 else None
+        with self.phases("distill"):
+            students = self.distill(members) if cfg.distill.iterations > 0 else None
         groups: dict[str, dict[str, Any]] = {}
         for m0 in range(0, cfg.num_members, cfg.num_seeds):  # one group of seeds per setting
             group = range(m0, m0 + cfg.num_seeds)
@@ -370,7 +365,10 @@ class Run:
                     _copy_policy(Path(students[top]["student"]), home / "student" / "policy")
                 entry["student"] = {**students[top], "student": str(home / "student" / "policy")}
             groups[cfg.member_setting(m0)[0]] = entry
-        final: dict[str, Any] = {"compile_s": compile_s, "seeds": members}
+        # the loop's phases summed over epochs (this process's epochs: a resumed run counts from its resume)
+        timing = {**self.setup_timing, **self.epoch_timing, "train": train_s, **self.phases.take()}
+        timing["finish"] = time.perf_counter() - t_finish
+        final: dict[str, Any] = {"compile_s": compile_s, "timing": timing, "seeds": members}
         if students is not None:
             final["students"] = students
         if cfg.settings:
@@ -379,6 +377,10 @@ class Run:
             final = {**groups[""], **final}
         write_json(self.out / "final_eval.json", final)
         return final
+
+    def _final_test(self, policy_dir: Path) -> dict[str, Any]:
+        with self.phases("final_test"):
+            return outcomes(load_policy(policy_dir), self.testset)  # the exported file, as deployed
 
     def distill(self, members: list[dict[str, Any]]) -> list[dict[str, Any]]:
         """Each member's exported policy teaches a student (``MEMBER_DIR/student``), one after another."""
@@ -391,10 +393,3 @@ class Run:
             result = distill(load_policy(mem["policy"]), folder, cfg, self.testset, mem["policy"], self.quiet)
             students.append({"setting": mem["setting"], "seed": mem["seed"], **result})
         return students
-
-    def _tensorboard(self, folder: Path):
-        try:
-            from tensorboardX import SummaryWriter  # here: its import (protobuf) only for runs that log to TensorBoard
-        except ImportError:  # optional: the JSONL log has everything
-            return None
-        return SummaryWriter(str(folder / "tb"))

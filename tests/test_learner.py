@@ -381,6 +381,15 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
     b = np.load(tmp_path / "split" / "checkpoint" / "state.npz")
     assert a.files == b.files
     for k in a.files:
+        if k == checkpoint.META:  # the state's own metadata: the same but for each run's id
+            meta_a, meta_b = json.loads(str(a[k])), json.loads(str(b[k]))
+            assert meta_a.pop("run_id") != meta_b.pop("run_id") and meta_a == meta_b
+            assert meta_b == {
+                k: v
+                for k, v in json.loads((tmp_path / "split" / "checkpoint" / "meta.json").read_text()).items()
+                if k != "run_id"
+            }
+            continue
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     log_a = [json.loads(x) for x in (tmp_path / "straight" / "log.jsonl").read_text().splitlines()]
     log_b = [json.loads(x) for x in (tmp_path / "split" / "log.jsonl").read_text().splitlines()]

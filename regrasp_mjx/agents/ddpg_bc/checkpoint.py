@@ -1,16 +1,19 @@
 """Checkpoints of a training run: the whole state as plain arrays plus JSON metadata.
 
 ``OUT/checkpoint/state.npz`` holds every leaf of the :class:`TrainingState` in tree order
-(networks, optimisers, targets, normaliser, both replay buffers, key); ``meta.json`` the host loop's
-counters, its numpy generator and the config. Both are written atomically, state first, so a kill
-leaves the previous checkpoint or the new one. No pickle. In a distributed run every process takes
-part in gathering the state and process 0 writes it; every process reads it back.
+(networks, optimisers, targets, normaliser, both replay buffers, key) and, as one JSON string, the
+host loop's counters, its numpy generator and the config; ``meta.json`` repeats those for people and
+tools. The state file is written atomically and carries its own metadata, so a kill leaves the
+previous checkpoint or the new one whole. No pickle. :class:`Writer` writes in a background thread
+while training goes on. In a distributed run every process takes part in gathering the state and
+process 0 writes it; every process reads it back.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +30,7 @@ from regrasp_mjx.config import ConfigError
 # Learner fields added after checkpoints were first written; each default reproduces what those
 # checkpoints ran, so a checkpoint without them resumes as if they had been saved.
 ADDED_FIELDS = ("critic_layer_norm", "bc_decay_epochs", "bc_decay_to", "action_l2_decay", "shard")
+META = "meta_json"  # the metadata's key in state.npz (checkpoints before it have meta.json alone)
 
 
 def config_json(cfg: TrainConfig) -> dict[str, Any]:
@@ -50,15 +54,61 @@ def _like(template: Any, saved: np.ndarray) -> Any:
     return jnp.asarray(saved, dtype=template.dtype)
 
 
+def _host_arrays(ts: TrainingState, meta: dict[str, Any]) -> dict[str, np.ndarray] | None:
+    """What ``state.npz`` holds, copied off the devices now (process 0's; None on the others)."""
+    leaves = distributed.to_host(jax.tree_util.tree_leaves(ts))
+    if not distributed.is_main():
+        return None
+    # copies: on the CPU backend a host view could share memory the next (donating) iteration reuses
+    arrays = {f"leaf_{i:05d}": np.array(x, copy=True) for i, x in enumerate(leaves)}
+    arrays[META] = np.array(json.dumps(meta))
+    return arrays
+
+
+def _write(folder: Path, arrays: dict[str, np.ndarray]) -> None:
+    atomic_write(folder / "state.npz", lambda f: np.savez(f, **arrays))
+    write_json(folder / "meta.json", json.loads(str(arrays[META])), indent=None)
+
+
 def save(folder: Path, ts: TrainingState, meta: dict[str, Any]) -> None:
     """Writes ``ts`` and ``meta`` to ``folder`` (a collective in a distributed run: every process
     calls it; process 0 writes)."""
-    leaves = distributed.to_host(jax.tree_util.tree_leaves(ts))
-    if not distributed.is_main():
-        return
-    arrays = {f"leaf_{i:05d}": np.asarray(x) for i, x in enumerate(leaves)}
-    atomic_write(folder / "state.npz", lambda f: np.savez(f, **arrays))
-    write_json(folder / "meta.json", meta, indent=None)
+    arrays = _host_arrays(ts, meta)
+    if arrays is not None:
+        _write(folder, arrays)
+
+
+class Writer:
+    """Checkpoints written in a background thread: :meth:`save` copies the state to the host at once
+    (the next iteration reuses its device buffers) and returns; the file is written while training
+    goes on (for 8 seeds, ~1.6 GB of replay buffers: ~5 s on the H100 host). One write at a time;
+    :meth:`wait` joins it and raises what it raised."""
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def save(self, folder: Path, ts: TrainingState, meta: dict[str, Any]) -> None:
+        arrays = _host_arrays(ts, meta)  # a collective: every process
+        self.wait()
+        if arrays is None:
+            return
+        self._thread = threading.Thread(target=self._run, args=(folder, arrays), name="checkpoint", daemon=False)
+        self._thread.start()
+
+    def _run(self, folder: Path, arrays: dict[str, np.ndarray]) -> None:
+        try:
+            _write(folder, arrays)
+        except BaseException as err:  # raised in the training thread by wait()
+            self._error = err
+
+    def wait(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            err, self._error = self._error, None
+            raise err
 
 
 def load(folder: Path, template: TrainingState, cfg: TrainConfig) -> tuple[TrainingState, dict[str, Any]]:
@@ -68,7 +118,11 @@ def load(folder: Path, template: TrainingState, cfg: TrainConfig) -> tuple[Train
     meta_path, state_path = folder / "meta.json", folder / "state.npz"
     if not (meta_path.is_file() and state_path.is_file()):
         raise ConfigError(f"--resume: no checkpoint in {folder}")
-    meta = json.loads(meta_path.read_text())
+    try:
+        with np.load(state_path, allow_pickle=False) as f:  # the state's own metadata is the truth
+            meta = json.loads(str(f[META])) if META in f.files else json.loads(meta_path.read_text())
+    except Exception as err:
+        raise ConfigError(f"--resume: {state_path} is corrupt or unreadable: {err}") from err
     saved, now = with_added_defaults(meta["config"]), config_json(cfg)
     saved.pop("epochs", None)
     now.pop("epochs", None)
@@ -82,7 +136,7 @@ def load(folder: Path, template: TrainingState, cfg: TrainConfig) -> tuple[Train
     try:
         with np.load(state_path, allow_pickle=False) as f:
             saved_leaves = [f[f"leaf_{i:05d}"] for i in range(len(leaves))]
-            extra = len(f.files) - len(leaves)
+            extra = len([k for k in f.files if k != META]) - len(leaves)
     except Exception as err:
         raise ConfigError(f"--resume: {state_path} is corrupt or unreadable: {err}") from err
     bad = [

@@ -66,6 +66,20 @@ class PlannerExchange:
         if self.pool is not None:
             self.pool.close()
 
+    def after_iteration(
+        self, ts: TrainingState, success: np.ndarray, problems: Any, e_t: np.ndarray, rng: np.random.Generator, meta
+    ) -> TrainingState:
+        """One iteration's exchange: each member's failed episodes (``success`` ``[member, env]``) are
+        chosen with probability ``e_t[member]`` and sent, and the demonstrations ready are inserted.
+        Every process draws the same choices from the same generator."""
+        chosen = []
+        for m in range(len(success)):
+            failed = np.flatnonzero(~success[m])
+            chosen.append(failed[rng.random(len(failed)) < e_t[m]])
+        if any(len(rows) for rows in chosen):
+            self.submit(distributed.to_host(problems), chosen, meta)  # to_host: a collective, every process
+        return self.receive(ts, meta)
+
     def submit(self, problems: Any, chosen: list[np.ndarray], meta: dict[str, Any]) -> None:
         """Sends the chosen failed episodes of every seed (``problems`` on the host) to the pool,
         taking the seeds in turn so that a full queue is shared fairly; stops at a full queue (the
