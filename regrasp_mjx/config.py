@@ -17,23 +17,50 @@ class ConfigError(ValueError):
     """A config value out of its accepted range; the message names the field and the range."""
 
 
-def _check(ok: bool, field: str, value: Any, accepted: str) -> None:
+# The one form of every config check in the package: ``require(ok, field, value, accepted)`` raises
+# ConfigError("FIELD=VALUE is not accepted: ACCEPTED"); the helpers below apply it to fields by name.
+def require(ok: bool, field: str, value: Any, accepted: str) -> None:
     if not ok:
         raise ConfigError(f"{field}={value!r} is not accepted: {accepted}")
 
 
-def _finite(x: Any) -> bool:
+def is_number(x: Any) -> bool:
+    """A finite real number (not a bool)."""
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
-def _check_range(field: str, rng: tuple[float, float], lo: float, hi: float, unit: str) -> None:
-    _check(
-        isinstance(rng, tuple) and len(rng) == 2 and all(_finite(v) for v in rng),
+def is_integer(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def require_numbers(owner: Any, names: tuple[str, ...], ok, accepted: str, prefix: str = "") -> None:
+    """Each field ``names`` of ``owner`` a finite number for which ``ok(value)`` holds."""
+    for name in names:
+        v = getattr(owner, name)
+        require(is_number(v) and ok(v), prefix + name, v, accepted)
+
+
+def require_integers(owner: Any, names: tuple[str, ...], lo: int, prefix: str = "") -> None:
+    """Each field ``names`` of ``owner`` an integer >= ``lo``."""
+    for name in names:
+        v = getattr(owner, name)
+        require(is_integer(v) and v >= lo, prefix + name, v, f"an integer >= {lo}")
+
+
+def require_flags(owner: Any, names: tuple[str, ...], prefix: str = "") -> None:
+    for name in names:
+        v = getattr(owner, name)
+        require(isinstance(v, bool), prefix + name, v, "True or False")
+
+
+def _require_range(field: str, rng: tuple[float, float], lo: float, hi: float, unit: str) -> None:
+    require(
+        isinstance(rng, tuple) and len(rng) == 2 and all(is_number(v) for v in rng),
         field,
         rng,
         f"a pair (low, high) of finite numbers in {unit}",
     )
-    _check(lo <= rng[0] <= rng[1] <= hi, field, rng, f"low <= high within [{lo:g}, {hi:g}] {unit}")
+    require(lo <= rng[0] <= rng[1] <= hi, field, rng, f"low <= high within [{lo:g}, {hi:g}] {unit}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,25 +85,25 @@ class SceneConfig:
     conservative_needle: bool = True
 
     def __post_init__(self) -> None:
-        _check(
-            _finite(self.jaw_angle_deg) and 0.0 < self.jaw_angle_deg < 90.0,
+        require(
+            is_number(self.jaw_angle_deg) and 0.0 < self.jaw_angle_deg < 90.0,
             "jaw_angle_deg",
             self.jaw_angle_deg,
             "a number of degrees in (0, 90)",
         )
-        _check(
-            _finite(self.needle_radius_mm) and 1.0 <= self.needle_radius_mm <= 20.0,
+        require(
+            is_number(self.needle_radius_mm) and 1.0 <= self.needle_radius_mm <= 20.0,
             "needle_radius_mm",
             self.needle_radius_mm,
             "a number of millimetres in [1, 20]",
         )
-        _check(
-            _finite(self.wire_radius_mm) and 0.05 <= self.wire_radius_mm <= 1.0,
+        require(
+            is_number(self.wire_radius_mm) and 0.05 <= self.wire_radius_mm <= 1.0,
             "wire_radius_mm",
             self.wire_radius_mm,
             "a number of millimetres in [0.05, 1]",
         )
-        _check(
+        require(
             isinstance(self.conservative_needle, bool), "conservative_needle", self.conservative_needle, "True or False"
         )
 
@@ -135,37 +162,37 @@ class TaskConfig:
 
     def __post_init__(self) -> None:
         for name in ("goal_alpha_rad", "goal_theta_rad", "goal_phi_rad"):
-            _check(_finite(getattr(self, name)), name, getattr(self, name), "a finite number of radians")
-        _check(
+            require(is_number(getattr(self, name)), name, getattr(self, name), "a finite number of radians")
+        require(
             math.pi / 2 <= self.goal_alpha_rad <= 3 * math.pi / 2,
             "goal_alpha_rad",
             self.goal_alpha_rad,
             "an angle on the needle in [pi/2, 3pi/2]",
         )
-        _check_range("goal_depth_mm", self.goal_depth_mm, 0.5, 20.0, "mm")
-        _check_range("init_alpha_rad", self.init_alpha_rad, math.pi / 2, 3 * math.pi / 2, "rad")
-        _check_range("init_depth_mm", self.init_depth_mm, 0.5, 20.0, "mm")
-        _check_range("init_theta_rad", self.init_theta_rad, -2 * math.pi, 4 * math.pi, "rad")
-        _check_range("init_phi_rad", self.init_phi_rad, 0.0, math.pi, "rad")
-        _check(
-            _finite(self.start_distance_mm) and 0.0 < self.start_distance_mm <= 100.0,
+        _require_range("goal_depth_mm", self.goal_depth_mm, 0.5, 20.0, "mm")
+        _require_range("init_alpha_rad", self.init_alpha_rad, math.pi / 2, 3 * math.pi / 2, "rad")
+        _require_range("init_depth_mm", self.init_depth_mm, 0.5, 20.0, "mm")
+        _require_range("init_theta_rad", self.init_theta_rad, -2 * math.pi, 4 * math.pi, "rad")
+        _require_range("init_phi_rad", self.init_phi_rad, 0.0, math.pi, "rad")
+        require(
+            is_number(self.start_distance_mm) and 0.0 < self.start_distance_mm <= 100.0,
             "start_distance_mm",
             self.start_distance_mm,
             "a distance in (0, 100] mm",
         )
-        _check(
-            _finite(self.start_pos_noise_mm) and 0.0 <= self.start_pos_noise_mm <= 10.0,
+        require(
+            is_number(self.start_pos_noise_mm) and 0.0 <= self.start_pos_noise_mm <= 10.0,
             "start_pos_noise_mm",
             self.start_pos_noise_mm,
             "a half-width in [0, 10] mm",
         )
-        _check(
-            _finite(self.start_rot_noise_deg) and 0.0 <= self.start_rot_noise_deg <= 180.0,
+        require(
+            is_number(self.start_rot_noise_deg) and 0.0 <= self.start_rot_noise_deg <= 180.0,
             "start_rot_noise_deg",
             self.start_rot_noise_deg,
             "a half-width in [0, 180] degrees",
         )
-        _check(
+        require(
             isinstance(self.max_sample_tries, int) and 1 <= self.max_sample_tries <= 4096,
             "max_sample_tries",
             self.max_sample_tries,
@@ -179,17 +206,17 @@ class TaskConfig:
             rng = getattr(self, name)
             if rng is None:
                 continue
-            _check_range(name, rng, lo, hi, unit)
-            _check(
+            _require_range(name, rng, lo, hi, unit)
+            require(
                 rng[0] - 1e-9 <= fixed <= rng[1] + 1e-9,
                 name,
                 rng,
                 f"a range that holds the default goal {name.replace('_range', '')}={fixed:.6g}",
             )
         if self.needle_radius_range_mm is not None:
-            _check_range("needle_radius_range_mm", self.needle_radius_range_mm, 1.0, 20.0, "mm")
+            _require_range("needle_radius_range_mm", self.needle_radius_range_mm, 1.0, 20.0, "mm")
         if self.wire_radius_range_mm is not None:
-            _check_range("wire_radius_range_mm", self.wire_radius_range_mm, 0.05, 1.0, "mm")
+            _require_range("wire_radius_range_mm", self.wire_radius_range_mm, 0.05, 1.0, "mm")
 
 
 # The general task of issue 15 (ours): any goal grasp in these ranges, half-circle needles of 4 to 12 mm
@@ -242,62 +269,65 @@ class EnvConfig:
     check_actions: bool = True
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.scene, SceneConfig), "scene", self.scene, "a SceneConfig")
-        _check(isinstance(self.task, TaskConfig), "task", self.task, "a TaskConfig")
-        _check(
-            _finite(self.max_dp_mm) and 0.0 < self.max_dp_mm <= 5.0, "max_dp_mm", self.max_dp_mm, "a step in (0, 5] mm"
+        require(isinstance(self.scene, SceneConfig), "scene", self.scene, "a SceneConfig")
+        require(isinstance(self.task, TaskConfig), "task", self.task, "a TaskConfig")
+        require(
+            is_number(self.max_dp_mm) and 0.0 < self.max_dp_mm <= 5.0,
+            "max_dp_mm",
+            self.max_dp_mm,
+            "a step in (0, 5] mm",
         )
-        _check(
-            _finite(self.max_drot_deg) and 0.0 < self.max_drot_deg <= 30.0,
+        require(
+            is_number(self.max_drot_deg) and 0.0 < self.max_drot_deg <= 30.0,
             "max_drot_deg",
             self.max_drot_deg,
             "a step in (0, 30] degrees",
         )
-        _check(
+        require(
             isinstance(self.horizon, int) and not isinstance(self.horizon, bool) and 1 <= self.horizon <= 100_000,
             "horizon",
             self.horizon,
             "an integer number of steps in [1, 100000]",
         )
-        _check(
-            _finite(self.step_reward) and self.step_reward <= 0.0,
+        require(
+            is_number(self.step_reward) and self.step_reward <= 0.0,
             "step_reward",
             self.step_reward,
             "a finite number <= 0 (beta < 0 in the paper)",
         )
         for name in ("collision_reward", "success_reward"):
-            _check(_finite(getattr(self, name)), name, getattr(self, name), "a finite number")
-        _check(
-            _finite(self.success_pos_mm) and self.success_pos_mm > 0.0,
+            require(is_number(getattr(self, name)), name, getattr(self, name), "a finite number")
+        require(
+            is_number(self.success_pos_mm) and self.success_pos_mm > 0.0,
             "success_pos_mm",
             self.success_pos_mm,
             "a tolerance > 0 mm",
         )
-        _check(
-            _finite(self.success_rot_deg) and 0.0 < self.success_rot_deg <= 180.0,
+        require(
+            is_number(self.success_rot_deg) and 0.0 < self.success_rot_deg <= 180.0,
             "success_rot_deg",
             self.success_rot_deg,
             "a tolerance in (0, 180] degrees",
         )
-        _check(
-            _finite(self.clearance_mm) and 0.0 <= self.clearance_mm <= 1.0,
+        require(
+            is_number(self.clearance_mm) and 0.0 <= self.clearance_mm <= 1.0,
             "clearance_mm",
             self.clearance_mm,
             "a margin in [0, 1] mm",
         )
-        _check(
+        require(
             self.collision_substeps is None
             or (isinstance(self.collision_substeps, int) and 1 <= self.collision_substeps <= 64),
             "collision_substeps",
             self.collision_substeps,
             "None (derived) or an integer in [1, 64]",
         )
-        _check(isinstance(self.check_actions, bool), "check_actions", self.check_actions, "True or False")
+        require(isinstance(self.check_actions, bool), "check_actions", self.check_actions, "True or False")
         for field, value, rng in (
             ("needle_radius_mm", self.scene.needle_radius_mm, self.task.needle_radius_range_mm),
             ("wire_radius_mm", self.scene.wire_radius_mm, self.task.wire_radius_range_mm),
         ):
-            _check(
+            require(
                 rng is None or rng[0] - 1e-9 <= value <= rng[1] + 1e-9,
                 f"scene.{field}",
                 value,

@@ -12,14 +12,13 @@ axis (a hand-eye calibration error).
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 
 from regrasp_mjx import geometry
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.config import require_numbers
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.rollout import rollout
 from regrasp_mjx.sampling import Episode
@@ -36,10 +35,7 @@ class NeedleNoise:
     bias_mm: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("sigma_mm", "bias_mm"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 10.0):
-                raise ConfigError(f"{name}={v!r} is not accepted: a noise level in [0, 10] mm")
+        require_numbers(self, ("sigma_mm", "bias_mm"), lambda v: 0.0 <= v <= 10.0, "a noise level in [0, 10] mm")
 
 
 def _rotate(axis_key: jax.Array, angle: jax.Array, quat: jax.Array) -> jax.Array:

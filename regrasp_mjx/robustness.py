@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
-import math
 import os
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.config import ConfigError, is_number, require
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.policy_file import resolve
@@ -71,8 +70,7 @@ def check_condition(sigma_mm: float, bias_mm: float, clearance_mm: float) -> Non
         ("bias_mm", bias_mm, MAX_NOISE_MM),
         ("clearance_mm", clearance_mm, MAX_CLEARANCE_MM),
     ):
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= hi):
-            raise ConfigError(f"{name}={v!r} is not accepted: a finite number of millimetres in [0, {hi:g}]")
+        require(is_number(v) and 0.0 <= v <= hi, name, v, f"a finite number of millimetres in [0, {hi:g}]")
 
 
 CONDITIONS = (

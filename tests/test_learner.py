@@ -11,12 +11,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from regrasp_mjx.agents.dagger import DistillConfig
 from regrasp_mjx.agents.ddpg_bc import checkpoint, losses
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, PAPER_LEARNER, Exploration, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.learner import Learner
 from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.planning.episodes import make_replay, replay_paths, save_demos
+from regrasp_mjx.planning.ompl_planner import PlannerConfig
+from regrasp_mjx.planning.pool import PlannerPool
 from regrasp_mjx.policy import PolicyError, load_policy, save_policy
 from regrasp_mjx.testset import make_testset
 
@@ -188,6 +192,27 @@ def test_train_config_errors():
     with pytest.raises(ConfigError, match="random_eps=2 is not accepted"):
         Exploration(random_eps=2)
     assert make_config("smoke", **{"env.horizon": 50}).env.horizon == 50
+
+
+@pytest.mark.parametrize(
+    "build, message",
+    [
+        (lambda: make_config("smoke", polyak=True), "polyak=True is not accepted: a number in [0.0, 1.0]"),
+        (lambda: make_config("smoke", epochs=2.0), "epochs=2.0 is not accepted: an integer >= 1"),
+        (lambda: make_config("smoke", critic_layer_norm=1), "critic_layer_norm=1 is not accepted: True or False"),
+        (lambda: make_config("smoke", lr_actor=float("inf")), "lr_actor=inf is not accepted: a finite number > 0"),
+        (lambda: DistillConfig(lookahead=0), "distill.lookahead=0 is not accepted: an integer >= 1"),
+        (lambda: DistillConfig(buffer_size=8), "distill.buffer_size=8 is not accepted: at least one batch"),
+        (lambda: PlannerConfig(simplify_s=-1.0), "simplify_s=-1.0 is not accepted: a finite number >= 0"),
+        (lambda: NeedleNoise(sigma_mm=11.0), "sigma_mm=11.0 is not accepted: a noise level in [0, 10] mm"),
+        (lambda: PlannerPool(1, queue_size=0), "queue_size=0 is not accepted: an integer >= 1"),
+    ],
+)
+def test_every_config_says_what_was_wrong_in_one_form(build, message):
+    """One error type and one sentence shape for every config: FIELD=VALUE is not accepted: WHAT IS."""
+    with pytest.raises(ConfigError) as err:
+        build()
+    assert str(err.value) == message
 
 
 # ---- a tiny problem: wide jaws, straight-line demonstrations ---------------------------------------

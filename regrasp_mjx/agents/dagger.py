@@ -20,7 +20,6 @@ jitted program each; the host picks the iteration best on validation problems of
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 from typing import Any
 
@@ -32,7 +31,7 @@ from brax.training.acme import running_statistics, specs
 from flax import struct
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.config import ConfigError, is_integer, require, require_integers, require_numbers
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.estimates import noisy_observation
 from regrasp_mjx.rollout import rollout
@@ -88,32 +87,17 @@ class DistillConfig:
     goal_tolerance: float = 1.0
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.goal_tolerance, (int, float)) and 0.1 <= self.goal_tolerance <= 1.0):
-            raise ConfigError(f"distill.goal_tolerance={self.goal_tolerance!r} is not accepted: a fraction in [0.1, 1]")
-        for name in ("obs_noise_mm", "obs_bias_mm"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 <= v <= 5):
-                raise ConfigError(f"distill.{name}={v!r} is not accepted: a noise level in [0, 5] mm")
-        if not (isinstance(self.iterations, int) and self.iterations >= 0):
-            raise ConfigError(f"distill.iterations={self.iterations!r} is not accepted: an integer >= 0")
-        for name in ("problems", "label_states", "updates", "batch_size", "buffer_size", "lookahead"):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
-                raise ConfigError(f"distill.{name}={v!r} is not accepted: an integer >= 1")
-        if not (isinstance(self.seed, int) and self.seed >= 0):
-            raise ConfigError(f"distill.seed={self.seed!r} is not accepted: an integer >= 0")
-        if not (isinstance(self.validation_size, int) and self.validation_size >= 1):
-            raise ConfigError(f"distill.validation_size={self.validation_size!r} is not accepted: an integer >= 1")
-        if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
-            raise ConfigError(f"distill.hidden={self.hidden!r} is not accepted: a tuple of positive layer sizes")
-        for name in ("lr", "correction_weight"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"distill.{name}={v!r} is not accepted: a finite number > 0")
-        if not (isinstance(self.lr_decay_to, (int, float)) and 0.0 < self.lr_decay_to <= 1.0):
-            raise ConfigError(f"distill.lr_decay_to={self.lr_decay_to!r} is not accepted: a fraction in (0, 1]")
-        if self.buffer_size < self.batch_size:
-            raise ConfigError(f"distill.buffer_size={self.buffer_size} is not accepted: at least one batch")
+        d = "distill."  # the field's name as --set and the TrainConfig spell it
+        require_numbers(self, ("goal_tolerance",), lambda v: 0.1 <= v <= 1.0, "a fraction in [0.1, 1]", d)
+        require_numbers(self, ("obs_noise_mm", "obs_bias_mm"), lambda v: 0 <= v <= 5, "a noise level in [0, 5] mm", d)
+        require_integers(self, ("iterations", "seed"), 0, d)
+        names = ("problems", "label_states", "updates", "batch_size", "buffer_size", "lookahead", "validation_size")
+        require_integers(self, names, 1, d)
+        ok = bool(self.hidden) and all(is_integer(h) and h > 0 for h in self.hidden)
+        require(ok, d + "hidden", self.hidden, "a tuple of positive layer sizes")
+        require_numbers(self, ("lr", "correction_weight"), lambda v: v > 0, "a finite number > 0", d)
+        require_numbers(self, ("lr_decay_to",), lambda v: 0.0 < v <= 1.0, "a fraction in (0, 1]", d)
+        require(self.buffer_size >= self.batch_size, d + "buffer_size", self.buffer_size, "at least one batch")
 
 
 @struct.dataclass

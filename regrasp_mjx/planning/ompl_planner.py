@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.config import require, require_numbers
 from regrasp_mjx.geometry import unit_quaternions
 from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
 
@@ -55,16 +55,11 @@ class PlannerConfig:
     rrt_range_mm: float = 2.0
 
     def __post_init__(self) -> None:
-        if self.planner not in PLANNERS:
-            raise ConfigError(f"planner={self.planner!r} is not accepted: one of {PLANNERS}")
-        if self.direction not in DIRECTIONS:
-            raise ConfigError(f"direction={self.direction!r} is not accepted: one of {DIRECTIONS}")
-        for name in ("budget_s", "margin_mm", "rotation_weight_mm", "check_step_mm", "rrt_range_mm"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
-        if not (math.isfinite(self.simplify_s) and self.simplify_s >= 0):
-            raise ConfigError(f"simplify_s={self.simplify_s!r} is not accepted: a finite number >= 0")
+        require(self.planner in PLANNERS, "planner", self.planner, f"one of {PLANNERS}")
+        require(self.direction in DIRECTIONS, "direction", self.direction, f"one of {DIRECTIONS}")
+        names = ("budget_s", "margin_mm", "rotation_weight_mm", "check_step_mm", "rrt_range_mm")
+        require_numbers(self, names, lambda v: v > 0, "a finite number > 0")
+        require_numbers(self, ("simplify_s",), lambda v: v >= 0, "a finite number >= 0")
 
 
 @dataclasses.dataclass

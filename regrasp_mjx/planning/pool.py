@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx.config import SceneConfig
+from regrasp_mjx.config import SceneConfig, is_integer, is_number, require
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
 from regrasp_mjx.scene import load_scene
@@ -134,10 +134,9 @@ class PlannerPool:
         queue_size: int = 1024,
         timeout_s: float = 60.0,
     ):
-        if not isinstance(workers, int) or workers < 1:
-            raise ValueError(f"workers={workers!r} is not accepted: an integer >= 1")
-        if queue_size < 1 or not timeout_s > 0:
-            raise ValueError(f"queue_size >= 1 and timeout_s > 0 are required, got {queue_size}, {timeout_s}")
+        require(is_integer(workers) and workers >= 1, "workers", workers, "an integer >= 1")
+        require(is_integer(queue_size) and queue_size >= 1, "queue_size", queue_size, "an integer >= 1")
+        require(is_number(timeout_s) and timeout_s > 0, "timeout_s", timeout_s, "a finite number of seconds > 0")
         self._ctx = mp.get_context("spawn")
         self._plan_fn, self._options = plan_fn, dict(options or {})
         self.queue_size, self.timeout_s = queue_size, float(timeout_s)

@@ -6,7 +6,17 @@ import dataclasses
 import math
 
 from regrasp_mjx.agents.dagger import DistillConfig
-from regrasp_mjx.config import GENERAL_TASK, ConfigError, EnvConfig, replace
+from regrasp_mjx.config import (
+    GENERAL_TASK,
+    ConfigError,
+    EnvConfig,
+    is_integer,
+    replace,
+    require,
+    require_flags,
+    require_integers,
+    require_numbers,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -20,14 +30,10 @@ class Exploration:
     targeted_eps_growth: float = 4.5e-3  # dE_T
 
     def __post_init__(self) -> None:
-        for name in ("random_eps", "targeted_eps"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
-                raise ConfigError(f"{name}={v!r} is not accepted: a probability in [0, 1]")
-        for name in ("random_eps_decay", "targeted_eps_growth"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
-                raise ConfigError(f"{name}={v!r} is not accepted: a step in [0, 1]")
+        require_numbers(self, ("random_eps", "targeted_eps"), lambda v: 0.0 <= v <= 1.0, "a probability in [0, 1]")
+        require_numbers(
+            self, ("random_eps_decay", "targeted_eps_growth"), lambda v: 0.0 <= v <= 1.0, "a step in [0, 1]"
+        )
 
     def at(self, iteration: int) -> tuple[float, float]:
         """``(E_R, E_T)`` in force during ``iteration`` (0-based)."""
@@ -157,72 +163,40 @@ class TrainConfig:
     shard: str = "auto"
 
     def __post_init__(self) -> None:
-        def positive_int(name: str, lo: int = 1) -> None:
-            v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= lo):
-                raise ConfigError(f"{name}={v!r} is not accepted: an integer >= {lo}")
-
-        for name in (
-            "num_envs",
-            "updates_per_iteration",
-            "iterations_per_epoch",
-            "epochs",
-            "batch_size",
-            "buffer_size",
-            "target_every",
-            "num_demos",
-            "planner_queue",
-            "demo_chunk",
-            "num_seeds",
-            "checkpoint_every",
-        ):
-            positive_int(name)
-        positive_int("planner_workers", 0)
-        positive_int("seed", 0)
-        positive_int("devices", 0)
-        positive_int("bc_decay_epochs", 0)
+        require_integers(
+            self,
+            ("num_envs", "updates_per_iteration", "iterations_per_epoch", "epochs", "batch_size", "buffer_size",
+             "target_every", "num_demos", "planner_queue", "demo_chunk", "num_seeds", "checkpoint_every"),
+            1,
+        )  # fmt: skip
+        require_integers(self, ("planner_workers", "seed", "devices", "bc_decay_epochs"), 0)
         for name, lo, hi in (("gamma", 0.0, 0.9999), ("polyak", 0.0, 1.0), ("demo_fraction", 0.0, 0.99)):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and lo <= v <= hi):
-                raise ConfigError(f"{name}={v!r} is not accepted: a number in [{lo}, {hi}]")
-        for name in ("lr_actor", "lr_critic", "planner_budget_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"{name}={v!r} is not accepted: a finite number > 0")
-        if self.critics not in (1, 2):
-            raise ConfigError(f"critics={self.critics!r} is not accepted: 1 (the paper) or 2 (clipped double Q)")
-        if not (isinstance(self.bc_decay_to, (int, float)) and 0.0 <= self.bc_decay_to <= 1.0):
-            raise ConfigError(f"bc_decay_to={self.bc_decay_to!r} is not accepted: a fraction in [0, 1]")
-        if not isinstance(self.action_l2_decay, bool):
-            raise ConfigError(f"action_l2_decay={self.action_l2_decay!r} is not accepted: True or False")
-        if not isinstance(self.critic_layer_norm, bool):
-            raise ConfigError(f"critic_layer_norm={self.critic_layer_norm!r} is not accepted: True or False")
-        if not (isinstance(self.actor_ema, (int, float)) and 0.0 <= self.actor_ema < 1.0):
-            raise ConfigError(f"actor_ema={self.actor_ema!r} is not accepted: a decay in [0, 1) (0 = off)")
-        if not (isinstance(self.lr_decay_to, (int, float)) and 0.0 < self.lr_decay_to <= 1.0):
-            raise ConfigError(f"lr_decay_to={self.lr_decay_to!r} is not accepted: a fraction in (0, 1] (1 = constant)")
-        for name in ("action_l2", "prm_coef", "bc_coef", "action_noise", "target_noise", "target_noise_clip"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ConfigError(f"{name}={v!r} is not accepted: a finite number >= 0")
-        for name in ("obs_noise_mm", "obs_bias_mm"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 5):
-                raise ConfigError(f"{name}={v!r} is not accepted: a noise level in [0, 5] mm")
-        if self.shard not in ("auto", "members", "envs"):
-            raise ConfigError(f"shard={self.shard!r} is not accepted: one of 'auto', 'members', 'envs'")
+            require_numbers(self, (name,), lambda v, lo=lo, hi=hi: lo <= v <= hi, f"a number in [{lo}, {hi}]")
+        require_numbers(self, ("lr_actor", "lr_critic", "planner_budget_s"), lambda v: v > 0, "a finite number > 0")
+        require(self.critics in (1, 2), "critics", self.critics, "1 (the paper) or 2 (clipped double Q)")
+        require_numbers(self, ("bc_decay_to",), lambda v: 0.0 <= v <= 1.0, "a fraction in [0, 1]")
+        require_flags(self, ("action_l2_decay", "critic_layer_norm"))
+        require_numbers(self, ("actor_ema",), lambda v: 0.0 <= v < 1.0, "a decay in [0, 1) (0 = off)")
+        require_numbers(self, ("lr_decay_to",), lambda v: 0.0 < v <= 1.0, "a fraction in (0, 1] (1 = constant)")
+        require_numbers(
+            self,
+            ("action_l2", "prm_coef", "bc_coef", "action_noise", "target_noise", "target_noise_clip"),
+            lambda v: v >= 0,
+            "a finite number >= 0",
+        )
+        require_numbers(self, ("obs_noise_mm", "obs_bias_mm"), lambda v: 0 <= v <= 5, "a noise level in [0, 5] mm")
+        require(self.shard in ("auto", "members", "envs"), "shard", self.shard, "one of 'auto', 'members', 'envs'")
         names = [s[0] for s in self.settings]
-        if len(set(names)) != len(names) or not all(isinstance(n, str) and n for n in names):
-            raise ConfigError(f"settings={names!r} is not accepted: distinct, non-empty names")
-        if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
-            raise ConfigError(f"hidden={self.hidden!r} is not accepted: a tuple of positive layer sizes")
+        ok = len(set(names)) == len(names) and all(isinstance(n, str) and n for n in names)
+        require(ok, "settings", names, "distinct, non-empty names")
+        ok = bool(self.hidden) and all(is_integer(h) and h > 0 for h in self.hidden)
+        require(ok, "hidden", self.hidden, "a tuple of positive layer sizes")
         if self.demo_batch < 1 or self.demo_batch >= self.batch_size:
             raise ConfigError(
                 f"batch_size={self.batch_size} with demo_fraction={self.demo_fraction} leaves no "
                 "room for online or demonstration samples; accepted: 1 <= round(batch * fraction) < batch"
             )
-        if self.buffer_size < self.online_batch:
-            raise ConfigError(f"buffer_size={self.buffer_size} is not accepted: at least one online batch")
+        require(self.buffer_size >= self.online_batch, "buffer_size", self.buffer_size, "at least one online batch")
 
     @property
     def demo_batch(self) -> int:
