@@ -24,10 +24,12 @@ from regrasp_mjx.atomic import write_text
 
 
 class Phases:
-    """Wall-clock seconds per named phase, summed until :meth:`take` (phases may repeat)."""
+    """Wall-clock seconds per named phase (phases may repeat): :meth:`take` gives those since the last
+    take, :meth:`totals` those of the whole run."""
 
     def __init__(self) -> None:
         self._seconds: dict[str, float] = defaultdict(float)
+        self._totals: dict[str, float] = defaultdict(float)
 
     @contextmanager
     def __call__(self, name: str) -> Iterator[None]:
@@ -41,10 +43,17 @@ class Phases:
         self._seconds[name] += seconds
 
     def take(self) -> dict[str, float]:
-        """The sums so far (rounded to 0.1 ms), and a fresh start."""
+        """The sums since the last take (rounded to 0.1 ms), and a fresh start."""
         out = {k: round(v, 4) for k, v in self._seconds.items()}
+        for k, v in self._seconds.items():
+            self._totals[k] += v
         self._seconds.clear()
         return out
+
+    def totals(self) -> dict[str, float]:
+        """Every phase's seconds since the start (what is not taken yet included)."""
+        self.take()
+        return {k: round(v, 4) for k, v in self._totals.items()}
 
 
 class BestOf:

@@ -63,8 +63,6 @@ class Run:
             self.demos = self._demos(demos_dir)
         with self.phases("setup"):
             self.learner = Learner(cfg)
-        self.setup_timing = self.phases.take()  # reported in final_eval.json and the first epoch's rows
-        self.epoch_timing: dict[str, float] = {}
 
     def log(self, msg: str) -> None:
         if not self.quiet and distributed.is_main():
@@ -187,23 +185,22 @@ class Run:
                 t_epoch = time.perf_counter()
                 metrics_acc: list[dict[str, np.ndarray]] = []
                 outcomes = []
-                done = None  # the iteration whose host work is pending: it runs while the next is on the device
-                for i in range(cfg.iterations_per_epoch + 1):
-                    if i < cfg.iterations_per_epoch:
-                        e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
-                        first = compile_s is None and done is None
-                        t_it = time.perf_counter()
-                        ts, metrics, outcome, problems = learner.iteration(ts, e_r)  # queued behind `done`
-                        if first:
-                            compile_s = time.perf_counter() - t_it  # tracing and compiling block the call
-                            phases.add("compile", compile_s)
-                            self.log(
-                                f"compiled the iteration program in {compile_s:.1f} s (backend {jax.default_backend()})"
-                            )
-                        meta["iteration"] += 1
-                    if done is not None:
-                        ts = self._after_iteration(ts, *done, exchange, rng, metrics_acc, outcomes, meta)
-                    done = (outcome, metrics, problems, e_t) if i < cfg.iterations_per_epoch else None
+                pending = None  # the iteration whose host work is left: it runs while the next is on the device
+                for _ in range(cfg.iterations_per_epoch):
+                    e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
+                    t_it = time.perf_counter()
+                    ts, metrics, outcome, problems = learner.iteration(ts, e_r)  # queued behind `pending`
+                    if compile_s is None:
+                        compile_s = time.perf_counter() - t_it  # tracing and compiling block the call
+                        phases.add("compile", compile_s)
+                        self.log(
+                            f"compiled the iteration program in {compile_s:.1f} s (backend {jax.default_backend()})"
+                        )
+                    meta["iteration"] += 1
+                    if pending is not None:
+                        ts = self._after_iteration(ts, *pending, exchange, rng, metrics_acc, outcomes, meta)
+                    pending = (outcome, metrics, problems, e_t)
+                ts = self._after_iteration(ts, *pending, exchange, rng, metrics_acc, outcomes, meta)
                 # the iterations' rate, host work overlapped; the process's first epoch less the compile
                 iter_s = time.perf_counter() - t_epoch - ((compile_s or 0.0) if epochs_run == 0 else 0.0)
                 eval_s = time.perf_counter()
@@ -220,10 +217,7 @@ class Run:
                 if (epoch + 1) % cfg.checkpoint_every == 0 or epoch + 1 == cfg.epochs:
                     with phases("checkpoint"):  # the copy to the host; the file is written beside the training
                         writer.save(self.ckpt, ts, meta)
-                # the seconds of this epoch's phases (the first epoch's rows add the run's set-up)
-                timing = {**(self.setup_timing if epochs_run == 0 else {}), **phases.take()}
-                for k, v in timing.items():  # and the run's sums, for final_eval.json
-                    self.epoch_timing[k] = self.epoch_timing.get(k, 0.0) + v
+                timing = phases.take()  # this epoch's seconds per phase (the first epoch's hold the set-up)
                 rows = []
                 for m in range(seeds):
                     rows.append(
@@ -317,7 +311,7 @@ class Run:
         last: list[dict[str, Any]],
         compile_s: float | None,
         meta: dict[str, Any],
-        train_s: float = 0.0,
+        train_s: float,
     ) -> dict[str, Any]:
         """Exports each member's last policy beside its best (by validation), tests the best ones
         bare and shielded, distils them when ``distill.iterations`` > 0, and copies each setting's
@@ -365,9 +359,8 @@ class Run:
                     _copy_policy(Path(students[top]["student"]), home / "student" / "policy")
                 entry["student"] = {**students[top], "student": str(home / "student" / "policy")}
             groups[cfg.member_setting(m0)[0]] = entry
-        # the loop's phases summed over epochs (this process's epochs: a resumed run counts from its resume)
-        timing = {**self.setup_timing, **self.epoch_timing, "train": train_s, **self.phases.take()}
-        timing["finish"] = time.perf_counter() - t_finish
+        # every phase summed over this process's run (a resumed run counts from its resume)
+        timing = {**self.phases.totals(), "train": train_s, "finish": time.perf_counter() - t_finish}
         final: dict[str, Any] = {"compile_s": compile_s, "timing": timing, "seeds": members}
         if students is not None:
             final["students"] = students

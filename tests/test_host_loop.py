@@ -24,6 +24,8 @@ def test_phases_sum_repeats_and_start_anew():
     took = phases.take()
     assert 1.03 <= took["wait"] < 1.5 and "fails" in took
     assert phases.take() == {}
+    phases.add("wait", 2.0)  # the run's totals add every take's, and what is not taken yet
+    assert phases.totals()["wait"] == pytest.approx(took["wait"] + 2.0, abs=1e-3) and "fails" in phases.totals()
 
 
 def test_best_of_keeps_the_later_of_equals_and_owns_no_copy():
@@ -87,7 +89,9 @@ def test_resume_trusts_the_state_files_own_metadata(tmp_path):
 
     cfg = TrainConfig()
     state = {"a": np.zeros(3, np.float32)}
-    checkpoint.save(tmp_path, state, {"epoch": 3, "config": checkpoint.config_json(cfg)})
+    writer = checkpoint.Writer()
+    writer.save(tmp_path, state, {"epoch": 3, "config": checkpoint.config_json(cfg)})
+    writer.wait()
     (tmp_path / "meta.json").write_text(json.dumps({"epoch": 2, "config": checkpoint.config_json(cfg)}))
     _, meta = checkpoint.load(tmp_path, state, cfg)
     assert meta["epoch"] == 3
