@@ -130,13 +130,13 @@ def plan(
     (:mod:`regrasp_mjx.lean_planner`, several times faster there; it gives the JAX path's verdicts,
     and its actions to float32 rounding); ``"auto"`` (default) takes the lean one for a single
     query when JAX runs on the CPU."""
-    spec = TaskSpec.of(task)
     if engine not in ENGINES:
         raise ValueError(f"engine={engine!r} is not accepted; accepted: {', '.join(map(repr, ENGINES))}")
     if engine != "jax":
-        one = _lean_one(policy, needle, start, goal, spec, check_grasp, shield)
+        one = _lean_one(policy, needle, start, goal, task, check_grasp, shield)
         if one is not None:  # else a batch, the JAX engine, or input the checks below name
             return one
+    spec = TaskSpec.of(task)
     (needle, start), single = batch_poses(needle=needle, start=start)
     grasp, radii = policy.task_ranges.resolve(len(needle), spec)
     if engine == "auto":
@@ -159,20 +159,20 @@ def plan(
     return _finish(out, single, nearest)
 
 
-def _lean_one(policy: Any, needle: Any, start: Any, goal: Any, spec: TaskSpec, check_grasp: bool, shield: bool):
-    """One query (7-vectors) on the lean path in one compiled call, or None when the input is not
-    one query, the JAX engine runs, or a check failed (the caller's checks then say why). Plain
-    Python around the call: each numpy call here would cost a microsecond of a 50 us plan."""
+def _lean_one(policy: Any, needle: Any, start: Any, goal: Any, task: dict, check_grasp: bool, shield: bool):
+    """One query (7-vectors, ``task`` the goal grasp and needle keywords as given) on the lean path
+    in one compiled call, or None when the input is not one query, the JAX engine runs, or a check
+    failed (the caller's checks then say why, the poses first). Plain Python around the call: each
+    numpy call here would cost a microsecond of a 50 us plan."""
     poses = [x if type(x) is np.ndarray or x is None else np.asarray(x) for x in (needle, start, goal)]
     if any(x is not None and x.shape != (7,) for x in poses) or auto_engine(1) != "lean":
         return None
+    vector = policy.task_ranges.keywords_vector(task)
+    if vector is None:
+        return None
     checked = check_grasp and not policy.general
     library = GraspLibrary.default().unit_arrays if checked else NO_LIBRARY
-    try:
-        task = policy.task_ranges.vector(spec)
-    except PoseError:
-        return None  # the checks below look at the poses first, then name the value
-    one = policy.lean(shield)(*poses, task, library)
+    one = policy.lean(shield)(*poses, vector, library)
     if one.status:
         return None
     nearest = np.float64(one.nearest) if checked else None
@@ -190,8 +190,19 @@ def _lean_plan(one: Any, single: bool, nearest: Any = None) -> Plan:
     fields = (np.bool_(success > 0), np.bool_(collision > 0), np.bool_(time_out > 0), np.bool_(valid > 0))
     fields += (np.int64(steps), np.float32(length * 1e3))
     if single:
-        return Plan(*fields, one.poses, one.actions, nearest_grasp_distance=nearest)
+        return _made(fields + (one.poses, one.actions), nearest)
     return Plan(*(np.array([x]) for x in fields), one.poses[None], one.actions[None], nearest_grasp_distance=nearest)
+
+
+_PLAN_FIELDS = tuple(f.name for f in dataclasses.fields(Plan))
+
+
+def _made(values: tuple, nearest: Any) -> Plan:
+    """``Plan(*values, nearest_grasp_distance=nearest)`` without the frozen dataclass's ``__init__``
+    (it sets each of the 12 fields through ``object.__setattr__``: 3 us of a 60 us plan)."""
+    plan = object.__new__(Plan)
+    plan.__dict__.update(zip(_PLAN_FIELDS, values + (None, nearest, None, None)))
+    return plan
 
 
 def _first(x):

@@ -87,6 +87,7 @@ class TaskSpec:
 
 TASK_FIELDS = tuple(f.name for f in dataclasses.fields(TaskSpec))
 PLAIN = TaskSpec()  # no goal grasp or needle given
+_COLUMN = {name: col for col, name in enumerate(TASK_FIELDS)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,23 +170,32 @@ class TaskRanges:
         return grasp, values[:, 4:] * 1e-3
 
     def vector(self, spec: TaskSpec) -> np.ndarray:
-        """One query's ``(alpha*, d*, theta*, phi*, R, wire)`` [m], as the lean planner takes it.
-        Scalars are checked in plain floats (numpy's calls would cost a fifth of a lean plan); any
-        other input, or a value out of range, goes through :meth:`resolve` (which names it)."""
+        """One query's ``(alpha*, d*, theta*, phi*, R, wire)`` [m], as the lean planner takes it; any
+        input :meth:`keywords_vector` does not take, or a value out of range, goes through
+        :meth:`resolve` (which names it)."""
         if spec.plain:
             return self._plain_vector
+        v = self.keywords_vector({name: getattr(spec, name) for name in TASK_FIELDS})
+        return self._vector_of(spec) if v is None else v
+
+    def keywords_vector(self, task: dict[str, Any]) -> np.ndarray | None:
+        """:meth:`vector` of ``Policy.plan``'s keywords as given (no :class:`TaskSpec` made), or None
+        where a name is unknown, a value is not a scalar or None, or a value is out of range: the
+        caller's checks then name it. Checked in plain floats (numpy's calls, and making the spec,
+        would cost a tenth of a lean plan)."""
+        if not task:
+            return self._plain_vector
         (lo, hi), values = self._bounds, self._default_list.copy()
-        for col, name in enumerate(TASK_FIELDS):
-            given = getattr(spec, name)
-            if given is None:
-                continue
-            if not isinstance(given, (float, int, np.floating, np.integer)):
-                return self._vector_of(spec)
-            values[col] = float(given)
+        for name, given in task.items():
+            col = _COLUMN.get(name)
+            if col is None or not (given is None or isinstance(given, (float, int, np.floating, np.integer))):
+                return None
+            if given is not None:
+                values[col] = float(given)
         if hi[2][0] - lo[2][0] >= 2 * math.pi - 1e-6:  # any azimuth: wrapped into the trained turn
             values[2] = lo[2][0] + (values[2] - lo[2][0]) % (2 * math.pi)
         if not all(math.isfinite(v) and lo[c][1] <= v <= hi[c][1] for c, v in enumerate(values)):
-            return self._vector_of(spec)
+            return None
         return np.array([values[0], values[1] * 1e-3, values[2], values[3], values[4] * 1e-3, values[5] * 1e-3])
 
     def _vector_of(self, spec: TaskSpec) -> np.ndarray:
