@@ -1,6 +1,6 @@
-"""The collision model for one query, compiled with numba (the lean planner's): the counted pairs'
-capsules (:meth:`regrasp_mjx.scene.Scene.distance_fn`'s), placed for a needle once per query and
-tested for one end-effector pose at a time.
+"""The collision model for one query, compiled with numba (the lean planner's and the OMPL planners'
+``checker="lean"``): the counted pairs' capsules (:meth:`regrasp_mjx.scene.Scene.distance_fn`'s),
+placed for a needle once per query and tested for one end-effector pose, or one motion, at a time.
 
 A collision test needs only whether the closest counted pair comes nearer than a threshold, not
 its distance, so each pair is first bounded from below by its capsules' bounding spheres (a few
@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit
 
 from regrasp_mjx.lean_geometry import matrix, rotate
+from regrasp_mjx.scene import Scene, load_scene, needle_scene
 
 # chords per bounding capsule in the collision test (7 x 8 for the MJCF's 56; measured fastest of
 # 4, 7, 8 and 14 with experiments/bench_plan.py)
@@ -257,3 +258,96 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold):
                 if segment_distance(tool, t, f.other, o) - f.sums[geo.pair_index[t, o]] < threshold:
                     return True
     return False
+
+
+# ---- one pose or one motion at a time: the OMPL planners' checker ---------------------------------
+
+
+@njit(cache=True)
+def _pose_collides(geo_t, fixed_t, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid):
+    """:func:`collides` of the pose ``(x, y, z, qw, qx, qy, qz)``, its quaternion normalised (as
+    MuJoCo's kinematics does for the host checker)."""
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    q = (qw / n, qx / n, qy / n, qz / n)
+    return collides(Capsules(*geo_t), Fixed(*fixed_t), (x, y, z), q, tool, tool_mid, threshold)
+
+
+@njit(cache=True)
+def _motion_collides(geo_t, fixed_t, a, b, segments, threshold, tool, tool_mid):
+    """Whether ``b`` or a pose between ``a`` and ``b`` (7-vectors) at ``k / segments``, k = 1 ...
+    segments - 1, collides: the states OMPL's ``DiscreteMotionValidator`` checks (positions linear,
+    rotations as ``ompl::base::SO3StateSpace::interpolate`` slerps them), the verdict in one call."""
+    if _pose_collides(geo_t, fixed_t, b[0], b[1], b[2], b[3], b[4], b[5], b[6], threshold, tool, tool_mid):
+        return True
+    dq = a[3] * b[3] + a[4] * b[4] + a[5] * b[5] + a[6] * b[6]
+    theta = 0.0 if abs(dq) > 1.0 - 1e-9 else math.acos(abs(dq))  # SO3StateSpace::distance
+    for k in range(1, segments):
+        t = k / segments
+        x, y, z = a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t
+        if theta > 2.220446049250313e-16:
+            d, s0, s1 = 1.0 / math.sin(theta), math.sin((1.0 - t) * theta), math.sin(t * theta)
+            s1 = -s1 if dq < 0.0 else s1  # the shorter way round
+            qw, qx = (a[3] * s0 + b[3] * s1) * d, (a[4] * s0 + b[4] * s1) * d
+            qy, qz = (a[5] * s0 + b[5] * s1) * d, (a[6] * s0 + b[6] * s1) * d
+        else:
+            qw, qx, qy, qz = a[3], a[4], a[5], a[6]
+        if _pose_collides(geo_t, fixed_t, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid):
+            return True
+    return False
+
+
+@njit(cache=True)
+def _placed(geo_t, varies, needle, radius, wire):
+    """The needle at ``needle`` (7-vector) placed once: :class:`Fixed` as a tuple."""
+    p = (needle[0], needle[1], needle[2])
+    return fixed_ends(Capsules(*geo_t), varies, p, (needle[3], needle[4], needle[5], needle[6]), radius, wire)
+
+
+class LeanChecker:
+    """:class:`regrasp_mjx.host.HostChecker`'s collision verdict (a counted pair closer than
+    ``clearance_mm``; 0: penetrating) from the same capsules, tested by this module's compiled code
+    instead of CPU MuJoCo: several times faster a pose, and a whole motion in one call
+    (:meth:`motion_collides`). Other needles are the scene's scaled, as the environment scales them
+    (:meth:`for_needle`). Not thread-safe (it owns scratch arrays)."""
+
+    def __init__(self, scene: Scene | None = None, clearance_mm: float = 0.0):
+        if not (isinstance(clearance_mm, (int, float)) and math.isfinite(clearance_mm) and clearance_mm >= 0.0):
+            raise ValueError(f"clearance_mm={clearance_mm!r} is not accepted: a margin >= 0 in millimetres")
+        self.scene = scene if scene is not None else load_scene()
+        self.clearance_mm = float(clearance_mm)
+        self.margin = self.clearance_mm * 1e-3
+        geo = capsules(self.scene.capsule_frames, self.scene.config.needle_radius_mm * 1e-3)
+        self.geo = tuple(geo)  # a plain tuple: numba types it in C
+        self.needle_size = (False, geo.radius0, self.scene.config.wire_radius_mm * 1e-3)
+        self.scratch = (np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)))
+
+    def for_needle(self, radius: float | None, wire: float | None) -> LeanChecker:
+        """A checker of the same margin around another needle (radius and wire radius [m]; None
+        keeps this one's): this checker itself when the needle is its scene's."""
+        if needle_scene(self.scene, radius, wire) is self.scene:  # no new scene made when it is the same
+            return self
+        other = LeanChecker.__new__(LeanChecker)
+        other.__dict__.update(self.__dict__)
+        _, r0, w0 = self.needle_size
+        other.needle_size = (True, r0 if radius is None else float(radius), w0 if wire is None else float(wire))
+        other.scratch = tuple(np.empty_like(s) for s in self.scratch)
+        return other
+
+    def place(self, needle: np.ndarray) -> tuple:
+        """The needle at ``needle`` (7-vector) placed for :meth:`pose_collides` and :meth:`motion_collides`."""
+        varies, radius, wire = self.needle_size
+        return tuple(_placed(self.geo, varies, np.asarray(needle, np.float64), radius, wire))
+
+    def collides(self, needle_pos, needle_quat, ee_pos, ee_quat) -> bool:
+        """:meth:`regrasp_mjx.host.HostChecker.collides`: whether the pose collides."""
+        placed = self.place(np.concatenate([needle_pos, needle_quat]))
+        return self.pose_collides(placed, *np.asarray(ee_pos, np.float64), *np.asarray(ee_quat, np.float64))
+
+    def pose_collides(self, placed: tuple, x, y, z, qw, qx, qy, qz) -> bool:
+        """Whether the pose collides with the needle :meth:`place` placed."""
+        return _pose_collides(self.geo, placed, x, y, z, qw, qx, qy, qz, self.margin, *self.scratch)
+
+    def motion_collides(self, placed: tuple, a: np.ndarray, b: np.ndarray, segments: int) -> bool:
+        """Whether ``b`` or a pose between ``a`` and ``b`` at ``k / segments`` collides (OMPL's
+        discrete motion check, one call for the whole motion)."""
+        return _motion_collides(self.geo, placed, a, b, segments, self.margin, *self.scratch)

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
+from regrasp_mjx.lean_collision import LeanChecker
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, path_to_actions, replay_paths
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
 from regrasp_mjx.planning.pool import PlannerPool
@@ -93,6 +94,73 @@ def test_rrt_connect_plans_start_to_goal_around_the_needle(paper_testset, direct
             assert result.path_length_mm >= np.linalg.norm(goal[:3] - start[:3]) * 1e3 - 1e-9
 
 
+@pytest.mark.parametrize("margin_mm, radius_mm, wire_mm", [(0.0, None, None), (0.1, None, None), (0.0, 9.0, 0.3)])
+def test_the_lean_checker_gives_the_host_checkers_verdicts(paper_testset, margin_mm, radius_mm, wire_mm):
+    """LeanChecker (compiled capsule tests) against HostChecker (CPU MuJoCo) on poses between each
+    problem's start and goal, shaken so that about half collide: the same verdict on every pose, at
+    a margin too and for another needle (the scene's scaled against a scene built for that needle)."""
+    episodes, _ = paper_testset
+    size = (None if radius_mm is None else radius_mm * 1e-3, None if wire_mm is None else wire_mm * 1e-3)
+    host = HostChecker(clearance_mm=margin_mm).for_needle(*size)
+    lean = LeanChecker(clearance_mm=margin_mm).for_needle(*size)
+    rng = np.random.default_rng(0)
+    verdicts = []
+    for i in range(40):
+        needle, start, goal = _problem(episodes, i)
+        for _ in range(12):
+            s = rng.uniform(0.0, 1.2)
+            pos = start[:3] + s * (goal[:3] - start[:3]) + rng.normal(0.0, 0.5e-3, 3)
+            quat = start[3:] + s * (goal[3:] - start[3:]) + rng.normal(0.0, 0.05, 4)
+            quat /= np.linalg.norm(quat)
+            verdicts.append(
+                (host.collides(needle[:3], needle[3:], pos, quat), lean.collides(needle[:3], needle[3:], pos, quat))
+            )
+    host_v, lean_v = np.array(verdicts).T
+    assert 0.2 < host_v.mean() < 0.8  # both kinds of pose were tested
+    np.testing.assert_array_equal(lean_v, host_v)
+
+
+def test_the_lean_checker_checks_a_motion_as_ompl_does(paper_testset):
+    """``motion_collides`` is the end pose or any of OMPL's ``k / n`` states between (positions
+    linear, rotations slerped the shorter way): against the per-pose test of those states."""
+    episodes, _ = paper_testset
+    lean, seen = LeanChecker(), set()
+    for i in range(10):
+        needle, start, goal = _problem(episodes, i)
+        b = goal.copy()
+        b[3:] = -b[3:] if i % 2 else b[3:]  # the same rotation with the other sign: the shorter way still
+        placed = lean.place(needle)
+        n = 25
+        rotvec = quat_to_rotvec(quat_mul(goal[3:], quat_conj(start[3:])))
+        poses = [
+            np.r_[start[:3] + k / n * (goal[:3] - start[:3]), quat_mul(quat_from_rotvec(k / n * rotvec), start[3:])]
+            for k in range(1, n + 1)
+        ]
+        expected = any(lean.pose_collides(placed, *p) for p in poses)
+        assert lean.motion_collides(placed, start, b, n) == expected
+        seen.add(expected)
+    assert seen == {True, False}  # motions through the needle and clear of it
+    assert not lean.motion_collides(placed, start, start, 5)  # a start that is free stays free
+
+
+@pytest.mark.parametrize("planner", ["RRTConnect", "BITstar"])
+def test_a_planner_with_the_lean_checker_plans_the_same_paths(paper_testset, planner):
+    """The same seed and the same verdicts: RRT-Connect (shortcut too) and BIT* return the very
+    paths they return over CPU MuJoCo."""
+    episodes, _ = paper_testset
+    for simplify in (0.0, 0.2) if planner == "RRTConnect" else (0.0,):
+        paths = {}
+        for checker in ("mujoco", "lean"):
+            cfg = PlannerConfig(
+                planner=planner, direction="forward", budget_s=5.0, simplify_s=simplify, checker=checker
+            )
+            one = OmplPlanner(cfg, seed=3)
+            assert isinstance(one.checker, LeanChecker) == (checker == "lean")
+            paths[checker] = [one.plan(*_problem(episodes, i)).poses for i in range(4)]
+        for a, b in zip(paths["mujoco"], paths["lean"]):
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
+
+
 def test_a_demonstration_replays_to_success_with_plus_one_last(env, paper_testset, bit_reverse_plans):
     episodes, _ = paper_testset
     rows = [i for i, _ in bit_reverse_plans]
@@ -142,6 +210,10 @@ def test_bad_planner_inputs():
         PlannerConfig(planner="RRT")
     with pytest.raises(ValueError, match="budget_s=0 is not accepted"):
         PlannerConfig(budget_s=0)
+    with pytest.raises(ConfigError, match="checker='fcl' is not accepted: one of"):
+        PlannerConfig(checker="fcl")
+    with pytest.raises(ValueError, match="clearance_mm=-1 is not accepted"):
+        LeanChecker(clearance_mm=-1)
     planner = OmplPlanner(PlannerConfig(budget_s=0.1))
     good = np.r_[0, 0, 0, 1.0, 0, 0, 0]
     with pytest.raises(ValueError, match="start pose must be 7 finite numbers"):

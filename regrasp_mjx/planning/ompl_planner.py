@@ -2,7 +2,8 @@
 
 The state is the regrasping end-effector pose in the grasping end-effector frame. A state is valid
 when it lies in the planning box and the scene has no counted collision (CPU MuJoCo, the same MJCF
-and filtering as the MJX environment). Motions are checked at a resolution that no tool point moves
+and filtering as the MJX environment; or, with ``checker="lean"``, the same capsule pairs tested by
+compiled code, a whole motion per call). Motions are checked at a resolution that no tool point moves
 more than ``check_step_mm`` between checks (see :func:`make_setup`), well under the 1.7 mm window in
 which a jaw passing through the wire would show as a penetration.
 
@@ -22,9 +23,11 @@ import numpy as np
 from regrasp_mjx.config import require, require_numbers
 from regrasp_mjx.geometry import unit_quaternions
 from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
+from regrasp_mjx.lean_collision import LeanChecker
 
 PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar", "RRTConnect")
 DIRECTIONS = ("forward", "reverse")
+CHECKERS = ("mujoco", "lean")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +46,11 @@ class PlannerConfig:
       check_step_mm: largest motion of any tool point between two checked states.
       rrt_range_mm: RRT*'s and RRT-Connect's longest extension (OMPL's "range"), in the weighted
         SE(3) distance.
+      checker: ``mujoco`` (:class:`~regrasp_mjx.host.HostChecker`: CPU MuJoCo's collision of the
+        counted capsule pairs, a Python call per checked state) or ``lean``
+        (:class:`~regrasp_mjx.lean_collision.LeanChecker`: the same pairs and verdicts from the
+        lean planner's compiled test, a whole motion's states in one call). Same verdicts (tested),
+        so the same plans for the same seed; ``lean`` is faster.
     """
 
     planner: str = "BITstar"
@@ -53,10 +61,12 @@ class PlannerConfig:
     rotation_weight_mm: float = 10.2
     check_step_mm: float = 0.25
     rrt_range_mm: float = 2.0
+    checker: str = "mujoco"
 
     def __post_init__(self) -> None:
         require(self.planner in PLANNERS, "planner", self.planner, f"one of {PLANNERS}")
         require(self.direction in DIRECTIONS, "direction", self.direction, f"one of {DIRECTIONS}")
+        require(self.checker in CHECKERS, "checker", self.checker, f"one of {CHECKERS}")
         names = ("budget_s", "margin_mm", "rotation_weight_mm", "check_step_mm", "rrt_range_mm")
         require_numbers(self, names, lambda v: v > 0, "a finite number > 0")
         require_numbers(self, ("simplify_s",), lambda v: v >= 0, "a finite number >= 0")
@@ -105,11 +115,18 @@ def translation_length_mm(poses: np.ndarray) -> float:
 
 
 class OmplPlanner:
-    """Plans one problem at a time; owns a :class:`HostChecker`. Not thread-safe."""
+    """Plans one problem at a time; owns its collision checker (``config.checker``'s kind: a given
+    :class:`HostChecker` is turned into a :class:`LeanChecker` of its scene and margin for
+    ``checker="lean"``). Not thread-safe."""
 
-    def __init__(self, config: PlannerConfig = PlannerConfig(), checker: HostChecker | None = None, seed: int = 0):
+    def __init__(
+        self, config: PlannerConfig = PlannerConfig(), checker: HostChecker | LeanChecker | None = None, seed: int = 0
+    ):
         self.config = config
-        self.checker = checker if checker is not None else HostChecker()
+        checker = checker if checker is not None else HostChecker()
+        if config.checker == "lean" and not isinstance(checker, LeanChecker):
+            checker = LeanChecker(checker.scene, checker.clearance_mm)
+        self.checker = checker
         self.ob, self.og, self.ou = _import_ompl()
         self.ou.RNG.setSeed(int(seed) % (2**31 - 1) + 1)  # before any space or planner is built
         self.ou.setLogLevel(self.ou.LogLevel.LOG_ERROR)
@@ -146,17 +163,31 @@ class OmplPlanner:
         setup = og.SimpleSetup(space)
         checker = self.checker
 
-        def is_valid(state) -> bool:
-            if not space.satisfiesBounds(state):
-                return False
-            p = _get_pose(state)
-            return not checker.collides(needle_pos, needle_quat, p[:3], p[3:])
+        if isinstance(checker, LeanChecker):
+            placed = checker.place(needle)
+
+            def is_valid(state) -> bool:
+                if not space.satisfiesBounds(state):
+                    return False
+                r = state.rotation()
+                return not checker.pose_collides(placed, state.getX(), state.getY(), state.getZ(), r.w, r.x, r.y, r.z)
+
+        else:
+
+            def is_valid(state) -> bool:
+                if not space.satisfiesBounds(state):
+                    return False
+                p = _get_pose(state)
+                return not checker.collides(needle_pos, needle_quat, p[:3], p[3:])
 
         setup.setStateValidityChecker(is_valid)
         si = setup.getSpaceInformation()
         # OMPL checks a motion every `resolution * maximum extent` of distance; with the rotation
         # weighted by the jaw length, a distance bounds how far any jaw point moves.
         si.setStateValidityCheckingResolution(cfg.check_step_mm * 1e-3 / space.getMaximumExtent())
+        if isinstance(checker, LeanChecker):  # kept alive by this frame while the planner runs
+            motions = _lean_motions(ob, si, space, checker, placed)
+            si.setMotionValidator(motions)
         a, b = (goal, start) if cfg.direction == "reverse" else (start, goal)
         s_a, s_b = space.allocState(), space.allocState()
         _set_state(s_a, a)
@@ -190,6 +221,23 @@ class OmplPlanner:
         poses[:, 3:] *= np.sign(poses[:, 3:4] + 1e-300)  # w >= 0
         elapsed = time.perf_counter() - t0
         return PlanResult(True, elapsed, poses, translation_length_mm(poses))
+
+
+def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: tuple) -> Any:
+    """An OMPL motion validator that checks what ``DiscreteMotionValidator`` checks (the end state,
+    then the states at ``k / n`` of the way, n the space's valid segment count) with one compiled
+    call per motion (:meth:`LeanChecker.motion_collides`) instead of a Python call per state."""
+
+    class LeanMotions(ob.MotionValidator):
+        def checkMotion(self, s1: Any, s2: Any, *last_valid: Any) -> bool:
+            if last_valid:  # the planners used here call the two-state form only
+                raise NotImplementedError("checker='lean' checks two-state motions only (what the PLANNERS call)")
+            if not space.satisfiesBounds(s2):  # the states between are inside the box when both ends are
+                return False
+            n = space.validSegmentCount(s1, s2)
+            return not checker.motion_collides(placed, _get_pose(s1), _get_pose(s2), n)
+
+    return LeanMotions(si)
 
 
 def straight_line(
