@@ -8,7 +8,8 @@ grasp-library check on) on the lean path (numba, :mod:`regrasp_mjx.lean_planner`
 one query on the CPU) and on the JAX path (one compiled rollout per query, numpy in and out), the
 lean planner's compiled call alone (``LeanPlanner``: the same checks and rollout, no ``Plan``
 built), and OMPL RRT-Connect (forward and reverse, with and without 0.2 s of
-shortcutting, range ``--range-mm``; collision checks with CPU MuJoCo, the same model). Problems
+shortcutting, range ``--range-mm``; collision checks with CPU MuJoCo, the same model, and again
+with ``checker="lean"``: the same pairs in compiled code, one call per motion). Problems
 that collide at the start or goal under the host checker are left out for every method.
 
 ``--agreement`` instead plans every problem of paper300 and held-out 3000 (seed 2022) with the
@@ -105,9 +106,12 @@ def main() -> None:
         out = lean(needle[i], start[i], goal[i], tasks[i], library)
         return bool(out.outcome[1] > 0), float(out.outcome[5] * 1e3)
 
-    def rrt(direction, simplify):
-        cfg = PlannerConfig("RRTConnect", direction, budget_s=10.0, simplify_s=simplify, rrt_range_mm=args.range_mm)
+    def rrt(direction, simplify, checker="mujoco"):
+        cfg = PlannerConfig(
+            "RRTConnect", direction, budget_s=10.0, simplify_s=simplify, rrt_range_mm=args.range_mm, checker=checker
+        )
         planner = OmplPlanner(cfg, HostChecker(), seed=args.seed)
+        checker = planner.checker
 
         def query(i):
             planner.checker = checker.for_needle(episodes.needle_radius[i], episodes.wire_radius[i])
@@ -128,6 +132,10 @@ def main() -> None:
             "RRT-Connect (R)": rrt("reverse", 0.0),
             "RRT-Connect (F) + 0.2 s shortcutting": rrt("forward", 0.2),
             "RRT-Connect (R) + 0.2 s shortcutting": rrt("reverse", 0.2),
+            "RRT-Connect (F), lean checker": rrt("forward", 0.0, "lean"),
+            "RRT-Connect (R), lean checker": rrt("reverse", 0.0, "lean"),
+            "RRT-Connect (F) + 0.2 s shortcutting, lean checker": rrt("forward", 0.2, "lean"),
+            "RRT-Connect (R) + 0.2 s shortcutting, lean checker": rrt("reverse", 0.2, "lean"),
         }
     for query in methods.values():  # compile and warm up outside the timing
         query(clear[0])

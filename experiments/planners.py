@@ -25,7 +25,7 @@ import numpy as np
 from regrasp_mjx.atomic import write_csv, write_text
 from regrasp_mjx.config import SceneConfig
 from regrasp_mjx.host import HostChecker
-from regrasp_mjx.planning.ompl_planner import PLANNERS, PlannerConfig
+from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
 from regrasp_mjx.planning.pool import PlannerPool
 from regrasp_mjx.sampling import load_testset
 from regrasp_mjx.scene import load_scene
@@ -70,6 +70,7 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
             "budget_s": budget if method == "ompl" else None,
             "simplify_s": cfg.simplify_s if method == "ompl" else None,
             "range_mm": cfg.rrt_range_mm if method == "ompl" and planner_name in ("RRTstar", "RRTConnect") else None,
+            "checker": cfg.checker,
             "problems": len(valid),
             "success_rate": len(solved) / max(1, len(valid)),
             "plan_time_mean_s": float(times_ok.mean()) if len(solved) else None,
@@ -104,6 +105,12 @@ def main() -> None:
     )
     p.add_argument("--name", default="planners", help="output file names NAME.md and NAME.csv")
     p.add_argument(
+        "--checker",
+        choices=CHECKERS,
+        default=PlannerConfig.checker,
+        help="collision checker: CPU MuJoCo, or the compiled capsule test, one call per motion (default %(default)s)",
+    )
+    p.add_argument(
         "--range-mm",
         type=float,
         default=PlannerConfig.rrt_range_mm,
@@ -126,7 +133,7 @@ def main() -> None:
     if args.rows:
         wanted = [r.strip() for r in args.rows.split(",")]
         chosen = [r for r in chosen if (r[0] if r[0] == "straight_line" else f"{r[1]}:{r[2]}") in wanted]
-    tuned = {"rrt_range_mm": args.range_mm, "simplify_s": args.simplify_s}
+    tuned = {"rrt_range_mm": args.range_mm, "simplify_s": args.simplify_s, "checker": args.checker}
     rows = run_rows(episodes, chosen, 20.0, args.budget_s, args.workers, args.seed, **tuned)
     if not args.rows:
         rows += run_rows(
@@ -152,7 +159,7 @@ def main() -> None:
     lines = [
         f"Test set `{args.testset}` ({len(episodes.needle_pos)} problems, seed {meta.get('seed')}); "
         f"budget {args.budget_s:g} s per plan, first solution + {args.simplify_s:g} s shortcutting; RRT range "
-        f"{args.range_mm:g} mm; {machine}.",
+        f"{args.range_mm:g} mm; collision checker {args.checker}; {machine}.",
         "",
         "| algorithm | jaws | success rate | planning time mean (s) | median (s) | mean incl. failures (s) | path length (mm) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
