@@ -27,7 +27,7 @@ from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
-from regrasp_mjx.planning.ompl_planner import PLANNERS, PlannerConfig
+from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
 from regrasp_mjx.planning.pool import PlannerPool
 from regrasp_mjx.sampling import Episode, sample_episode
 from regrasp_mjx.testset import versions
@@ -87,6 +87,7 @@ def build(
     planner: str = "BITstar",
     direction: str = "reverse",
     budget_s: float = 10.0,
+    checker: str = "mujoco",
     timeout_s: float | None = None,
     scene: SceneConfig = SceneConfig(),
     task: TaskConfig = TaskConfig(),
@@ -95,14 +96,17 @@ def build(
 ) -> Path:
     """Plans ``n`` demonstrations into ``out`` (resumed when it holds plans of the same settings):
     problems of ``task`` from ``seed``, ``planner`` in ``direction`` with ``budget_s`` each on
-    ``workers`` processes, each path replayed in the environment of ``scene`` and ``task``;
-    returns ``out/demos.npz``."""
+    ``workers`` processes over ``checker`` (:class:`~regrasp_mjx.planning.ompl_planner.PlannerConfig`),
+    each path replayed in the environment of ``scene`` and ``task``; returns ``out/demos.npz``."""
     config = EnvConfig(scene=scene, task=task)
-    planner_cfg = PlannerConfig(planner=planner, direction=direction, budget_s=budget_s)
+    planner_cfg = PlannerConfig(planner=planner, direction=direction, budget_s=budget_s, checker=checker)
     out = Path(out)
     plans = out / "plans"
     plans.mkdir(parents=True, exist_ok=True)
-    settings = {"seed": seed, "planner": dataclasses.asdict(planner_cfg), "env": dataclasses.asdict(config)}
+    # the checker is left out of the settings a folder must match: both give the same verdicts, and a
+    # folder made before the choice existed resumes with either
+    planner_settings = {k: v for k, v in dataclasses.asdict(planner_cfg).items() if k != "checker"}
+    settings = {"seed": seed, "planner": planner_settings, "env": dataclasses.asdict(config)}
     meta_path = out / "meta.json"
     if meta_path.exists():
         old = json.loads(meta_path.read_text())
@@ -208,6 +212,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planner", default="BITstar", choices=PLANNERS)
     p.add_argument("--direction", default="reverse", choices=("forward", "reverse"))
     p.add_argument("--budget-s", type=float, default=10.0, help="planning time limit per problem")
+    p.add_argument(
+        "--checker",
+        default="mujoco",
+        choices=CHECKERS,
+        help="collision checker: mujoco (CPU MuJoCo) or lean (the same capsule pairs compiled, a motion per call; "
+        "the same verdicts, faster)",
+    )
     p.add_argument("--timeout-s", type=float, default=None, help="kill a plan after this long (default 3x budget + 30)")
     p.add_argument("--jaw-angle-deg", type=float, default=20.0)
     p.add_argument(
@@ -231,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
             planner=args.planner,
             direction=args.direction,
             budget_s=args.budget_s,
+            checker=args.checker,
             timeout_s=args.timeout_s,
             scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg),
             task=TASKS[args.task],

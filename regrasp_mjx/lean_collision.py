@@ -320,6 +320,7 @@ class LeanChecker:
         self.geo = tuple(geo)  # a plain tuple: numba types it in C
         self.needle_size = (False, geo.radius0, self.scene.config.wire_radius_mm * 1e-3)
         self.scratch = (np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)))
+        self._last = None  # (needle pose, its placement) of the last collides call
 
     def for_needle(self, radius: float | None, wire: float | None) -> LeanChecker:
         """A checker of the same margin around another needle (radius and wire radius [m]; None
@@ -331,6 +332,7 @@ class LeanChecker:
         _, r0, w0 = self.needle_size
         other.needle_size = (True, r0 if radius is None else float(radius), w0 if wire is None else float(wire))
         other.scratch = tuple(np.empty_like(s) for s in self.scratch)
+        other._last = None
         return other
 
     def place(self, needle: np.ndarray) -> tuple:
@@ -339,9 +341,12 @@ class LeanChecker:
         return tuple(_placed(self.geo, varies, np.asarray(needle, np.float64), radius, wire))
 
     def collides(self, needle_pos, needle_quat, ee_pos, ee_quat) -> bool:
-        """:meth:`regrasp_mjx.host.HostChecker.collides`: whether the pose collides."""
-        placed = self.place(np.concatenate([needle_pos, needle_quat]))
-        return self.pose_collides(placed, *np.asarray(ee_pos, np.float64), *np.asarray(ee_quat, np.float64))
+        """:meth:`regrasp_mjx.host.HostChecker.collides`: whether the pose collides. The last needle's
+        placement is kept (a path's poses are checked around one needle)."""
+        needle = (*map(float, needle_pos), *map(float, needle_quat))
+        if self._last is None or self._last[0] != needle:
+            self._last = (needle, self.place(np.array(needle)))
+        return self.pose_collides(self._last[1], *map(float, ee_pos), *map(float, ee_quat))
 
     def pose_collides(self, placed: tuple, x, y, z, qw, qx, qy, qz) -> bool:
         """Whether the pose collides with the needle :meth:`place` placed."""

@@ -303,7 +303,8 @@ def test_demos_cli_killed_and_restarted_ends_with_exactly_n_distinct(tmp_path):
     time.sleep(3.0)  # orphaned workers notice their parent is gone and exit
     assert all(not Path(f"/proc/{w}").exists() for w in workers), "a planner worker outlived its parent"
 
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    # resumed over the lean checker: the same verdicts, so not other settings
+    done = subprocess.run([*cmd, "--checker", "lean"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     demos = load_demos(out)
     assert demos.num_episodes == 24 and len(set(demos.problem_index.tolist())) == 24
