@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from regrasp_mjx.lean_geometry import matrix, rotate
-from regrasp_mjx.scene import Scene, load_scene, needle_scene
+from regrasp_mjx.scene import Scene, load_scene
 
 # chords per bounding capsule in the collision test (7 x 8 for the MJCF's 56; measured fastest of
 # 4, 7, 8 and 14 with experiments/bench_plan.py)
@@ -324,13 +324,17 @@ class LeanChecker:
 
     def for_needle(self, radius: float | None, wire: float | None) -> LeanChecker:
         """A checker of the same margin around another needle (radius and wire radius [m]; None
-        keeps this one's): this checker itself when the needle is its scene's."""
-        if needle_scene(self.scene, radius, wire) is self.scene:  # no new scene made when it is the same
+        keeps this one's): this checker itself when the needle is its own (within 1 nm)."""
+        _, r, w = self.needle_size
+        r = r if radius is None else float(radius)
+        w = w if wire is None else float(wire)
+        if abs(r - self.needle_size[1]) < 1e-9 and abs(w - self.needle_size[2]) < 1e-9:
             return self
+        scene_r, scene_w = self.geo[Capsules._fields.index("radius0")], self.scene.config.wire_radius_mm * 1e-3
         other = LeanChecker.__new__(LeanChecker)
         other.__dict__.update(self.__dict__)
-        _, r0, w0 = self.needle_size
-        other.needle_size = (True, r0 if radius is None else float(radius), w0 if wire is None else float(wire))
+        # the scene's needle scaled to this one (fixed_ends), as the environment scales it
+        other.needle_size = (abs(r - scene_r) >= 1e-9 or abs(w - scene_w) >= 1e-9, r, w)
         other.scratch = tuple(np.empty_like(s) for s in self.scratch)
         other._last = None
         return other
