@@ -106,15 +106,15 @@ def main() -> None:
         out = lean(needle[i], start[i], goal[i], tasks[i], library)
         return bool(out.outcome[1] > 0), float(out.outcome[5] * 1e3)
 
-    def rrt(direction, simplify, checker="mujoco"):
+    def rrt(direction, simplify, kind="mujoco"):
         cfg = PlannerConfig(
-            "RRTConnect", direction, budget_s=10.0, simplify_s=simplify, rrt_range_mm=args.range_mm, checker=checker
+            "RRTConnect", direction, budget_s=10.0, simplify_s=simplify, rrt_range_mm=args.range_mm, checker=kind
         )
         planner = OmplPlanner(cfg, HostChecker(), seed=args.seed)
-        checker = planner.checker
+        base = planner.checker  # the scene's needle; each query's own below
 
         def query(i):
-            planner.checker = checker.for_needle(episodes.needle_radius[i], episodes.wire_radius[i])
+            planner.checker = base.for_needle(episodes.needle_radius[i], episodes.wire_radius[i])
             r = planner.plan(needle[i], start[i], goal[i])
             return r.solved, r.path_length_mm
 

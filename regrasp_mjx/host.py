@@ -13,7 +13,7 @@ import math
 import mujoco
 import numpy as np
 
-from regrasp_mjx.config import EnvConfig
+from regrasp_mjx.config import EnvConfig, is_number, require
 from regrasp_mjx.scene import Scene, load_scene, needle_scene
 
 
@@ -63,6 +63,9 @@ def quat_angle(q1: np.ndarray, q2: np.ndarray) -> float:
     return 2.0 * math.atan2(float(np.linalg.norm(d[1:])), abs(float(d[0])))
 
 
+MARGIN_ACCEPTED = "a margin >= 0 in millimetres"  # what a checker's clearance_mm may be
+
+
 class HostChecker:
     """Collision verdicts and clearances for a needle pose and a regrasping end-effector pose.
 
@@ -72,8 +75,7 @@ class HostChecker:
     """
 
     def __init__(self, scene: Scene | None = None, clearance_mm: float = 0.0):
-        if not (isinstance(clearance_mm, (int, float)) and math.isfinite(clearance_mm) and clearance_mm >= 0.0):
-            raise ValueError(f"clearance_mm={clearance_mm!r} is not accepted: a margin >= 0 in millimetres")
+        require(is_number(clearance_mm) and clearance_mm >= 0.0, "clearance_mm", clearance_mm, MARGIN_ACCEPTED)
         self.scene = scene if scene is not None else load_scene()
         self.model = self.scene.model
         self.data = mujoco.MjData(self.model)

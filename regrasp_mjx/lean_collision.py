@@ -17,6 +17,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
+from regrasp_mjx.config import is_number, require
+from regrasp_mjx.host import MARGIN_ACCEPTED
 from regrasp_mjx.lean_geometry import matrix, rotate
 from regrasp_mjx.scene import Scene, load_scene
 
@@ -311,38 +313,34 @@ class LeanChecker:
     (:meth:`for_needle`). Not thread-safe (it owns scratch arrays)."""
 
     def __init__(self, scene: Scene | None = None, clearance_mm: float = 0.0):
-        if not (isinstance(clearance_mm, (int, float)) and math.isfinite(clearance_mm) and clearance_mm >= 0.0):
-            raise ValueError(f"clearance_mm={clearance_mm!r} is not accepted: a margin >= 0 in millimetres")
+        require(is_number(clearance_mm) and clearance_mm >= 0.0, "clearance_mm", clearance_mm, MARGIN_ACCEPTED)
         self.scene = scene if scene is not None else load_scene()
         self.clearance_mm = float(clearance_mm)
         self.margin = self.clearance_mm * 1e-3
         geo = capsules(self.scene.capsule_frames, self.scene.config.needle_radius_mm * 1e-3)
         self.geo = tuple(geo)  # a plain tuple: numba types it in C
-        self.needle_size = (False, geo.radius0, self.scene.config.wire_radius_mm * 1e-3)
+        self.scene_needle = (geo.radius0, self.scene.config.wire_radius_mm * 1e-3)  # radius, wire [m]
+        self.needle = self.scene_needle  # the one checked around (for_needle)
         self.scratch = (np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)))
         self._last = None  # (needle pose, its placement) of the last collides call
 
     def for_needle(self, radius: float | None, wire: float | None) -> LeanChecker:
         """A checker of the same margin around another needle (radius and wire radius [m]; None
         keeps this one's): this checker itself when the needle is its own (within 1 nm)."""
-        _, r, w = self.needle_size
-        r = r if radius is None else float(radius)
-        w = w if wire is None else float(wire)
-        if abs(r - self.needle_size[1]) < 1e-9 and abs(w - self.needle_size[2]) < 1e-9:
+        needle = tuple(v if x is None else float(x) for v, x in zip(self.needle, (radius, wire)))
+        if _same(needle, self.needle):
             return self
-        scene_r, scene_w = self.geo[Capsules._fields.index("radius0")], self.scene.config.wire_radius_mm * 1e-3
         other = LeanChecker.__new__(LeanChecker)
         other.__dict__.update(self.__dict__)
-        # the scene's needle scaled to this one (fixed_ends), as the environment scales it
-        other.needle_size = (abs(r - scene_r) >= 1e-9 or abs(w - scene_w) >= 1e-9, r, w)
+        other.needle, other._last = needle, None
         other.scratch = tuple(np.empty_like(s) for s in self.scratch)
-        other._last = None
         return other
 
     def place(self, needle: np.ndarray) -> tuple:
-        """The needle at ``needle`` (7-vector) placed for :meth:`pose_collides` and :meth:`motion_collides`."""
-        varies, radius, wire = self.needle_size
-        return tuple(_placed(self.geo, varies, np.asarray(needle, np.float64), radius, wire))
+        """The needle at ``needle`` (7-vector) placed for :meth:`pose_collides` and :meth:`motion_collides`
+        (another needle than the scene's: the scene's scaled to it, as the environment scales it)."""
+        varies = not _same(self.needle, self.scene_needle)
+        return tuple(_placed(self.geo, varies, np.asarray(needle, np.float64), *self.needle))
 
     def collides(self, needle_pos, needle_quat, ee_pos, ee_quat) -> bool:
         """:meth:`regrasp_mjx.host.HostChecker.collides`: whether the pose collides. The last needle's
@@ -360,3 +358,8 @@ class LeanChecker:
         """Whether ``b`` or a pose between ``a`` and ``b`` at ``k / segments`` collides (OMPL's
         discrete motion check, one call for the whole motion)."""
         return _motion_collides(self.geo, placed, a, b, segments, self.margin, *self.scratch)
+
+
+def _same(a: tuple, b: tuple) -> bool:
+    """Two needles' (radius, wire) [m] equal within 1 nm (as :func:`regrasp_mjx.scene.needle_scene`)."""
+    return all(abs(x - y) < 1e-9 for x, y in zip(a, b))

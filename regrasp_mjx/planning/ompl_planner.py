@@ -161,8 +161,8 @@ class OmplPlanner:
         space.setBounds(bounds)
         space.setSubspaceWeight(1, cfg.rotation_weight_mm * 1e-3)
         setup = og.SimpleSetup(space)
+        si = setup.getSpaceInformation()
         checker = self.checker
-
         if isinstance(checker, LeanChecker):
             placed = checker.place(needle)
 
@@ -172,6 +172,8 @@ class OmplPlanner:
                 r = state.rotation()
                 return not checker.pose_collides(placed, state.getX(), state.getY(), state.getZ(), r.w, r.x, r.y, r.z)
 
+            motions = _lean_motions(ob, si, space, checker, placed)  # kept alive by this frame while planning
+            si.setMotionValidator(motions)
         else:
 
             def is_valid(state) -> bool:
@@ -181,13 +183,9 @@ class OmplPlanner:
                 return not checker.collides(needle_pos, needle_quat, p[:3], p[3:])
 
         setup.setStateValidityChecker(is_valid)
-        si = setup.getSpaceInformation()
         # OMPL checks a motion every `resolution * maximum extent` of distance; with the rotation
         # weighted by the jaw length, a distance bounds how far any jaw point moves.
         si.setStateValidityCheckingResolution(cfg.check_step_mm * 1e-3 / space.getMaximumExtent())
-        if isinstance(checker, LeanChecker):  # kept alive by this frame while the planner runs
-            motions = _lean_motions(ob, si, space, checker, placed)
-            si.setMotionValidator(motions)
         a, b = (goal, start) if cfg.direction == "reverse" else (start, goal)
         s_a, s_b = space.allocState(), space.allocState()
         _set_state(s_a, a)
