@@ -34,14 +34,14 @@ if __name__ == "__main__":
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import json
-import platform
 import time
 from datetime import date
 
 import jax
 import numpy as np
 
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import machine, write_results
+from regrasp_mjx.evaluate import engine_agreement
 from regrasp_mjx.grasps import GraspLibrary
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig
@@ -50,14 +50,6 @@ from regrasp_mjx.policy import load_policy
 from regrasp_mjx.queries import TaskSpec
 from regrasp_mjx.robustness import policy_hash
 from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
-
-
-def machine() -> str:
-    try:
-        cpu = open("/proc/cpuinfo").read().split("model name")[1].split(":")[1].split("\n")[0].strip()
-    except (OSError, IndexError):
-        cpu = platform.processor() or platform.machine()
-    return f"{cpu} ({platform.node()}, {os.cpu_count()} cores)"
 
 
 def main() -> None:
@@ -81,14 +73,7 @@ def main() -> None:
     episodes, _ = load_testset(args.testset)
     needle, start, goal = episode_poses(episodes)
     needles = episode_needles(episodes)
-    checker = HostChecker()
-    clear = [
-        i
-        for i in range(len(needle))
-        if checker.for_needle(episodes.needle_radius[i], episodes.wire_radius[i]).clear_problems(
-            needle[i], start[i], goal[i]
-        )
-    ][: args.queries]
+    clear = HostChecker().clear_episodes(episodes)[: args.queries]
 
     def policy_query(engine):
         def query(i):
@@ -170,7 +155,7 @@ def main() -> None:
             }
         )
     meta = {
-        "machine": machine(),
+        "machine": machine(devices=False),
         "core": args.core,
         "date": date.today().isoformat(),
         "policy": name,
@@ -211,36 +196,17 @@ def agreement(out: str | None) -> None:
     ]
     rows = []
     for name, policy, episodes in sets:
-        needle, start, goal = episode_poses(episodes)
-        needles = episode_needles(episodes) if policy.general else {}
         for shield in (True, False):
-            batch = policy.plan(needle, start, goal, check_grasp=False, shield=shield, engine="jax", **needles)
-            differ, action, pose = 0, 0.0, 0.0
-            for i in range(len(needle)):
-                kw = {k: v[i] for k, v in needles.items()}
-                one = policy.plan(needle[i], start[i], goal[i], check_grasp=False, shield=shield, engine="lean", **kw)
-                fields = ("start_valid", "success", "collision", "time_out", "steps")
-                if any(getattr(one, f) != getattr(batch, f)[i] for f in fields):
-                    differ += 1
-                    continue
-                n = int(one.steps)  # the batch's trajectories run on to its longest plan
-                action = max(action, float(np.abs(one.actions - batch.actions[i, :n]).max()) if n else 0.0)
-                pose = max(pose, float(np.abs(one.poses - batch.poses[i, : n + 1]).max()))
+            r = engine_agreement(policy, episodes, shield)
             rows.append(
-                {
-                    "problems": name,
-                    "policy": "general" if policy.general else "default",
-                    "shield": shield,
-                    "n": len(needle),
-                    "success_jax": float(batch.success.mean()),
-                    "verdicts_differ": differ,
-                    "max_action_diff": action,
-                    "max_pose_diff": pose,
-                }
-            )
+                {"problems": name, "policy": "general" if policy.general else "default", "shield": shield,
+                 "n": len(r["steps"]), "success_jax": float(r["batch"].success.mean()),
+                 "verdicts_differ": len({i for i, _ in r["differ"]}), "max_action_diff": float(r["action_diff"].max()),
+                 "max_pose_diff": float(r["pose_diff"].max())}
+            )  # fmt: skip
             print(json.dumps(rows[-1]), flush=True)
     lines = [
-        f"{machine()}; {date.today().isoformat()}; policies default (hash {policy_hash('default')}) and general "
+        f"{machine(devices=False)}; {date.today().isoformat()}; policies default (hash {policy_hash('default')}) and general "
         f"(hash {policy_hash('general')}): each problem planned one at a time on the lean path and as one batch on "
         "the JAX path.",
         "",
@@ -253,7 +219,9 @@ def agreement(out: str | None) -> None:
             f"{r['verdicts_differ']} | {r['max_action_diff']:.1e} | {r['max_pose_diff']:.1e} |"
         )
     print("\n".join(lines))
-    write_results(out, "agreement", lines, {"rows": rows, "machine": machine(), "date": date.today().isoformat()})
+    write_results(
+        out, "agreement", lines, {"rows": rows, "machine": machine(devices=False), "date": date.today().isoformat()}
+    )
 
 
 if __name__ == "__main__":

@@ -1,6 +1,5 @@
 """Throughput of the training program: env-steps/s and updates/s of one jitted iteration at several
-env counts, seed counts and device counts, with peak device memory; and the wall-clock time the
-Table I runs took to reach given test-set success rates (read from their logs).
+env counts, seed counts and device counts, with peak device memory.
 
 An iteration is what ``python -m regrasp_mjx.train`` runs between host steps: ``num_envs`` x 100
 exploration steps per seed, the buffer inserts, ``updates_per_iteration`` DDPG+BC updates per seed.
@@ -13,7 +12,6 @@ Compile time excluded; ``--iterations`` timed after one warm-up.
     python experiments/bench_train.py --envs 512,8192,32768 --seeds 1 --devices 1,2 --out results/x2
     python experiments/bench_train.py --envs 512 --seeds 4,8 --devices 1 --out results/x2_members1   # then
     python experiments/bench_train.py --envs 512 --seeds 4,8 --devices 2 --out results/x2_members2   # seeds split
-    python experiments/bench_train.py --time-to-success experiments/results/table1
 """
 
 from __future__ import annotations
@@ -21,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -79,35 +76,6 @@ def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int
     }
 
 
-def time_to_success(folder: Path, thresholds: tuple[float, ...], metric: str = "test") -> list[dict]:
-    """For each run log under ``folder`` (``*/log.jsonl``) and each seed: the training wall-clock
-    (compile included, evaluation included) at the first epoch whose ``metric`` success (``test``
-    or ``validation``, both bare) reaches each threshold, or None when it never does."""
-    rows = []
-    for log in sorted(folder.glob("*/log.jsonl")):
-        entries = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
-        for seed in sorted({e["seed"] for e in entries}):
-            mine = [e for e in entries if e["seed"] == seed]
-            row = {"run": log.parent.name, "seed": seed, "best": max(e[metric]["success_rate"] for e in mine)}
-            for t in thresholds:
-                hit = next((e for e in mine if e[metric]["success_rate"] >= t), None)
-                row[f"{t:.2f}"] = None if hit is None else {"wall_s": hit["wall_s"], "epoch": hit["epoch"]}
-            rows.append(row)
-    return rows
-
-
-def _time_table(rows: list[dict], thresholds: tuple[float, ...], metric: str = "test") -> list[str]:
-    cell = lambda v: "never" if v is None else f"{v['wall_s']:.0f} s (epoch {v['epoch']})"  # noqa: E731
-    lines = [
-        "| run | seed | " + " | ".join(f"time to {t:.2f}" for t in thresholds) + f" | best {metric} success |",
-        "| --- | ---: | " + " | ".join("---:" for _ in thresholds) + " | ---: |",
-    ]
-    for r in rows:
-        cells = " | ".join(cell(r[f"{t:.2f}"]) for t in thresholds)
-        lines.append(f"| {r['run']} | {r['seed']} | {cells} | {r['best']:.3f} |")
-    return lines
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--envs", default="128,512,2048,8192", help="environments per seed (all devices together)")
@@ -122,21 +90,8 @@ def main() -> None:
     )
     p.add_argument("--updates", type=int, default=200)
     p.add_argument("--iterations", type=int, default=10)
-    p.add_argument("--time-to-success", default=None, metavar="FOLDER", help="only read run logs under FOLDER")
-    p.add_argument("--thresholds", default="0.90,0.95,0.97")
-    p.add_argument(
-        "--metric", default="test", choices=("test", "validation"), help="whose success --time-to-success reads"
-    )
     p.add_argument("--out", default=None)
     args = p.parse_args()
-    if args.time_to_success:
-        thresholds = tuple(float(t) for t in args.thresholds.split(","))
-        rows = time_to_success(Path(args.time_to_success), thresholds, args.metric)
-        lines = [f"Time to {args.metric} success (bare), training wall-clock with compile and evaluation:", ""]
-        lines += _time_table(rows, thresholds, args.metric)
-        print("\n".join(lines))
-        write_results(args.out, "time_to_success", lines, rows)
-        return
     rows = []
     for seeds in (int(s) for s in args.seeds.split(",")):
         for envs in (int(e) for e in args.envs.split(",")):

@@ -77,34 +77,15 @@ def limit_aware(policy, needle: np.ndarray, start: np.ndarray, depth_mm: np.ndar
 
 
 def reachability(plan, start: np.ndarray) -> dict:
+    """The plans' reachability from a port behind each start, and from one fixed port."""
     fixed = dvrk.base_behind(dvrk.average_pose(start))
     grasp = dvrk.inverse_kinematics(np.linalg.inv(dvrk.base_behind(np.r_[0, 0, 0, 1, 0, 0, 0])) @ np.eye(4))
-    out = {"grasping_arm_reachable": grasp.reachable, "grasping_arm_q": grasp.q.round(4).tolist()}
-    for name in ("start", "fixed"):
-        ok, lengths, bad = [], [], {}
-        for i in np.nonzero(plan.success)[0]:
-            base = dvrk.base_behind(start[i]) if name == "start" else fixed
-            traj = dvrk.joint_trajectory(base, plan.poses[i][: plan.steps[i] + 1])
-            ok.append(traj.all_reachable)
-            lengths.append(traj.joint_path_length)
-            for names in traj.violations:
-                for j in names:
-                    bad[j] = bad.get(j, 0) + 1
-        lengths = np.array(lengths)
-        out[name] = {
-            "plans": len(ok),
-            "all_reachable_share": float(np.mean(ok)),
-            "out_of_limit_poses_by_joint": bad,
-            "joint_path_median": {
-                "outer_yaw_deg": float(np.degrees(np.median(lengths[:, 0]))),
-                "outer_pitch_deg": float(np.degrees(np.median(lengths[:, 1]))),
-                "insertion_mm": float(1e3 * np.median(lengths[:, 2])),
-                "roll_deg": float(np.degrees(np.median(lengths[:, 3]))),
-                "wrist_pitch_deg": float(np.degrees(np.median(lengths[:, 4]))),
-                "wrist_yaw_deg": float(np.degrees(np.median(lengths[:, 5]))),
-            },
-        }
-    return out
+    return {
+        "grasping_arm_reachable": grasp.reachable,
+        "grasping_arm_q": grasp.q.round(4).tolist(),
+        "start": dvrk.reachability(plan, lambda i: dvrk.base_behind(start[i])),
+        "fixed": dvrk.reachability(plan, fixed),
+    }
 
 
 def main() -> None:
@@ -119,10 +100,7 @@ def main() -> None:
     p.add_argument("--out", default=None)
     args = p.parse_args()
     episodes, _ = load_testset(args.testset)
-    if args.limit:
-        episodes = type(episodes)(
-            **{f.name: getattr(episodes, f.name)[: args.limit] for f in dataclasses.fields(episodes)}
-        )
+    episodes = episodes.row(slice(args.limit))
     needle, start, goal = episode_poses(episodes)
     base = load_policy(args.policy)
     checker = host.HostChecker()  # measures distances; the margin does not enter

@@ -16,13 +16,12 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import write_csv, write_text
+from regrasp_mjx.atomic import machine, write_csv, write_text
 from regrasp_mjx.config import SceneConfig
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
@@ -36,14 +35,7 @@ SHORT = {"PRMstar": "PRM*", "RRTstar": "RRT*", "BFMTstar": "BFMT*", "BITstar": "
 def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed: int, **planner) -> list[dict]:
     """Plans every clear problem once per row; ``planner``: further :class:`PlannerConfig` fields."""
     scene = SceneConfig(jaw_angle_deg=jaw_angle)
-    checker = HostChecker(load_scene(scene))
-    valid = [
-        i
-        for i in range(len(episodes.needle_pos))
-        if checker.for_needle(episodes.needle_radius[i], episodes.wire_radius[i]).clear_problems(
-            *(np.asarray(episodes.problem(i)[k]) for k in ("needle", "start", "goal"))
-        )
-    ]
+    valid = HostChecker(load_scene(scene)).clear_episodes(episodes)
     out = []
     for method, planner_name, direction in rows:
         cfg = PlannerConfig(planner=planner_name, direction=direction, budget_s=budget, **planner)
@@ -124,10 +116,7 @@ def main() -> None:
     )
     args = p.parse_args()
     episodes, meta = load_testset(args.testset)
-    if args.limit:
-        episodes = type(episodes)(
-            **{f.name: getattr(episodes, f.name)[: args.limit] for f in dataclasses.fields(episodes)}
-        )
+    episodes = episodes.row(slice(args.limit))
     planners = [("ompl", pl, d) for pl in PLANNERS for d in ("forward", "reverse")]
     chosen = [("straight_line", "BITstar", "forward"), *planners]
     if args.rows:
@@ -145,21 +134,14 @@ def main() -> None:
             args.seed,
             **tuned,
         )
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {args.workers} planner processes"
-    try:
-        machine = (
-            open("/proc/cpuinfo").read().split("model name")[1].split(":")[1].split("\n")[0].strip()
-            + f", {os.cpu_count()} cores, {args.workers} planner processes"
-        )
-    except Exception:
-        pass
+    where = f"{machine(devices=False)}, {args.workers} planner processes"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / f"{args.name}.csv", list(rows[0]), [[r[k] for k in rows[0]] for r in rows])
     lines = [
         f"Test set `{args.testset}` ({len(episodes.needle_pos)} problems, seed {meta.get('seed')}); "
         f"budget {args.budget_s:g} s per plan, first solution + {args.simplify_s:g} s shortcutting; RRT range "
-        f"{args.range_mm:g} mm; collision checker {args.checker}; {machine}.",
+        f"{args.range_mm:g} mm; collision checker {args.checker}; {where}.",
         "",
         "| algorithm | jaws | success rate | planning time mean (s) | median (s) | mean incl. failures (s) | path length (mm) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",

@@ -1,5 +1,6 @@
 """Files written whole or not at all: a temporary file in the same folder, then an atomic rename,
-so a killed process never leaves a half-written checkpoint, policy, dataset or log."""
+so a killed process never leaves a half-written checkpoint, policy, dataset or log; an experiment's
+results (a table and its rows) and the machine they were measured on."""
 
 from __future__ import annotations
 
@@ -7,10 +8,13 @@ import csv
 import io
 import json
 import os
+import platform
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
+
+import jax
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], Any]) -> None:
@@ -74,3 +78,14 @@ def write_results(out: str | os.PathLike | None, name: str, lines: list[str], da
         return
     write_text(Path(out) / f"{name}.md", "\n".join(lines) + "\n")
     write_json(Path(out) / f"{name}.json", data)
+
+
+def machine(devices: bool = True) -> str:
+    """What a result was measured on: the CPU's model, the host and its cores, and (``devices``)
+    JAX's backend and first device; a result file names it beside its numbers."""
+    try:
+        cpu = open("/proc/cpuinfo").read().split("model name")[1].split(":")[1].split("\n")[0].strip()
+    except (OSError, IndexError):  # not Linux
+        cpu = platform.processor() or platform.machine()
+    where = f"{cpu} ({platform.node()}, {os.cpu_count()} cores)"
+    return f"{where}; {jax.default_backend()}: {jax.devices()[0].device_kind}" if devices else where

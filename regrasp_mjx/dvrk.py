@@ -294,6 +294,30 @@ def joint_trajectory(base, poses, q_ref=None) -> JointTrajectory:
     )
 
 
+def reachability(plan, bases) -> dict:
+    """How well a PSM follows a batch of plans (``Plan``): each successful plan's poses as joints
+    (:func:`joint_trajectory`) from its RCM base (``bases``: one 4x4 for every plan, or a callable
+    of the plan's row giving its own). Returns the plans counted, the share whose every pose is within
+    the joint limits, the out-of-limit poses by joint and each joint's median path length (degrees,
+    mm for the insertion)."""
+    ok, lengths, bad = [], [], {}
+    for i in np.nonzero(plan.success)[0]:
+        traj = joint_trajectory(bases(i) if callable(bases) else bases, plan.poses[i][: plan.steps[i] + 1])
+        ok.append(traj.all_reachable)
+        lengths.append(traj.joint_path_length)
+        for j in (j for names in traj.violations for j in names):
+            bad[j] = bad.get(j, 0) + 1
+    median = np.median(np.reshape(lengths, (-1, 6)), axis=0)
+    scale = np.where(np.arange(6) == 2, 1e3, 180 / np.pi)  # the insertion in mm, the rest in degrees
+    names = ("outer_yaw_deg", "outer_pitch_deg", "insertion_mm", "roll_deg", "wrist_pitch_deg", "wrist_yaw_deg")
+    return {
+        "plans": len(ok),
+        "all_reachable_share": float(np.mean(ok)) if ok else float("nan"),
+        "out_of_limit_poses_by_joint": bad,
+        "joint_path_median": {n: float(v) for n, v in zip(names, median * scale)},
+    }
+
+
 def average_pose(poses) -> np.ndarray:
     """The mean position and the average orientation (the principal eigenvector of the quaternions'
     scatter matrix, Markley et al. 2007) of poses ``[N, 7]``: e.g. where to put one port for a set

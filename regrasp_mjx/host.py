@@ -126,6 +126,16 @@ class HostChecker:
             and not self.collides(needle[i, :3], needle[i, 3:], goal[i, :3], goal[i, 3:])
         ]
 
+    def clear_episodes(self, episodes) -> list[int]:
+        """Rows of a batch of problems (``sampling.Episode``) whose start and goal keep this margin,
+        each around its own needle."""
+        rows = []
+        for i in range(len(episodes)):
+            job = episodes.problem(i)
+            checker = self.for_needle(job.get("needle_radius"), job.get("wire_radius"))
+            rows += [i] if checker.clear_problems(job["needle"], job["start"], job["goal"]) else []
+        return rows
+
     def clearance(self, needle_pos, needle_quat, ee_pos, ee_quat) -> float:
         return float(self.distances(needle_pos, needle_quat, ee_pos, ee_quat).min())
 

@@ -16,7 +16,7 @@ needle, in one of three modes (:data:`MODES`):
 A clearance margin ``clearance_mm`` judges (and shields) every pose with that much kept from the
 needle and the other tool. :data:`CONDITIONS` are the rows of the robustness table
 (:func:`table`): ``python -m regrasp_mjx.evaluate --robustness`` prints it for one policy,
-``experiments/robustness.py`` writes it for every shipped one.
+``python -m regrasp_mjx.compare --robustness`` for several (every shipped one by default).
 """
 
 from __future__ import annotations
@@ -166,9 +166,10 @@ def table(
     return rows
 
 
-def markdown(rows: list[dict[str, Any]], modes: tuple[str, ...] = tuple(MODES)) -> list[str]:
+def markdown(rows: list[dict[str, Any]], modes: tuple[str, ...] | None = None) -> list[str]:
     """The rows of one policy as a table: conditions down, modes across (success, and collisions
-    where there are any)."""
+    where there are any); ``modes`` None: those the rows hold, in :data:`MODES` order."""
+    modes = modes or tuple(m for m in MODES if any(r["mode"] == m for r in rows))
     lines = ["| condition | " + " | ".join(modes) + " |", "| --- |" + " ---: |" * len(modes)]
     for name in dict.fromkeys(r["condition"] for r in rows):
         cells = []
@@ -184,6 +185,42 @@ def markdown(rows: list[dict[str, Any]], modes: tuple[str, ...] = tuple(MODES)) 
     return lines
 
 
+def title(table: dict[str, Any], machine: bool = False) -> list[str]:
+    """The line above one policy's table: its name, folder, network, hash and problems."""
+    where = f"; {table['machine']}" if machine else ""
+    net = "x".join(map(str, table["hidden"]))
+    return [
+        f"**{table['policy']}** (`{table['folder']}`, {net}, hash {table['policy_hash']}) on {table['problems']}{where}:",
+        "",
+    ]
+
+
+def merge(parts: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One list of tables from the table files of several runs (``python -m regrasp_mjx.compare
+    --robustness``, e.g. parts run side by side on one GPU): the parts of one policy (its noise rows
+    and its margin rows run apart) become one table, rows in :data:`CONDITIONS` order. Raises when
+    two parts of one policy name measured another policy file or other problems."""
+    by_policy: dict[str, dict[str, Any]] = {}
+    for data in parts:
+        for t in data["tables"]:
+            if "machine" not in t:  # a part made before the tables named their machine
+                t = {**t, "machine": f"{data['backend']} ({data['device']})", "seed": data["seed"]}
+            seen = by_policy.get(t["policy"])
+            if seen is None:
+                by_policy[t["policy"]] = {**t, "rows": list(t["rows"])}
+                continue
+            if (seen["policy_hash"], seen["problems"]) != (t["policy_hash"], t["problems"]):
+                raise ConfigError(f"{t['policy']} was measured with another policy file or problems in another part")
+            seen["rows"] += t["rows"]
+            seen["wall_s"] = seen.get("wall_s", 0.0) + t.get("wall_s", 0.0)
+            if t["machine"] not in seen["machine"]:
+                seen["machine"] += f"; {t['machine']}"
+    order = {c.name: i for i, c in enumerate(CONDITIONS)}
+    for t in by_policy.values():
+        t["rows"].sort(key=lambda r: order.get(r["condition"], len(order)))
+    return list(by_policy.values())
+
+
 # The docs' summary: these policies side by side (README.md, docs/results.md), their full tables in
 # experiments/RESULTS.md; each between `<!-- robustness:begin KIND -->` and `<!-- robustness:end -->`,
 # written by `python experiments/robustness.py --docs` from robustness.json (a test compares them).
@@ -192,7 +229,7 @@ DOC_MODES = ("open", "per-frame", "per-frame-stop", "fused")
 
 
 def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_POLICIES) -> dict[str, list[str]]:
-    """The docs' generated blocks from the tables of ``experiments/robustness.py`` (its JSON's
+    """The docs' generated blocks from the tables of ``python -m regrasp_mjx.compare --robustness`` (its JSON's
     ``tables``): ``"summary"``, the policies side by side (open / per-frame (its own stop) / fused),
     and ``"tables"``, each policy's full table; both name the policy hashes they measured."""
     by_name = {t["policy"]: t for t in tables}

@@ -80,8 +80,8 @@ class Episode:
             wire_radius=None if radii is None else radii[:, 1],
         )  # fmt: skip
 
-    def row(self, i: int) -> Episode:
-        """The i-th problem of a batch."""
+    def row(self, i: Any) -> Episode:
+        """The i-th problem of a batch, or the problems ``i`` picks (a slice, indices or a mask)."""
         return jax.tree.map(lambda x: x[i], self)
 
     def problem(self, i: int) -> dict[str, Any]:

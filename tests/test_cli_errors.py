@@ -61,6 +61,13 @@ OTHER_CASES = [
     ("export_onnx", ["--out", "{w}/afile/p.onnx"], "is not a writable folder"),
     ("export_onnx", ["--out", "{w}/p.npz"], "is not accepted: a file path ending in .onnx"),
     ("export_onnx", ["--out", "{w}/p.onnx", "--policy", "genral"], "no shipped policy is named 'genral'"),
+    ("compare", ["--heldout", "3"], "--heldout 3 is not accepted: N:SEED"),
+    ("compare", ["--heldout", "0:1"], "--heldout 0:1 is not accepted: N:SEED, N >= 1"),
+    ("compare", ["--no-testset"], "--no-testset is not accepted without --heldout"),
+    ("compare", ["--merge", "{w}/afile"], "--merge is not accepted without --robustness"),
+    ("compare", ["--robustness", "--merge", "{w}/afile"], "accepted: table files this command wrote"),
+    ("compare", ["--robustness", "--modes", "open,shut"], "--modes open,shut is not accepted"),
+    ("compare", ["--policy", "genral", "--no-testset", "--heldout", "2:0"], "no shipped policy is named 'genral'"),
     ("grasps", ["--out", "{w}/afile/g.npz"], "is not a writable folder"),
     ("grasps", ["--out", "{w}/g.npz", "--n", "0"], "--n 0 is not accepted: an integer >= 1"),
 ]

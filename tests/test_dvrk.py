@@ -4,7 +4,9 @@ tool-tip frame being this project's end-effector frame."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -157,3 +159,23 @@ def test_poses_out_of_reach_are_refused_by_both_checks():
     far[:3, 3] += [0.0, 0.0, 0.001]  # the tip moved along the shaft but the wrist kept: no joints do this
     r = dvrk.inverse_kinematics(far @ np.diag([1.0, 1.0, 1.0, 1.0]))
     assert r.reachable == (r.position_error < dvrk.IK_POSITION_TOLERANCE)
+
+
+def test_reachability_counts_the_successful_plans_and_the_joints_that_leave_their_limits():
+    def as_pose(t):
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, t[:3, :3].flatten())
+        return np.r_[t[:3, 3], quat]
+
+    base = np.eye(4)
+    near = dvrk.forward_kinematics(np.array([0.0, 0.0, 0.12, 0.0, 0.0, 0.0]))
+    far = dvrk.forward_kinematics(np.array([0.0, 0.0, 0.12, 0.0, 1.5, 0.0]))  # wrist pitch 86 degrees
+    poses = np.array([[as_pose(near), as_pose(near)], [as_pose(near), as_pose(far)], [as_pose(far)] * 2])
+    plan = SimpleNamespace(success=np.array([True, True, False]), steps=np.array([1, 1, 1]), poses=poses)
+    r = dvrk.reachability(plan, base)
+    assert r["plans"] == 2 and r["all_reachable_share"] == 0.5  # the failed plan is not counted
+    assert r["out_of_limit_poses_by_joint"] == {"outer_wrist_pitch": 1}
+    # median of |dq| per plan: 0 and 1.5 rad of wrist pitch
+    assert r["joint_path_median"]["wrist_pitch_deg"] == pytest.approx(np.degrees(0.75), abs=1e-4)
+    assert r["joint_path_median"]["insertion_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert dvrk.reachability(plan, lambda i: base) == r  # a base per plan

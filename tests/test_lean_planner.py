@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import lean_collision, lean_geometry
+from regrasp_mjx.evaluate import engine_agreement
 from regrasp_mjx.grasps import GraspLibrary
 from regrasp_mjx.lean_geometry import nearest_grasp
 from regrasp_mjx.plans import default_goal
 from regrasp_mjx.policy import load_policy
 from regrasp_mjx.queries import TASK_FIELDS, PoseError
-from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
+from regrasp_mjx.sampling import episode_poses, load_testset
 from regrasp_mjx.testset import make_testset
 
 # The JAX path computes in float32 and this one its geometry in float64 (the network in float32 in
@@ -33,30 +34,14 @@ POSE_ATOL, POSE_ATOL_TIME_OUT = 5e-5, 1e-4
 
 def _agree(policy, episodes, shield=True):
     """Each problem planned one at a time by the lean path and all at once by the JAX path."""
-    needle, start, goal = episode_poses(episodes)
-    needles = episode_needles(episodes) if policy.general else {}
-    batch = policy.plan(needle, start, goal, check_grasp=False, shield=shield, engine="jax", **needles)
-    worst = 0.0
-    for i in range(len(needle)):
-        one = policy.plan(
-            needle[i], start[i], goal[i], check_grasp=False, shield=shield, engine="lean",
-            **{k: v[i] for k, v in needles.items()},
-        )  # fmt: skip
-        for field in ("start_valid", "success", "collision", "time_out", "steps"):
-            assert getattr(one, field) == getattr(batch, field)[i], (i, field)
-        n = int(one.steps)  # one query's trajectory is its own; the batch's runs to its longest plan
-        assert one.poses.shape == (n + 1, 7) and one.actions.shape == (n, 6)
-        diff = float(np.abs(one.actions - batch.actions[i, :n]).max()) if n else 0.0
-        assert diff <= ACTION_ATOL_TIME_OUT, i
-        if not one.time_out:
-            worst = max(worst, diff)
-        np.testing.assert_allclose(
-            one.poses, batch.poses[i, : n + 1], atol=POSE_ATOL_TIME_OUT if one.time_out else POSE_ATOL
-        )
-        # each step's translation within ACTION_ATOL x 0.5 mm (the largest step) of the JAX path's
-        assert one.path_length_mm == pytest.approx(batch.path_length_mm[i], abs=max(1e-4, 0.5 * ACTION_ATOL * n))
-    assert worst <= ACTION_ATOL
-    return batch
+    r = engine_agreement(policy, episodes, shield)
+    assert r["differ"] == []  # the same verdicts, and trajectories of the plan's own length
+    late = r["time_out"]
+    assert r["action_diff"][~late].max() <= ACTION_ATOL and r["action_diff"].max() <= ACTION_ATOL_TIME_OUT
+    assert r["pose_diff"][~late].max() <= POSE_ATOL and r["pose_diff"].max() <= POSE_ATOL_TIME_OUT
+    # each step's translation within ACTION_ATOL x 0.5 mm (the largest step) of the JAX path's
+    assert np.all(r["path_diff_mm"] <= np.maximum(1e-4, 0.5 * ACTION_ATOL * r["steps"]))
+    return r["batch"]
 
 
 def test_the_lean_path_gives_the_jax_paths_verdicts_on_paper300_shielded_and_bare():

@@ -157,7 +157,7 @@ def test_evaluate_runs_a_noisy_condition_by_test_set_name(capsys):
 
 def test_the_robustness_table_measured_the_shipped_policies():
     """A shipped policy whose file changed after its table was made fails here: rerun
-    `python experiments/robustness.py --out experiments/results/robustness` (and the README's table)."""
+    `python -m regrasp_mjx.compare --robustness --out experiments/results/robustness` (and the README's table)."""
     recorded = {t["policy"]: t["policy_hash"] for t in json.loads(TABLE.read_text())["tables"]}
     assert set(recorded) == set(shipped_policies())
     for name, digest in recorded.items():
