@@ -13,9 +13,6 @@ ends, as the auto-reset does.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -24,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
-from regrasp_mjx.atomic import write_json, write_text
+from regrasp_mjx.atomic import machine, write_json, write_text
 from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import HostEnv
@@ -136,18 +133,6 @@ def bench_cpu_raw(config: EnvConfig, total_steps: int, seed: int) -> dict:
     }
 
 
-def machine() -> str:
-    dev = jax.devices()[0]
-    desc = f"{dev.platform}:{getattr(dev, 'device_kind', '')}"
-    try:
-        cpu = subprocess.run(
-            ["sh", "-c", "grep -m1 'model name' /proc/cpuinfo | cut -d: -f2"], capture_output=True, text=True, timeout=5
-        ).stdout.strip()
-    except Exception:
-        cpu = platform.processor()
-    return f"{desc}; CPU {cpu}; {os.cpu_count()} cores; jax {jax.__version__}"
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--batch-sizes", default="1024,8192,32768")
@@ -164,7 +149,8 @@ def main() -> None:
     args = p.parse_args()
 
     config = EnvConfig(check_actions=False)
-    print(f"machine: {machine()}", flush=True)
+    where = f"{machine()}; jax {jax.__version__}"
+    print(f"machine: {where}", flush=True)
     cpu = bench_cpu(config, args.cpu_steps, args.steps, args.seed)
     print(f"CPU MuJoCo, 1 thread, whole MDP step (HostEnv): {cpu['env_steps_per_s']:,.0f} env-steps/s", flush=True)
     raw = bench_cpu_raw(config, args.cpu_steps, args.seed)
@@ -189,9 +175,12 @@ def main() -> None:
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "bench_env.json", {"machine": machine(), "cpu": cpu, "cpu_raw": raw, "mjx": rows})
+        write_json(
+            out / "bench_env.json",
+            {"machine": where, "cpu": cpu, "cpu_raw": raw, "mjx": rows},
+        )
         lines = [
-            f"Machine: {machine()}",
+            f"Machine: {where}",
             "",
             "| backend | batch | NaN check | env-steps/s | x CPU MDP step | x CPU C calls only | compile s |",
             "| --- | ---: | --- | ---: | ---: | ---: | ---: |",

@@ -112,16 +112,11 @@ def main() -> None:
         "its compiled query alone (`LeanPlanner` called: checks, grasp library, rollout; no `Plan`)": lean_core,
     }
     if not args.no_rrt:
-        methods |= {
-            "RRT-Connect (F)": rrt("forward", 0.0),
-            "RRT-Connect (R)": rrt("reverse", 0.0),
-            "RRT-Connect (F) + 0.2 s shortcutting": rrt("forward", 0.2),
-            "RRT-Connect (R) + 0.2 s shortcutting": rrt("reverse", 0.2),
-            "RRT-Connect (F), lean checker": rrt("forward", 0.0, "lean"),
-            "RRT-Connect (R), lean checker": rrt("reverse", 0.0, "lean"),
-            "RRT-Connect (F) + 0.2 s shortcutting, lean checker": rrt("forward", 0.2, "lean"),
-            "RRT-Connect (R) + 0.2 s shortcutting, lean checker": rrt("reverse", 0.2, "lean"),
-        }
+        for kind in ("mujoco", "lean"):
+            for simplify in (0.0, 0.2):
+                for direction in ("forward", "reverse"):
+                    name = f"RRT-Connect ({direction[0].upper()})" + (" + 0.2 s shortcutting" if simplify else "")
+                    methods[name + (", lean checker" if kind == "lean" else "")] = rrt(direction, simplify, kind)
     for query in methods.values():  # compile and warm up outside the timing
         query(clear[0])
     times = {m: [] for m in methods}

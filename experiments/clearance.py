@@ -37,7 +37,7 @@ from regrasp_mjx import dvrk, host  # noqa: E402
 from regrasp_mjx.atomic import write_results  # noqa: E402
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402
 from regrasp_mjx.planning.ompl_planner import PlannerConfig  # noqa: E402
-from regrasp_mjx.planning.pool import PlannerPool  # noqa: E402
+from regrasp_mjx.planning.pool import plan_all  # noqa: E402
 from regrasp_mjx.policy import load_policy  # noqa: E402
 from regrasp_mjx.sampling import load_testset  # noqa: E402
 
@@ -53,16 +53,6 @@ def clearance_stats(values: list[float]) -> dict:
         "min_mm": float(v.min()),
         "penetrating": int((v < 0).sum()),
     }
-
-
-def bitstar(episodes, rows: list[int], margin_mm: float, workers: int, budget_s: float) -> dict[int, dict]:
-    options = {"planner": dataclasses.asdict(PlannerConfig(budget_s=budget_s)), "clearance_mm": margin_mm, "seed": 0}
-    needle, start, goal = episode_poses(episodes)
-    with PlannerPool(workers, options=options, timeout_s=3 * budget_s + 60, queue_size=len(rows)) as pool:
-        for i in rows:
-            pool.submit({"needle": needle[i], "start": start[i], "goal": goal[i]}, payload=i)
-        results = pool.wait(24 * 3600)
-    return {r.payload: r.result for r in results if r.ok}
 
 
 def limit_aware(policy, needle: np.ndarray, start: np.ndarray, depth_mm: np.ndarray, base: np.ndarray) -> dict:
@@ -120,7 +110,8 @@ def main() -> None:
             entry[name] = {"success_rate": float(plan.success.mean()), "clearance": clearance_stats(clear)}
             if shield and m == 0.0:
                 data["reachability"] = reachability(plan, start[valid])
-        solved = bitstar(episodes, valid, m, args.workers, args.budget_s)
+        options = {"planner": dataclasses.asdict(PlannerConfig(budget_s=args.budget_s)), "clearance_mm": m, "seed": 0}
+        solved = {i: r or {} for i, r in plan_all(episodes, valid, options, args.workers, args.budget_s).items()}
         ok = [i for i in valid if solved.get(i, {}).get("solved")]
         clear = [checker.path_clearance(needle[i], np.asarray(solved[i]["poses"]), args.substeps) for i in ok]
         times = [solved[i]["plan_time_s"] for i in ok]

@@ -19,13 +19,11 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
-
 from regrasp_mjx.atomic import machine, write_csv, write_text
 from regrasp_mjx.config import SceneConfig
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
-from regrasp_mjx.planning.pool import PlannerPool
+from regrasp_mjx.planning.pool import plan_all, summarize_plans
 from regrasp_mjx.sampling import load_testset
 from regrasp_mjx.scene import load_scene
 
@@ -46,29 +44,17 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
             "seed": seed,
         }
         t0 = time.perf_counter()
-        with PlannerPool(workers, options=options, timeout_s=3 * budget + 60, queue_size=len(valid)) as pool:
-            for i in valid:
-                pool.submit(episodes.problem(i), payload=i)
-            results = pool.wait(24 * 3600)
-        solved = [r.result for r in results if r.ok and r.result["solved"]]
-        times_ok = np.array([r["plan_time_s"] for r in solved])
-        times_all = np.array([r.result["plan_time_s"] if r.ok else 3 * budget for r in results])
+        results = plan_all(episodes, valid, options, workers, budget)
         name = "straight line" if method == "straight_line" else f"{SHORT[planner_name]} ({direction[0].upper()})"
-        if method == "ompl" and cfg.simplify_s == 0:
-            name += ", no shortcutting"
+        ompl = method == "ompl"
         row = {
-            "algorithm": name,
+            "algorithm": name + (", no shortcutting" if ompl and cfg.simplify_s == 0 else ""),
             "jaw_angle_deg": jaw_angle,
-            "budget_s": budget if method == "ompl" else None,
-            "simplify_s": cfg.simplify_s if method == "ompl" else None,
-            "range_mm": cfg.rrt_range_mm if method == "ompl" and planner_name in ("RRTstar", "RRTConnect") else None,
+            "budget_s": budget if ompl else None,
+            "simplify_s": cfg.simplify_s if ompl else None,
+            "range_mm": cfg.rrt_range_mm if ompl and planner_name in ("RRTstar", "RRTConnect") else None,
             "checker": cfg.checker,
-            "problems": len(valid),
-            "success_rate": len(solved) / max(1, len(valid)),
-            "plan_time_mean_s": float(times_ok.mean()) if len(solved) else None,
-            "plan_time_median_s": float(np.median(times_ok)) if len(solved) else None,
-            "plan_time_mean_all_s": float(times_all.mean()),
-            "path_length_mm": float(np.mean([r["path_length_mm"] for r in solved])) if solved else None,
+            **summarize_plans(list(results.values()), budget),
             "wall_s": round(time.perf_counter() - t0, 1),
         }
         print(json.dumps(row), flush=True)

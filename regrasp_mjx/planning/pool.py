@@ -263,3 +263,30 @@ class PlannerPool:
                     w.job = (job_id, time.monotonic())
                 except (OSError, BrokenPipeError):
                     self._pending.appendleft((job_id, problem))
+
+
+def plan_all(episodes: Any, rows: list[int], options: dict[str, Any], workers: int, budget_s: float) -> dict:
+    """Problems ``rows`` of ``episodes`` (a ``sampling.Episode`` batch) each planned once by
+    ``workers`` processes of :func:`plan_with_ompl` (``options``; a plan that outlives three budgets
+    and a minute is stopped): ``{row: result}``, ``None`` where the job failed."""
+    with PlannerPool(workers, options=options, timeout_s=3 * budget_s + 60, queue_size=max(1, len(rows))) as pool:
+        for i in rows:
+            pool.submit(episodes.problem(i), payload=i)
+        return {r.payload: r.result if r.ok else None for r in pool.wait(24 * 3600)}
+
+
+def summarize_plans(results: list[dict | None], budget_s: float) -> dict[str, Any]:
+    """Table II's numbers of one planner over its problems' results (:func:`plan_all`'s values):
+    success rate; planning time mean and median over the solved ones, and the mean over all with a
+    failed job counted at three budgets; path length over the solved ones [mm]."""
+    solved = [r for r in results if r is not None and r["solved"]]
+    times = np.array([r["plan_time_s"] for r in solved])
+    every = np.array([3 * budget_s if r is None else r["plan_time_s"] for r in results])
+    return {
+        "problems": len(results),
+        "success_rate": len(solved) / max(1, len(results)),
+        "plan_time_mean_s": float(times.mean()) if solved else None,
+        "plan_time_median_s": float(np.median(times)) if solved else None,
+        "plan_time_mean_all_s": float(every.mean()) if len(every) else None,
+        "path_length_mm": float(np.mean([r["path_length_mm"] for r in solved])) if solved else None,
+    }
