@@ -18,6 +18,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
@@ -26,6 +27,8 @@ from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import HostEnv
 from regrasp_mjx.testset import make_testset
+
+POSE_FIELDS = ("needle_pos", "needle_quat", "start_pos", "start_quat")
 
 
 def make_rollout(env: RegraspEnv, batch: int, steps: int):
@@ -73,13 +76,22 @@ def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: in
     }
 
 
-def bench_cpu(config: EnvConfig, total_steps: int, steps: int, seed: int) -> dict:
+def bench_cpu(config: EnvConfig, total_steps: int, steps: int, seed: int, raw: bool = False) -> dict:
+    """The same MDP on CPU MuJoCo, one thread (:class:`HostEnv`), restarting a problem when it ends;
+    ``raw``: the C work of a step alone, ``substeps`` x (mj_kinematics + mj_collision) with no Python
+    MDP, an upper bound for any one-thread CPU implementation (so the ratio against it is the
+    conservative one)."""
     env = HostEnv(config)
     problems = make_testset(64, seed, config)
-    rng = np.random.default_rng(seed)
-    actions = rng.uniform(-1.0, 1.0, size=(total_steps, 6))
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, size=(total_steps, 6))
+    model, data, scene = env.checker.model, env.checker.data, env.checker.scene
+    qpos = [scene.qpos(*(np.asarray(getattr(problems, f)[i]) for f in POSE_FIELDS)) for i in range(len(problems))]
     t0 = time.perf_counter()
-    n = 0
+    for i in range(total_steps * env.substeps if raw else 0):  # the C calls alone, on states made before
+        data.qpos[:] = qpos[i % len(qpos)]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_collision(model, data)
+    n = total_steps if raw else 0
     while n < total_steps:
         problem = problems.row((n // steps) % len(problems))
         env.reset_from(problem)
@@ -90,45 +102,10 @@ def bench_cpu(config: EnvConfig, total_steps: int, steps: int, seed: int) -> dic
                 env.reset_from(problem)
     wall = time.perf_counter() - t0
     return {
-        "backend": "cpu-mujoco-1-thread",
+        "backend": "cpu-mujoco-1-thread" + ("-raw" if raw else ""),
         "steps": n,
         "wall_s": round(wall, 3),
         "env_steps_per_s": n / wall,
-        "substeps": env.substeps,
-    }
-
-
-def bench_cpu_raw(config: EnvConfig, total_steps: int, seed: int) -> dict:
-    """The C work of a step alone: ``substeps`` x (mj_kinematics + mj_collision), no Python MDP.
-
-    An upper bound for any one-thread CPU implementation of the same step, so the ratio against it
-    is the conservative one.
-    """
-    import mujoco
-
-    env = HostEnv(config)
-    model, data = env.checker.model, env.checker.data
-    problems = make_testset(64, seed, config)
-    qpos = np.stack(
-        [
-            env.checker.scene.qpos(
-                problems.needle_pos[i], problems.needle_quat[i], problems.start_pos[i], problems.start_quat[i]
-            )
-            for i in range(64)
-        ]
-    )
-    calls = total_steps * env.substeps
-    t0 = time.perf_counter()
-    for i in range(calls):
-        data.qpos[:] = qpos[i % 64]
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_collision(model, data)
-    wall = time.perf_counter() - t0
-    return {
-        "backend": "cpu-mujoco-1-thread-raw",
-        "steps": total_steps,
-        "wall_s": round(wall, 3),
-        "env_steps_per_s": total_steps / wall,
         "substeps": env.substeps,
     }
 
@@ -153,7 +130,7 @@ def main() -> None:
     print(f"machine: {where}", flush=True)
     cpu = bench_cpu(config, args.cpu_steps, args.steps, args.seed)
     print(f"CPU MuJoCo, 1 thread, whole MDP step (HostEnv): {cpu['env_steps_per_s']:,.0f} env-steps/s", flush=True)
-    raw = bench_cpu_raw(config, args.cpu_steps, args.seed)
+    raw = bench_cpu(config, args.cpu_steps, args.steps, args.seed, raw=True)
     print(f"CPU MuJoCo, 1 thread, kinematics+collision only: {raw['env_steps_per_s']:,.0f} env-steps/s", flush=True)
     rows = []
     sizes = [int(b) for b in args.batch_sizes.split(",")]

@@ -12,13 +12,7 @@ shortcutting, range ``--range-mm``; collision checks with CPU MuJoCo, the same m
 with ``checker="lean"``: the same pairs in compiled code, one call per motion). Problems
 that collide at the start or goal under the host checker are left out for every method.
 
-``--agreement`` instead plans every problem of paper300 and held-out 3000 (seed 2022) with the
-default, and of general1000 with ``general``, one query at a time on the lean path and as one batch
-on the JAX path, and counts the problems whose verdict (start valid, success, collision, time-out,
-steps) differs, with the largest difference in an action and a pose.
-
     python experiments/bench_plan.py --core 0 --out experiments/results/bench_plan
-    python experiments/bench_plan.py --agreement --out experiments/results/bench_plan
 """
 
 from __future__ import annotations
@@ -41,7 +35,6 @@ import jax
 import numpy as np
 
 from regrasp_mjx.atomic import machine, write_results
-from regrasp_mjx.evaluate import engine_agreement
 from regrasp_mjx.grasps import GraspLibrary
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig
@@ -62,13 +55,10 @@ def main() -> None:
     p.add_argument("--range-mm", type=float, default=PlannerConfig.rrt_range_mm, help="RRT-Connect's range, mm")
     p.add_argument("--seed", type=int, default=0, help="OMPL's seed")
     p.add_argument("--out", default=None, help="folder for bench_plan.md and bench_plan.json")
-    p.add_argument("--agreement", action="store_true", help="only compare the lean and JAX paths' plans")
     p.add_argument("--no-rrt", action="store_true", help="time the policy's paths only (no OMPL needed)")
     args = p.parse_args()
     if args.queries < 1 or args.repeats < 1:
         p.error("--queries and --repeats are accepted as integers >= 1")
-    if args.agreement:
-        return agreement(args.out)
     policy = load_policy(args.policy)
     episodes, _ = load_testset(args.testset)
     needle, start, goal = episode_poses(episodes)
@@ -177,46 +167,6 @@ def main() -> None:
         )
     print("\n".join(lines))
     write_results(args.out, "bench_plan", lines, {**meta, "rows": rows})
-
-
-def agreement(out: str | None) -> None:
-    """The lean path against the JAX path on every problem of three test sets (see the docstring)."""
-    from regrasp_mjx.testset import make_testset
-
-    default, general = load_policy("default"), load_policy("general")
-    sets = [
-        ("paper300", default, load_testset("paper300")[0]),
-        ("held-out 3000 (seed 2022)", default, make_testset(3000, 2022, default.env_config)),
-        ("general1000", general, load_testset("general1000")[0]),
-    ]
-    rows = []
-    for name, policy, episodes in sets:
-        for shield in (True, False):
-            r = engine_agreement(policy, episodes, shield)
-            rows.append(
-                {"problems": name, "policy": "general" if policy.general else "default", "shield": shield,
-                 "n": len(r["steps"]), "success_jax": float(r["batch"].success.mean()),
-                 "verdicts_differ": len({i for i, _ in r["differ"]}), "max_action_diff": float(r["action_diff"].max()),
-                 "max_pose_diff": float(r["pose_diff"].max())}
-            )  # fmt: skip
-            print(json.dumps(rows[-1]), flush=True)
-    lines = [
-        f"{machine(devices=False)}; {date.today().isoformat()}; policies default (hash {policy_hash('default')}) and general "
-        f"(hash {policy_hash('general')}): each problem planned one at a time on the lean path and as one batch on "
-        "the JAX path.",
-        "",
-        "| problems | policy | shield | n | success (JAX) | verdicts that differ | max action diff | max pose diff |",
-        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['problems']} | {r['policy']} | {'on' if r['shield'] else 'off'} | {r['n']} | {r['success_jax']:.3f} | "
-            f"{r['verdicts_differ']} | {r['max_action_diff']:.1e} | {r['max_pose_diff']:.1e} |"
-        )
-    print("\n".join(lines))
-    write_results(
-        out, "agreement", lines, {"rows": rows, "machine": machine(devices=False), "date": date.today().isoformat()}
-    )
 
 
 if __name__ == "__main__":

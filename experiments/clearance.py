@@ -33,13 +33,14 @@ import os
 
 import numpy as np
 
-from regrasp_mjx import dvrk, host  # noqa: E402
-from regrasp_mjx.atomic import write_results  # noqa: E402
-from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses  # noqa: E402
-from regrasp_mjx.planning.ompl_planner import PlannerConfig  # noqa: E402
-from regrasp_mjx.planning.pool import plan_all  # noqa: E402
-from regrasp_mjx.policy import load_policy  # noqa: E402
-from regrasp_mjx.sampling import load_testset  # noqa: E402
+from regrasp_mjx import dvrk, host
+from regrasp_mjx.atomic import write_results
+from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses
+from regrasp_mjx.planning.ompl_planner import PlannerConfig
+from regrasp_mjx.planning.pool import plan_all
+from regrasp_mjx.policy import load_policy
+from regrasp_mjx.sampling import load_testset
 
 
 def clearance_stats(values: list[float]) -> dict:
@@ -99,7 +100,7 @@ def main() -> None:
         policy = base.with_env(clearance_mm=m)
         gate = host.HostChecker(clearance_mm=m)
         valid = gate.clear_problems(needle, start, goal)
-        entry = {"valid": len(valid), "substeps": policy_substeps(policy)}
+        entry = {"valid": len(valid), "substeps": RegraspEnv(policy.env_config).substeps}
         for shield in (False, True):
             plan = policy.plan(needle[valid], start[valid], goal[valid], check_grasp=False, shield=shield)
             name = "shielded" if shield else "bare"
@@ -167,12 +168,6 @@ def main() -> None:
         )
     print("\n".join(lines))
     write_results(args.out, "clearance", lines, data)
-
-
-def policy_substeps(policy) -> int:
-    from regrasp_mjx.env import RegraspEnv
-
-    return RegraspEnv(policy.env_config).substeps
 
 
 if __name__ == "__main__":

@@ -15,11 +15,11 @@ import json
 
 import numpy as np
 
-from regrasp_mjx.atomic import write_results  # noqa: E402
-from regrasp_mjx.estimates import NeedleNoise  # noqa: E402
-from regrasp_mjx.policy import load_policy  # noqa: E402
-from regrasp_mjx.sampling import episode_needles, episode_poses  # noqa: E402
-from regrasp_mjx.testset import make_testset  # noqa: E402
+from regrasp_mjx.atomic import write_results
+from regrasp_mjx.estimates import NeedleNoise
+from regrasp_mjx.policy import load_policy
+from regrasp_mjx.sampling import episode_needles, episode_poses
+from regrasp_mjx.testset import make_testset
 
 
 def main() -> None:

@@ -34,15 +34,11 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
     """Plans every clear problem once per row; ``planner``: further :class:`PlannerConfig` fields."""
     scene = SceneConfig(jaw_angle_deg=jaw_angle)
     valid = HostChecker(load_scene(scene)).clear_episodes(episodes)
+    scene_fields = dataclasses.asdict(scene)
     out = []
     for method, planner_name, direction in rows:
         cfg = PlannerConfig(planner=planner_name, direction=direction, budget_s=budget, **planner)
-        options = {
-            "method": method,
-            "planner": dataclasses.asdict(cfg),
-            "scene": dataclasses.asdict(scene),
-            "seed": seed,
-        }
+        options = {"method": method, "planner": dataclasses.asdict(cfg), "scene": scene_fields, "seed": seed}
         t0 = time.perf_counter()
         results = plan_all(episodes, valid, options, workers, budget)
         name = "straight line" if method == "straight_line" else f"{SHORT[planner_name]} ({direction[0].upper()})"

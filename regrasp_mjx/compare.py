@@ -25,11 +25,13 @@ radius and by goal angle alpha*, and in the JSON each problem's bare outcome (th
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -65,10 +67,16 @@ def problem_sets(policy, testsets: list[str], heldout: list[tuple[int, int]]) ->
         testsets = ["general1000", "paper300"] if policy.general else ["paper300"]
     sets = {name: load_testset(name)[0] for name in testsets}
     for n, seed in heldout:
-        sets[f"held-out {n} (seed {seed})"] = make_testset(n, seed, policy.env_config)
+        sets[f"held-out {n} (seed {seed})"] = _drawn(n, seed, policy.env_config)
     if policy.env_config.clearance_mm > 0:
         sets = {k: v.row(robustness.clear_problems(policy.env_config, v)) for k, v in sets.items()}
     return sets
+
+
+@functools.lru_cache(maxsize=8)
+def _drawn(n: int, seed: int, env_config) -> Any:
+    """Held-out problems, drawn once for every policy of the same task and scene."""
+    return make_testset(n, seed, env_config)
 
 
 def binned(success: np.ndarray, values: np.ndarray, edges) -> list[float]:
@@ -92,8 +100,9 @@ def breakdown(episodes, per_problem: dict[str, np.ndarray]) -> tuple[dict, list[
         lines += ["| bin | " + " | ".join(bins) + " |", "| --- |" + " ---: |" * len(bins)]
         lines += ["| success | " + " | ".join(f"{v:.3f}" for v in rates) + " |"]
         lines += ["| problems | " + " | ".join(map(str, counts)) + " |"]
-    per = {"needle_radius_mm": radius_mm.tolist(), "goal_alpha_rad": alpha.tolist()}
-    return {"breakdown": data, "per_problem": {**per, "bare_success": {k: v.astype(int).tolist() for k, v in per_problem.items()}}}, lines  # fmt: skip
+    bare = {k: v.astype(int).tolist() for k, v in per_problem.items()}
+    per = {"needle_radius_mm": radius_mm.tolist(), "goal_alpha_rad": alpha.tolist(), "bare_success": bare}
+    return {"breakdown": data, "per_problem": per}, lines
 
 
 def outcomes(policies: dict, args: argparse.Namespace, changes: dict) -> tuple[list[str], dict]:
@@ -162,9 +171,11 @@ def main(argv: list[str] | None = None) -> int:
         if not args.heldout:
             p.error("--no-testset is not accepted without --heldout: no problems would be left")
         args.testset = []
-    unknown = set(args.modes.split(",")) - set(robustness.MODES)
-    if unknown:
+    if set(args.modes.split(",")) - set(robustness.MODES):
         p.error(f"--modes {args.modes} is not accepted: comma-separated of {list(robustness.MODES)}")
+    names = [c.name for c in robustness.CONDITIONS]
+    if args.conditions and set(args.conditions.split(",")) - set(names):
+        p.error(f"--conditions {args.conditions} is not accepted: comma-separated of {names}")
     if args.merge:
         if not args.robustness:
             p.error("--merge is not accepted without --robustness")

@@ -13,6 +13,8 @@ repeated, plans/s); path length in mm over the successes; starts that collide be
 (``invalid_starts``) and starts implausibly far from their needle (``far_starts``: beyond
 ``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about. Planning runs on JAX's default device:
 ``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate`` times one CPU core.
+``--agreement`` instead checks the two engines of ``Policy.plan`` against each other on every
+problem (:func:`engine_agreement`).
 """
 
 from __future__ import annotations
@@ -146,6 +148,36 @@ def evaluate(
     }
 
 
+def _agreement(policy, episodes, name: str, args: argparse.Namespace) -> int:
+    """``--agreement``: :func:`engine_agreement` on the test set, printed; 1 when a verdict differs."""
+    r = engine_agreement(policy, episodes, shield=not args.no_shield)
+    late = r["time_out"]
+    rows = sorted({i for i, _ in r["differ"]})
+    out = {
+        "policy": name,
+        "testset": args.testset,
+        "shield": not args.no_shield,
+        "problems": len(late),
+        "success_jax": float(np.mean(r["batch"].success)),
+        "verdicts_differ": len(rows),
+        "rows_differ": rows[:20],
+        "max_action_diff": float(r["action_diff"][~late].max(initial=0.0)),
+        "max_action_diff_time_out": float(r["action_diff"][late].max(initial=0.0)),
+        "max_pose_diff": float(r["pose_diff"].max(initial=0.0)),
+    }
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(
+            f"{name} on {args.testset}, shield {'on' if out['shield'] else 'off'}: each problem one at a time on the "
+            f"lean path against one batch on the JAX path\n  verdicts that differ: {len(rows)} of {out['problems']}"
+            + (f" (rows {rows[:20]})" if rows else "")
+            + f"\n  largest action difference {out['max_action_diff']:.1e} (plans that end before the horizon), "
+            f"{out['max_action_diff_time_out']:.1e} (time-outs); pose {out['max_pose_diff']:.1e}"
+        )
+    return 1 if rows else 0
+
+
 def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Every numeric option checked before any work: ``p.error`` (one line, exit 2) names the bad value."""
     for name, lo in (("queries", 0), ("repeats", 0), ("batch_size", 1)):
@@ -161,6 +193,8 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             .replace("bias_mm=", "--bias-mm ")
             .replace("clearance_mm=", "--clearance-mm ")
         )
+    if args.agreement and (args.robustness or args.noise_mm or args.bias_mm or args.closed_loop):
+        p.error("--agreement is not accepted with --robustness, --noise-mm, --bias-mm or --closed-loop")
     if args.per_frame and not args.closed_loop:
         p.error("--per-frame is not accepted without --closed-loop")
     if args.robustness and (args.noise_mm or args.bias_mm or args.closed_loop or args.clearance_mm is not None):
@@ -219,6 +253,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the robustness table: exact, noise 0.1/0.25/0.5 mm, bias 0.25 + noise 0.25 mm, margins 0.1/0.2 mm; "
         "open loop, per-frame and fused closed loop",
     )
+    p.add_argument(
+        "--agreement",
+        action="store_true",
+        help="plan every problem one at a time on the lean CPU path and as one batch on the JAX path, and compare "
+        "(exit 1 when a verdict differs)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the needle-estimate noise")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
@@ -249,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name} on {args.testset}, shielded, judged on the true needle:")
             print("\n".join(robustness.markdown(rows)))
         return 0
+    if args.agreement:
+        return _agreement(policy, episodes, name, args)
     if args.noise_mm or args.bias_mm or args.closed_loop:
         mode = ("per-frame" if args.per_frame else "fused") if args.closed_loop else "open"
         condition = robustness.Condition("given", args.noise_mm, args.bias_mm, policy.env_config.clearance_mm)

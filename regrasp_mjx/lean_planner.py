@@ -14,7 +14,7 @@ observation and the member actions use buffers made once per query, poses are tu
 
 It mirrors the JAX path, which stays the reference (batches, the GPU, camera-frame queries and
 the joint-limit check given PSM bases go there): geometry in float64 here against float32 there,
-the network in float32 in both. ``experiments/bench_plan.py --agreement`` found the same verdict on
+the network in float32 in both. ``python -m regrasp_mjx.evaluate --agreement`` finds the same verdict on
 every problem of paper300, held-out 3000 and general1000, and actions equal to 2.1e-5 in plans that
 end before the horizon (1.8e-4 at the end of a 100-step time-out); tests/test_lean_planner.py
 checks the same on samples.

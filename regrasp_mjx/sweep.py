@@ -8,7 +8,9 @@ point whose folder holds ``final_eval.json`` is done and skipped; one with a che
 it; so a killed sweep started again with the same arguments goes on where it stopped (a different
 grid in the same folder is refused). At the end, or with ``--report``, it writes ``sweep.md``,
 ``sweep.json`` and ``sweep.png``: per point and setting, the bare test success at the last epoch,
-over the last 10 epochs and of the exported policy (best on validation), mean ± std over seeds.
+over the last 10 epochs, at the best epoch and of the exported policy (best on validation; bare and
+shielded), the collision rate and path length at the last epoch, mean ± std over seeds: with
+``--exploration ddpg_bc,targeted,mixed``, the paper's Table I.
 
     # Table I (the paper's three settings x 3 seeds at the paper's scale), one command:
     python -m regrasp_mjx.sweep --out runs/table1 --preset paper --exploration ddpg_bc,targeted,mixed \\
@@ -215,17 +217,18 @@ def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tu
     lines = [
         "Bare policy (no shield) on the run's test set; mean ± std over seeds.",
         "",
-        "| point | overrides | setting | epochs | last epoch | mean of last 10 | best epoch | exported (best on validation) | exported, shielded | collision, last |",
-        "| --- | --- | --- | ---: | --- | --- | --- | --- | --- | --- |",
+        "| point | overrides | setting | epochs | last epoch | mean of last 10 | best epoch | exported (best on validation) | exported, shielded | collision, last | path (mm), last |",
+        "| --- | --- | --- | ---: | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         over = ", ".join(f"{k}={v!r}" for k, v in r["overrides"].items()) or "-"
         if r.get("missing"):
-            lines.append(f"| {r['point']} | {over} | - | - | not run yet | | | | | |")
+            lines.append(f"| {r['point']} | {over} | - | - | not run yet | | | | | | |")
             continue
         lines.append(
             f"| {r['point']} | {over} | {r['setting'] or '-'} | {r['epochs']} | {ms(r['last'])} | {ms(r['last10'])} | "
-            f"{ms(r['best'])} | {ms(r['exported'])} | {ms(r['exported_shielded'])} | {ms(r['collision_last'])} |"
+            f"{ms(r['best'])} | {ms(r['exported'])} | {ms(r['exported_shielded'])} | {ms(r['collision_last'])} | "
+            f"{ms(r['path_last'])} |"
         )
     if curves:
         import matplotlib.pyplot as plt  # optional (the analysis extra): only where a sweep has curves to draw

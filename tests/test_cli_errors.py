@@ -67,6 +67,7 @@ OTHER_CASES = [
     ("compare", ["--merge", "{w}/afile"], "--merge is not accepted without --robustness"),
     ("compare", ["--robustness", "--merge", "{w}/afile"], "accepted: table files this command wrote"),
     ("compare", ["--robustness", "--modes", "open,shut"], "--modes open,shut is not accepted"),
+    ("compare", ["--robustness", "--conditions", "exact,sigma 9 mm"], "--conditions exact,sigma 9 mm is not accepted"),
     ("compare", ["--policy", "genral", "--no-testset", "--heldout", "2:0"], "no shipped policy is named 'genral'"),
     ("grasps", ["--out", "{w}/afile/g.npz"], "is not a writable folder"),
     ("grasps", ["--out", "{w}/g.npz", "--n", "0"], "--n 0 is not accepted: an integer >= 1"),

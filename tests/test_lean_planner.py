@@ -1,7 +1,7 @@
 """The lean one-query CPU path (numba) against the JAX planning program: the same verdict on every
 problem, the same actions up to float32 rounding, the same trajectories; and Policy.plan's choice
-of engine. The full agreement on paper300, held-out 3000 and general1000 is
-``python experiments/bench_plan.py --agreement`` (experiments/results/bench_plan)."""
+of engine. The full agreement on a test set is ``python -m regrasp_mjx.evaluate --agreement``
+(on paper300, held-out 3000 and general1000: experiments/results/bench_plan/agreement.md)."""
 
 from __future__ import annotations
 

@@ -76,9 +76,9 @@ def test_status_resume_report_and_a_changed_grid_refused(tmp_path, capsys):
     assert sweep.main([*argv, "--report"]) == 0
     md = (tmp_path / "sweep.md").read_text()
     # point 0: last epoch 0.9 / 0.7 -> 0.800 ± 0.100; mean of its 3 epochs 2.2 / 3 for both seeds; best
-    # 0.9 / 0.9; exported 0.9 / 0.9, shielded 1.0; collision at the last epoch 0.1 / 0.3
+    # 0.9 / 0.9; exported 0.9 / 0.9, shielded 1.0; collision at the last epoch 0.1 / 0.3; path 4 mm
     assert (
-        "| 00_lr_actor=0.001 | lr_actor=0.001 | - | 3 | 0.800 ± 0.100 | 0.733 ± 0.000 | 0.900 ± 0.000 | 0.900 ± 0.000 | 1.000 ± 0.000 | 0.200 ± 0.100 |"
+        "| 00_lr_actor=0.001 | lr_actor=0.001 | - | 3 | 0.800 ± 0.100 | 0.733 ± 0.000 | 0.900 ± 0.000 | 0.900 ± 0.000 | 1.000 ± 0.000 | 0.200 ± 0.100 | 4.000 ± 0.000 |"
         in md
     )
     assert "| 01_lr_actor=0.002 | lr_actor=0.002 | - | - | not run yet |" in md
