@@ -153,7 +153,7 @@ def plan(
         one = policy.lean(shield)(needle[0], start[0], goal[0], task, NO_LIBRARY)
         if one.status:  # checked above in float64 already: the compiled check must agree
             raise PoseError(f"pose {('needle', 'start', 'goal')[one.status - 1]} failed the lean planner's check")
-        return _lean_plan(one, False, nearest)
+        return _lean_plan(one, single, nearest)  # one query's fields as numpy scalars, a batch's as arrays
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
     out = policy.program((False, shield))(f32(needle), f32(start), f32(goal), f32(radii))
     return _finish(out, single, nearest)

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from regrasp_mjx import lean_collision, lean_geometry
+from regrasp_mjx import lean_collision, lean_geometry, plans
 from regrasp_mjx.evaluate import engine_agreement
 from regrasp_mjx.grasps import GraspLibrary
 from regrasp_mjx.lean_geometry import nearest_grasp
@@ -78,6 +78,20 @@ def test_policy_plan_takes_the_lean_path_for_one_query_on_the_cpu():
         policy.plan(needle, start, goal, engine="fast")
     with pytest.raises(ValueError, match="engine='lean' plans one query at a time; got 2"):
         policy.plan(np.stack([needle] * 2), np.stack([start] * 2), np.stack([goal] * 2), engine="lean")
+
+
+def test_one_query_on_the_lean_path_has_the_same_shape_where_jax_runs_on_a_gpu(monkeypatch):
+    """With JAX on a GPU, ``engine="lean"`` plans one query after the batch checks (there is no fast
+    single-query entry): its Plan still holds numpy scalars and one trajectory, as on the CPU."""
+    policy = load_policy("default")
+    needle, start, goal = (x[3] for x in episode_poses(load_testset("paper300")[0]))
+    cpu = policy.plan(needle, start, goal, engine="lean")
+    monkeypatch.setattr(plans, "auto_engine", lambda queries: "jax")  # what a GPU backend answers
+    gpu = policy.plan(needle, start, goal, engine="lean")
+    assert np.ndim(gpu.success) == 0 and np.ndim(gpu.steps) == 0 and gpu.poses.shape == (int(cpu.steps) + 1, 7)
+    assert gpu.success == cpu.success and gpu.steps == cpu.steps
+    np.testing.assert_array_equal(gpu.actions, cpu.actions)
+    assert policy.plan(needle[None], start[None], goal[None], engine="lean").steps.shape == (1,)
 
 
 def test_the_default_goal_on_the_lean_path_is_the_jax_one():
