@@ -182,8 +182,9 @@ def main(argv: list[str] | None = None) -> int:
         try:
             tables_ = robustness.merge([json.loads(Path(path).read_text()) for path in args.merge])
         except (OSError, ValueError, KeyError) as err:  # missing, not JSON, no tables; ConfigError: mismatched
+            why = f"{type(err).__name__}: {err}"
             print(
-                f"error: --merge {' '.join(args.merge)}: {err!r}; accepted: table files this command wrote",
+                f"error: --merge {' '.join(args.merge)}: {why}; accepted: table files this command wrote",
                 file=sys.stderr,
             )
             return 2
