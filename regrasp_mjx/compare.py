@@ -41,6 +41,7 @@ from regrasp_mjx.atomic import machine, write_results
 from regrasp_mjx.config import ConfigError, parse_overrides
 from regrasp_mjx.evaluate import plan_testset
 from regrasp_mjx.policy import PolicyError, load_policy, shipped_policies
+from regrasp_mjx.queries import PoseError
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import TestsetError, load_testset
 from regrasp_mjx.testset import make_testset
@@ -203,7 +204,12 @@ def main(argv: list[str] | None = None) -> int:
             tables(policies, args)
             return 0
         lines, data = outcomes(policies, args, changes)
-    except (PolicyError, TestsetError, ConfigError) as err:
+    except (
+        PolicyError,
+        TestsetError,
+        ConfigError,
+        PoseError,
+    ) as err:  # PoseError: a test set the policy was not trained for
         print(f"error: {err}", file=sys.stderr)
         return 2
     print("\n".join(lines))

@@ -38,6 +38,7 @@ from regrasp_mjx.policy import (
     load_policy,
     shipped_policies,
 )
+from regrasp_mjx.queries import PoseError
 from regrasp_mjx.robustness import check_condition
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
@@ -67,7 +68,7 @@ def engine_agreement(policy, episodes, shield: bool = True) -> dict:
     largest difference in an action (``action_diff``) and a pose (``pose_diff``), the path lengths'
     difference (``path_diff_mm``), ``steps`` and ``time_out``."""
     needle, start, goal = episode_poses(episodes)
-    needles = episode_needles(episodes) if policy.general else {}
+    needles = episode_needles(episodes)  # each problem on its own needle, as plan_testset plans them
     batch = policy.plan(needle, start, goal, check_grasp=False, shield=shield, engine="jax", **needles)
     out = {
         "batch": batch,
@@ -271,7 +272,15 @@ def main(argv: list[str] | None = None) -> int:
     except (PolicyError, TestsetError, ConfigError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    name = args.policy or DEFAULT_POLICY.name
+    try:
+        return _run(policy, episodes, args.policy or DEFAULT_POLICY.name, args)
+    except PoseError as err:  # a test set of needles or goal grasps the policy was not trained for
+        print(f"error: --testset {args.testset}: {err}", file=sys.stderr)
+        return 2
+
+
+def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
+    """What ``main`` was asked, on a loaded policy and test set."""
     if args.robustness:
         rows = robustness.table(policy, episodes, seed=args.seed, log=None if args.json else print)
         if args.json:

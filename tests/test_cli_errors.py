@@ -69,6 +69,13 @@ OTHER_CASES = [
     ("compare", ["--robustness", "--modes", "open,shut"], "--modes open,shut is not accepted"),
     ("compare", ["--robustness", "--conditions", "exact,sigma 9 mm"], "--conditions exact,sigma 9 mm is not accepted"),
     ("compare", ["--policy", "genral", "--no-testset", "--heldout", "2:0"], "no shipped policy is named 'genral'"),
+    (
+        "compare",
+        ["--policy", "default", "--testset", "general1000"],
+        "needle_radius_mm=9.32168 (query 0) is not accepted",
+    ),
+    ("evaluate", ["--testset", "general1000", "--repeats", "0"], "--testset general1000: needle_radius_mm=9.32168"),
+    ("evaluate", ["--testset", "general1000", "--agreement"], "--testset general1000: needle_radius_mm=9.32168"),
     ("grasps", ["--out", "{w}/afile/g.npz"], "is not a writable folder"),
     ("grasps", ["--out", "{w}/g.npz", "--n", "0"], "--n 0 is not accepted: an integer >= 1"),
 ]
