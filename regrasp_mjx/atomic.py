@@ -47,6 +47,18 @@ def output_file_problem(path: str | os.PathLike, suffix: str | None = None) -> s
     return None
 
 
+def output_folder_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be the folder a command writes its results into (None when it can):
+    checked before any work, as :func:`output_file_problem` checks a file."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        return f"--out {path} is a file; accepted: a folder"
+    parent = next((p for p in (path, *path.parents) if p.exists()), Path("."))
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        return f"--out {path}: {parent} is not a writable folder; accepted: a folder this user can write"
+    return None
+
+
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:
     atomic_write(path, lambda f: f.write(json.dumps(obj, indent=indent).encode()))
 

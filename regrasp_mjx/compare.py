@@ -37,7 +37,7 @@ import numpy as np
 
 from regrasp_mjx import robustness
 from regrasp_mjx.analysis import markdown_table
-from regrasp_mjx.atomic import machine, write_results
+from regrasp_mjx.atomic import machine, output_folder_problem, write_results
 from regrasp_mjx.config import ConfigError, parse_overrides
 from regrasp_mjx.evaluate import plan_testset
 from regrasp_mjx.policy import PolicyError, load_policy, shipped_policies
@@ -163,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", default=None, help="file name (default: compare, or robustness)")
     args = p.parse_args(argv)
     args.name = args.name or ("robustness" if args.robustness else "compare")
+    if args.out and output_folder_problem(args.out):  # before any work: a comparison takes minutes
+        p.error(output_folder_problem(args.out))
     for item in args.heldout:
         n, _, seed = item.partition(":")
         if not (n.isdigit() and int(n) >= 1 and seed.lstrip("-").isdigit()):
@@ -204,12 +206,8 @@ def main(argv: list[str] | None = None) -> int:
             tables(policies, args)
             return 0
         lines, data = outcomes(policies, args, changes)
-    except (
-        PolicyError,
-        TestsetError,
-        ConfigError,
-        PoseError,
-    ) as err:  # PoseError: a test set the policy was not trained for
+    # PoseError: a test set of needles or goal grasps the policy was not trained for
+    except (PolicyError, TestsetError, ConfigError, PoseError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print("\n".join(lines))

@@ -29,6 +29,7 @@ import jax
 
 from regrasp_mjx import distributed, gpu_memory
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, grow_with_devices, make_config
+from regrasp_mjx.atomic import output_folder_problem
 from regrasp_mjx.config import TASKS, ConfigError, parse_overrides
 from regrasp_mjx.planning.episodes import DemosError
 from regrasp_mjx.sampling import TestsetError
@@ -62,9 +63,8 @@ def check_out(out: Path, resume: bool, overwrite: bool) -> str | None:
     """Why ``out`` cannot take this run (None when it can); checked before any work."""
     if out.exists() and not out.is_dir():
         return f"--out {out} is a file; accepted: a folder (new, empty or an earlier run's with --resume)"
-    parent = next((p for p in (out, *out.parents) if p.exists()), Path("."))
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        return f"--out {out}: {parent} is not a writable folder; accepted: a folder this user can write"
+    if output_folder_problem(out):
+        return output_folder_problem(out)
     if resume and overwrite:
         return "--resume and --overwrite are not accepted together: continue the run or clear it"
     if resume and not (out / "checkpoint" / "meta.json").is_file():

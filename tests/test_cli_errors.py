@@ -61,6 +61,7 @@ OTHER_CASES = [
     ("export_onnx", ["--out", "{w}/afile/p.onnx"], "is not a writable folder"),
     ("export_onnx", ["--out", "{w}/p.npz"], "is not accepted: a file path ending in .onnx"),
     ("export_onnx", ["--out", "{w}/p.onnx", "--policy", "genral"], "no shipped policy is named 'genral'"),
+    ("compare", ["--out", "{w}/afile/c"], "is not a writable folder"),
     ("compare", ["--heldout", "3"], "--heldout 3 is not accepted: N:SEED"),
     ("compare", ["--heldout", "0:1"], "--heldout 0:1 is not accepted: N:SEED, N >= 1"),
     ("compare", ["--no-testset"], "--no-testset is not accepted without --heldout"),
