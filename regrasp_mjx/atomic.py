@@ -40,9 +40,8 @@ def output_file_problem(path: str | os.PathLike, suffix: str | None = None) -> s
         return f"--out {path} is not accepted: a file path ending in {suffix}"
     if path.is_dir():
         return f"--out {path} is a folder; accepted: a file path ({suffix or 'any name'}) in a writable folder"
-    # atomic_write creates missing folders: the nearest existing one must be a folder we can write
-    parent = next((p for p in path.parents if p.exists()), Path("."))
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+    parent = _unwritable(path.parents)
+    if parent is not None:
         return f"--out {path}: {parent} is not a writable folder; accepted: a file path in a folder this user can write"
     return None
 
@@ -53,10 +52,17 @@ def output_folder_problem(path: str | os.PathLike) -> str | None:
     path = Path(path)
     if path.exists() and not path.is_dir():
         return f"--out {path} is a file; accepted: a folder"
-    parent = next((p for p in (path, *path.parents) if p.exists()), Path("."))
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+    parent = _unwritable((path, *path.parents))
+    if parent is not None:
         return f"--out {path}: {parent} is not a writable folder; accepted: a folder this user can write"
     return None
+
+
+def _unwritable(candidates) -> Path | None:
+    """The nearest existing of ``candidates`` (a path and its parents) when it is no folder this user
+    can write into, else None: atomic_write and the folders' users create the missing ones below it."""
+    parent = next((p for p in candidates if p.exists()), Path("."))
+    return None if parent.is_dir() and os.access(parent, os.W_OK | os.X_OK) else parent
 
 
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:

@@ -30,6 +30,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -61,17 +62,23 @@ OUTCOME_COLUMNS = [
 ]
 
 
-def problem_sets(policy, testsets: list[str], heldout: list[tuple[int, int]]) -> dict:
-    """The named problem sets one policy plans: ``testsets`` (None: its own) and drawn ones, each
-    without the problems that already break the policy's clearance margin."""
+def problem_sets(policy, testsets: list[str], heldout: list[tuple[int, int]]) -> Iterator[tuple[str, Any]]:
+    """The named problem sets one policy plans, each made when it is reached: ``testsets`` (None:
+    its own), then the drawn ones, each without the problems that already break the policy's
+    clearance margin."""
     if testsets is None:
         testsets = ["general1000", "paper300"] if policy.general else ["paper300"]
-    sets = {name: load_testset(name)[0] for name in testsets}
+    for name in testsets:
+        yield name, _keeping_margin(policy, load_testset(name)[0])
     for n, seed in heldout:
-        sets[f"held-out {n} (seed {seed})"] = _drawn(n, seed, policy.env_config)
+        yield f"held-out {n} (seed {seed})", _keeping_margin(policy, _drawn(n, seed, policy.env_config))
+
+
+def _keeping_margin(policy, episodes):
+    """The problems whose start and goal keep the policy's clearance margin (all without one)."""
     if policy.env_config.clearance_mm > 0:
-        sets = {k: v.row(robustness.clear_problems(policy.env_config, v)) for k, v in sets.items()}
-    return sets
+        return episodes.row(robustness.clear_problems(policy.env_config, episodes))
+    return episodes
 
 
 @functools.lru_cache(maxsize=8)
@@ -111,7 +118,7 @@ def outcomes(policies: dict, args: argparse.Namespace, changes: dict) -> tuple[l
     rows, per_problem, general = [], {}, None
     for name, (folder, policy) in policies.items():
         network = (f"{policy.members} x " if policy.members > 1 else "") + "x".join(map(str, policy.hidden))
-        for sname, episodes in problem_sets(policy, args.testset, args.heldout).items():
+        for sname, episodes in problem_sets(policy, args.testset, args.heldout):
             for shield in (False, True):
                 plan = plan_testset(policy, episodes, shield)
                 row = {"policy": name, "folder": folder, "network": network, "testset": sname, "env": changes}
@@ -119,10 +126,11 @@ def outcomes(policies: dict, args: argparse.Namespace, changes: dict) -> tuple[l
                 print(json.dumps(rows[-1]), flush=True)
                 if sname == "general1000" and policy.general and not shield:
                     per_problem[name], general = np.asarray(plan.success, bool), episodes
-    lines = [f"Machine: {machine()}; planned through Policy.plan" + (f"; environment {changes}" if changes else ""), ""]
+    where = machine()
+    lines = [f"Machine: {where}; planned through Policy.plan" + (f"; environment {changes}" if changes else ""), ""]
     lines.append(markdown_table(rows, OUTCOME_COLUMNS))
     data, more = breakdown(general, per_problem) if per_problem else ({}, [])
-    return lines + more, {"machine": machine(), "rows": rows, **data}
+    return lines + more, {"machine": where, "rows": rows, **data}
 
 
 def tables(policies: dict, args: argparse.Namespace) -> None:
@@ -133,7 +141,7 @@ def tables(policies: dict, args: argparse.Namespace) -> None:
     meta = {"machine": machine(), "seed": args.seed, "modes": modes}
     found, lines = [], [f"Machine: {meta['machine']}; shielded; seed {args.seed}.", ""]
     for name, (folder, policy) in policies.items():
-        problems, episodes = next(iter(problem_sets(policy, args.testset, args.heldout).items()))
+        problems, episodes = next(problem_sets(policy, args.testset, args.heldout))  # the first only
         print(f"{name} ({folder}) on {problems}", flush=True)
         t0 = time.perf_counter()
         rows = robustness.table(policy, episodes, modes, args.seed, conditions, log=print)
@@ -163,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", default=None, help="file name (default: compare, or robustness)")
     args = p.parse_args(argv)
     args.name = args.name or ("robustness" if args.robustness else "compare")
-    if args.out and output_folder_problem(args.out):  # before any work: a comparison takes minutes
-        p.error(output_folder_problem(args.out))
+    if args.out and (problem := output_folder_problem(args.out)):  # before any work: a comparison takes minutes
+        p.error(problem)
     for item in args.heldout:
         n, _, seed = item.partition(":")
         if not (n.isdigit() and int(n) >= 1 and seed.lstrip("-").isdigit()):

@@ -133,7 +133,8 @@ class HostChecker:
         for i in range(len(episodes)):
             job = episodes.problem(i)
             checker = self.for_needle(job.get("needle_radius"), job.get("wire_radius"))
-            rows += [i] if checker.clear_problems(job["needle"], job["start"], job["goal"]) else []
+            if checker.clear_problems(job["needle"], job["start"], job["goal"]):
+                rows.append(i)
         return rows
 
     def clearance(self, needle_pos, needle_quat, ee_pos, ee_quat) -> float:

@@ -63,8 +63,8 @@ def check_out(out: Path, resume: bool, overwrite: bool) -> str | None:
     """Why ``out`` cannot take this run (None when it can); checked before any work."""
     if out.exists() and not out.is_dir():
         return f"--out {out} is a file; accepted: a folder (new, empty or an earlier run's with --resume)"
-    if output_folder_problem(out):
-        return output_folder_problem(out)
+    if problem := output_folder_problem(out):
+        return problem
     if resume and overwrite:
         return "--resume and --overwrite are not accepted together: continue the run or clear it"
     if resume and not (out / "checkpoint" / "meta.json").is_file():
