@@ -107,6 +107,7 @@ class Capsules(NamedTuple):
 
     tool_local: np.ndarray  # [T, 2, 3] end points in the regrasping end-effector frame
     tool_half: np.ndarray  # [T] half lengths
+    tool_reach: np.ndarray  # [T] the end point farthest from the end-effector's origin, its distance
     other_local: np.ndarray  # [O, 2, 3] in the needle frame (chords) or e_g (the grasping tool)
     on_needle: np.ndarray  # [O] bool
     pair_index: np.ndarray  # [T, O] -> pair
@@ -161,6 +162,7 @@ def capsules(frames: Any, needle_radius: float, group_size: int = CHORD_GROUP) -
     return Capsules(
         tool_local=np.asarray(f.tool_ends, np.float64),
         tool_half=0.5 * np.linalg.norm(f.tool_ends[:, 1] - f.tool_ends[:, 0], axis=-1),
+        tool_reach=np.linalg.norm(np.asarray(f.tool_ends, np.float64), axis=-1).max(axis=1),
         other_local=np.asarray(f.other_ends, np.float64),
         on_needle=np.asarray(f.on_needle, bool),
         pair_index=np.arange(n_tools * n_others).reshape(n_tools, n_others),
@@ -231,6 +233,15 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold):
     skipped when its bounding spheres keep it at least ``threshold`` apart; the needle's chords
     when a sphere holding them all does, then group by group by a sphere and a bounding capsule;
     the first pair below the threshold ends the search."""
+    return near(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, 0.0, 0.0)
+
+
+@njit(cache=True)
+def near(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift, turn):
+    """:func:`collides` with each tool capsule t's threshold raised by ``shift + turn *
+    tool_reach[t]`` [m]: False proves that no pose whose tool points each lie within that
+    distance of this pose's (a translation by at most ``shift`` and a rotation by at most ``turn``
+    rad about the end-effector's origin) collides at ``threshold``."""
     f = fixed
     m = matrix(ee_q)
     n_tools = geo.tool_local.shape[0]
@@ -239,13 +250,14 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold):
         for r in range(3):
             tool_mid[t, r] = 0.5 * (tool[t, 0, r] + tool[t, 1, r])
     for t in range(n_tools):
-        clear = geo.tool_half[t] + threshold + BOUND_SLACK  # a pair whose bound reaches this is clear
+        below = threshold + shift + turn * geo.tool_reach[t]
+        clear = geo.tool_half[t] + below + BOUND_SLACK  # a pair whose bound reaches this is clear
         for o in geo.plain:
             k = geo.pair_index[t, o]
             gap = _sphere_gap(tool_mid, t, f.other_mid[o, 0], f.other_mid[o, 1], f.other_mid[o, 2])
             if gap - f.other_half[o] - f.sums[k] >= clear:
                 continue
-            if segment_distance(tool, t, f.other, o) - f.sums[k] < threshold:
+            if segment_distance(tool, t, f.other, o) - f.sums[k] < below:
                 return True
         if _sphere_gap(tool_mid, t, f.needle[0], f.needle[1], f.needle[2]) - f.needle[3] - f.needle_sums[t] >= clear:
             continue
@@ -253,11 +265,11 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold):
             gap = _sphere_gap(tool_mid, t, f.centre[g, 0], f.centre[g, 1], f.centre[g, 2])
             if gap - f.ball[g] - f.group_sums[t, g] >= clear:
                 continue
-            if segment_distance(tool, t, f.groups, g) - f.reach[g] - f.group_sums[t, g] - BOUND_SLACK >= threshold:
+            if segment_distance(tool, t, f.groups, g) - f.reach[g] - f.group_sums[t, g] - BOUND_SLACK >= below:
                 continue
             for c in range(g * geo.group_size, min((g + 1) * geo.group_size, geo.chords.shape[0])):
                 o = geo.chords[c]
-                if segment_distance(tool, t, f.other, o) - f.sums[geo.pair_index[t, o]] < threshold:
+                if segment_distance(tool, t, f.other, o) - f.sums[geo.pair_index[t, o]] < below:
                     return True
     return False
 

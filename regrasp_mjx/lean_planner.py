@@ -27,14 +27,19 @@ from typing import Any, NamedTuple
 
 import jax
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.experimental import structref
 
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE
-from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends
+from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends, near
 from regrasp_mjx.lean_geometry import angle, canonical, goal_pose, nearest_grasp, qexp, qmul, relative, unit
 from regrasp_mjx.lean_network import member_actions, observe
 from regrasp_mjx.shield import candidate_noise, step_key
+
+# added to the sub-steps' motion bound [m] against rounding in the poses (a nanometre: far above
+# float64's, far below any clearance)
+MOTION_SLACK = 1e-9
 
 # ---- the step and the rollout (regrasp_mjx.env.RegraspEnv.step, regrasp_mjx.rollout.rollout) -----
 
@@ -60,14 +65,24 @@ def _step(geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_
     wy = np.float64(min(max(action[4], lo), hi)) * max_drot
     wz = np.float64(min(max(action[5], lo), hi)) * max_drot
     n = int(substeps)
-    collision = False
-    pos, quat = ee_p, ee_q
-    for k in range(1, n + 1):
-        s = k / n
-        pos = (ee_p[0] + s * dx, ee_p[1] + s * dy, ee_p[2] + s * dz)
-        quat = qmul(qexp(s * wx, s * wy, s * wz), ee_q)
-        if not collision and collides(geo, fixed, pos, quat, scratch[0], scratch[1], clearance):
-            collision = True
+    pos = (ee_p[0] + dx, ee_p[1] + dy, ee_p[2] + dz)
+    quat = qmul(qexp(wx, wy, wz), ee_q)
+    # Sub-step k's pose is the end pose moved back by (1 - k/n) of the translation and turned back
+    # by (1 - k/n) of the rotation (the same axis): when the end pose is clear of every counted
+    # pair by that much more, so is every sub-step, and one test stands for n (most steps).
+    s = 1.0 - 1.0 / n
+    shift = s * math.sqrt(dx * dx + dy * dy + dz * dz) + MOTION_SLACK
+    collision = near(
+        geo, fixed, pos, quat, scratch[0], scratch[1], clearance, shift, s * math.sqrt(wx * wx + wy * wy + wz * wz)
+    )
+    if collision:  # not proved clear: each sub-step tested as the JAX path tests them
+        collision = False
+        for k in range(1, n + 1):
+            sk = k / n
+            at = (ee_p[0] + sk * dx, ee_p[1] + sk * dy, ee_p[2] + sk * dz)
+            if collides(geo, fixed, at, qmul(qexp(sk * wx, sk * wy, sk * wz), ee_q), scratch[0], scratch[1], clearance):
+                collision = True
+                break
     quat = canonical(quat)
     p, q = relative(pos, quat, needle_p, needle_q)
     ex, ey, ez = gn_p[0] - p[0], gn_p[1] - p[1], gn_p[2] - p[2]
@@ -94,13 +109,14 @@ def _rollout(state, needle, start, goal, radii, outcome):
     """The rollout of one query (poses and radii rounded to float32 first, as the JAX path takes
     them) into ``outcome[:7]``: ``start_valid, success, collision, time_out, steps, path_length
     [m], discounted return`` (``rewards``: a step's, a collision's, a success's reward and gamma).
-    ``state``: :attr:`LeanPlanner.state`. Returns ``(poses[H+1, 7], actions[H, 6])``."""
+    ``state``: :attr:`LeanPlanner.state`. Returns ``(poses[steps + 1, 7], actions[steps, 6])``
+    (float32, as the JAX planner returns them: every number of the state is float32 already)."""
     (kernels, biases, layers, mean, std), geo, consts, rewards, varies, general, noise, shield = state
     geo = Capsules(*geo)
     radius, wire = _f32(radii[0]), _f32(radii[1])
     horizon = noise.shape[0]
-    poses = np.empty((horizon + 1, 7))
-    actions = np.zeros((horizon, 6))
+    poses = np.empty((horizon + 1, 7), np.float32)
+    actions = np.empty((horizon, 6), np.float32)
     for r in range(7):
         poses[0, r] = _f32(start[r])
     needle_p, needle_q = _pose(needle)
@@ -113,9 +129,7 @@ def _rollout(state, needle, start, goal, radii, outcome):
     outcome[0] = 1.0 if valid else 0.0
     if not valid:
         outcome[2] = 1.0
-        for k in range(1, horizon + 1):
-            poses[k] = poses[0]
-        return poses, actions
+        return poses[:1], actions[:0]
     members = mean.shape[0]
     width = max(mean.shape[1], biases[0].shape[0])
     for b in biases:
@@ -187,9 +201,7 @@ def _rollout(state, needle, start, goal, radii, outcome):
             r = rewards[2]
         ret += r * rewards[3] ** t
     outcome[6] = ret
-    for k in range(steps + 1, horizon + 1):
-        poses[k] = poses[steps]
-    return poses, actions
+    return poses[: steps + 1], actions[:steps]
 
 
 # the status _query reports in outcome[STATUS]: the pose that failed its check, or none
@@ -214,14 +226,36 @@ def _checked(v, tolerance, out):
     return True
 
 
+@structref.register
+class _HeldType(types.StructRef):
+    """numba's type of :class:`Held`."""
+
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(t)) for name, t in fields)
+
+
+class Held(structref.StructRefProxy):
+    """:attr:`LeanPlanner.state` held in one native object. A call unboxes it as one pointer; a tuple
+    of some 30 arrays numba unboxes array by array, about 2 us of every query."""
+
+
+structref.define_proxy(Held, _HeldType, ["state"])
+
+
 @njit(cache=True)
-def _query(state, needle, start, goal, task, library_p, library_q, columns, tolerance):
-    """One query from unchecked input: ``needle``, ``start`` and ``goal`` ``[7]`` (an empty goal: the
+def _hold(state):
+    return Held(state)  # made in compiled code: Held(...) from Python would compile uncached
+
+
+@njit(cache=True)
+def _query(held, needle, start, goal, task, library_p, library_q, columns, tolerance):
+    """One query (``held``: a :class:`Held` planner state) from unchecked input: ``needle``, ``start`` and ``goal`` ``[7]`` (an empty goal: the
     goal grasp ``task[:4]`` on the needle), ``task`` ``(alpha*, d*, theta*, phi*, R, wire)`` [m].
     Checks the poses, makes the goal, measures the start's distance from the needle and the
-    needle's from the grasp library (when it is not empty), and plans. Returns ``(outcome[10],
-    poses[steps + 1, 7], actions[steps, 6])`` (float32, as the JAX planner returns them);
-    ``outcome[STATUS]`` names a pose that failed its check, and nothing was planned then."""
+    needle's from the grasp library (when it is not empty), and plans. Returns the fields of a
+    :class:`LeanResult` (its ``status`` names a pose that failed its check, and nothing was planned
+    then)."""
+    state = held.state
     outcome = np.zeros(10)
     outcome[NEAREST] = np.nan
     checked = np.empty((3, 7))
@@ -230,14 +264,20 @@ def _query(state, needle, start, goal, task, library_p, library_q, columns, tole
             checked[2] = goal_pose(checked[0], task[0], task[1], task[2], task[3], task[4])
         elif not _checked(pose, tolerance, checked[k]):
             outcome[STATUS] = status
-            return outcome, np.zeros((0, 7), np.float32), np.zeros((0, 6), np.float32)
+            return _result(outcome, np.zeros((0, 7), np.float32), np.zeros((0, 6), np.float32))
     dx, dy, dz = checked[1, 0] - checked[0, 0], checked[1, 1] - checked[0, 1], checked[1, 2] - checked[0, 2]
     outcome[START_MM] = math.sqrt(dx * dx + dy * dy + dz * dz) * 1e3
     if library_p.shape[0]:
         outcome[NEAREST] = nearest_grasp(library_p, library_q, columns, checked[0])
-    trajectory, actions = _rollout(state, checked[0], checked[1], checked[2], task[4:], outcome)
-    n = int(outcome[4])
-    return outcome, trajectory[: n + 1].astype(np.float32), actions[:n].astype(np.float32)
+    return _result(outcome, *_rollout(state, checked[0], checked[1], checked[2], task[4:], outcome))
+
+
+@njit(cache=True)
+def _result(outcome, poses, actions):
+    """:class:`LeanResult`'s fields of ``_query``'s outcome: plain numbers (Python reads a tuple's
+    faster than an array's)."""
+    o = outcome
+    return (o[0], o[1], o[2], o[3], o[4], o[5], o[6]), int(o[STATUS]), o[START_MM], o[NEAREST], poses, actions
 
 
 class LeanPlanner:
@@ -299,6 +339,7 @@ class LeanPlanner:
             self.noise,
             self.shield,
         )
+        self.held = _hold(self.state)
 
     def goal(self, needle: np.ndarray, grasp: np.ndarray, radius: float) -> np.ndarray:
         """The goal end-effector pose ``[7]`` (e_g) of a goal grasp ``(alpha*, d* [m], theta*, phi*)``
@@ -315,16 +356,17 @@ class LeanPlanner:
         poses are checked here (a :attr:`LeanResult.status` names the first that fails)."""
         f64 = np.ascontiguousarray  # one compiled signature: contiguous float64
         goal = NO_GOAL if goal is None else f64(goal, np.float64)
-        outcome, trajectory, actions = _query(
-            self.state, f64(needle, np.float64), f64(start, np.float64), goal, task, *library, QUAT_NORM_TOLERANCE
+        return LeanResult(
+            *_query(
+                self.held, f64(needle, np.float64), f64(start, np.float64), goal, task, *library, QUAT_NORM_TOLERANCE
+            )
         )
-        return LeanResult(outcome[:7], int(outcome[STATUS]), outcome[START_MM], outcome[NEAREST], trajectory, actions)
 
 
 class LeanResult(NamedTuple):
     """What :class:`LeanPlanner` returns for one query."""
 
-    outcome: np.ndarray  # [7]: start_valid, success, collision, time_out, steps, path length [m], return
+    outcome: tuple  # 7 floats: start_valid, success, collision, time_out, steps, path length [m], return
     status: int  # POSE_OK, or the pose that failed its check (BAD_NEEDLE, BAD_START, BAD_GOAL): nothing planned
     start_mm: float  # the start's distance from the needle
     nearest: float  # the needle's distance to the nearest grasp of the library (NaN: not checked)

@@ -90,6 +90,10 @@ PLAIN = TaskSpec()  # no goal grasp or needle given
 _COLUMN = {name: col for col, name in enumerate(TASK_FIELDS)}
 
 
+# keyword sets whose vectors TaskRanges.keywords_vector keeps (a task's distinct needles and goals)
+MEMO_SIZE = 1024
+
+
 @dataclasses.dataclass(frozen=True)
 class TaskRanges:
     """What a policy was trained for: each :class:`TaskSpec` field's default, low and high (one
@@ -185,6 +189,10 @@ class TaskRanges:
         would cost a tenth of a lean plan)."""
         if not task:
             return self._plain_vector
+        try:  # the same keywords again (a needle's radii on every query): the vector made for them
+            return self._memo[tuple(task.items())]
+        except (KeyError, TypeError):  # new, or an unhashable value (not a scalar: refused below)
+            pass
         (lo, hi), values = self._bounds, self._default_list.copy()
         for name, given in task.items():
             col = _COLUMN.get(name)
@@ -196,7 +204,14 @@ class TaskRanges:
             values[2] = lo[2][0] + (values[2] - lo[2][0]) % (2 * math.pi)
         if not all(math.isfinite(v) and lo[c][1] <= v <= hi[c][1] for c, v in enumerate(values)):
             return None
-        return np.array([values[0], values[1] * 1e-3, values[2], values[3], values[4] * 1e-3, values[5] * 1e-3])
+        vector = np.array([values[0], values[1] * 1e-3, values[2], values[3], values[4] * 1e-3, values[5] * 1e-3])
+        if len(self._memo) < MEMO_SIZE:
+            self._memo[tuple(task.items())] = vector
+        return vector
+
+    @functools.cached_property
+    def _memo(self) -> dict[tuple, np.ndarray]:
+        return {}
 
     def _vector_of(self, spec: TaskSpec) -> np.ndarray:
         grasp, radii = self.resolve(1, spec)
