@@ -5,6 +5,8 @@ of engine. The full agreement on a test set is ``python -m regrasp_mjx.evaluate 
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -72,6 +74,9 @@ def test_policy_plan_takes_the_lean_path_for_one_query_on_the_cpu():
     ref = policy.plan(needle, start, goal, engine="jax")
     assert auto.success == ref.success and auto.steps == ref.steps
     assert auto.poses.shape == ref.poses.shape == (ref.steps + 1, 7)
+    for field in dataclasses.fields(plans.Plan):  # the lean Plan is built without __init__: every field, typed alike
+        mine, theirs = getattr(auto, field.name), getattr(ref, field.name)
+        assert type(mine) is type(theirs) and getattr(mine, "dtype", None) == getattr(theirs, "dtype", None), field
     batch = policy.plan(needle[None], start[None], goal[None])  # a batch of one: still lean, batch axis kept
     assert batch.success.shape == (1,) and batch.steps[0] == ref.steps
     with pytest.raises(ValueError, match="engine='fast' is not accepted; accepted: 'auto', 'jax', 'lean'"):
@@ -171,3 +176,70 @@ def test_a_single_query_names_its_bad_pose_as_a_batch_does():
     assert plan.nearest_grasp_distance == pytest.approx(
         policy.plan(needle, start, goal, engine="jax").nearest_grasp_distance
     )
+
+
+def test_a_motion_proved_clear_is_clear_all_along_it():
+    """lean_collision.near: its verdict is that of each tool capsule's closest pair against its own
+    raised threshold (threshold + shift + turn * reach), and where it finds a step's end pose clear
+    so is every pose along the step (sampled far finer than the sub-steps), as the planner's step
+    relies on it to test one pose instead of each sub-step."""
+    policy = load_policy("general")
+    planner = policy.lean(True)
+    geo, max_dp, max_drot = planner.geo, planner.consts[0], planner.consts[1]
+    needle, start, _ = episode_poses(load_testset("general1000")[0])
+    rng = np.random.default_rng(11)
+    tool, tool_mid = np.empty_like(geo.tool_local), np.empty((len(geo.tool_local), 3))
+
+    def closest(fixed, p, q):  # [T]: each tool capsule's smallest signed distance over its pairs
+        placed = p + geo.tool_local @ np.array(lean_geometry.matrix(tuple(q))).reshape(3, 3).T
+        return np.array(
+            [
+                min(
+                    lean_collision.segment_distance(placed, t, fixed.other, o) - fixed.sums[geo.pair_index[t, o]]
+                    for o in range(len(fixed.other))
+                )
+                for t in range(len(placed))
+            ]
+        )
+
+    proved = 0
+    for i in range(30):
+        radius, wire = rng.uniform(0.004, 0.012), rng.uniform(0.00015, 0.00035)
+        n = needle[i] / np.r_[1, 1, 1, [np.linalg.norm(needle[i, 3:])] * 4]
+        fixed = lean_collision.fixed_ends(geo, True, tuple(n[:3]), tuple(n[3:]), radius, wire)
+        for _ in range(4):
+            p0 = start[i, :3] + rng.normal(0, 1.5e-3, 3)
+            q0 = start[i, 3:] / np.linalg.norm(start[i, 3:])
+            dp, w = rng.uniform(-1, 1, 3) * max_dp, rng.uniform(-1, 1, 3) * max_drot
+            end_q = lean_geometry.qmul(lean_geometry.qexp(*w), tuple(q0))
+            shift, turn = 0.5 * np.linalg.norm(dp), 0.5 * np.linalg.norm(w)  # from the halfway sub-step on
+            d = closest(fixed, p0 + dp, end_q)
+            threshold = float(np.sort(d)[0]) - rng.uniform(0, 3e-3)  # near the margin: both verdicts occur
+            raised = threshold + shift + turn * geo.tool_reach
+            for bump, expected in ((-1e-9, False), (1e-9, True)):  # exact at each capsule's own margin
+                t = int(np.argmin(d - raised))
+                got = lean_collision.near(
+                    geo, fixed, tuple(p0 + dp), end_q, tool, tool_mid, threshold + (d - raised)[t] + bump, shift, turn
+                )
+                assert got == expected, (i, bump)
+            if lean_collision.near(geo, fixed, tuple(p0 + dp), end_q, tool, tool_mid, threshold, shift, turn):
+                continue
+            proved += 1
+            for s in np.linspace(0.5, 1.0, 26):
+                q = lean_geometry.qmul(lean_geometry.qexp(*(s * w)), tuple(q0))
+                assert closest(fixed, p0 + s * dp, q).min() >= threshold, (i, s)
+    assert proved >= 30
+
+
+def test_a_querys_task_keywords_are_checked_once_and_kept():
+    """TaskRanges.keywords_vector keeps the vector of keywords it has seen (each query of a test set
+    passes its needle's radii): the same values give the same vector, other values their own, and
+    values it refuses are refused again."""
+    ranges = load_policy("general").task_ranges
+    first = ranges.keywords_vector({"needle_radius_mm": np.float64(6.0), "wire_radius_mm": 0.2})
+    again = ranges.keywords_vector({"needle_radius_mm": 6.0, "wire_radius_mm": np.float64(0.2)})
+    other = ranges.keywords_vector({"needle_radius_mm": 7.0, "wire_radius_mm": 0.2})
+    assert again is first and first[4] == pytest.approx(6e-3) and other[4] == pytest.approx(7e-3)
+    for _ in range(2):  # out of range, not a scalar: None both times (the caller's checks name it)
+        assert ranges.keywords_vector({"needle_radius_mm": 99.0}) is None
+        assert ranges.keywords_vector({"needle_radius_mm": np.array([6.0, 7.0])}) is None
