@@ -105,8 +105,8 @@ def main() -> None:
         for kind in ("mujoco", "lean"):
             for simplify in (0.0, 0.2):
                 for direction in ("forward", "reverse"):
-                    name = f"RRT-Connect ({direction[0].upper()})" + (" + 0.2 s shortcutting" if simplify else "")
-                    methods[name + (", lean checker" if kind == "lean" else "")] = rrt(direction, simplify, kind)
+                    label = f"RRT-Connect ({direction[0].upper()})" + (" + 0.2 s shortcutting" if simplify else "")
+                    methods[label + (", lean checker" if kind == "lean" else "")] = rrt(direction, simplify, kind)
     for query in methods.values():  # compile and warm up outside the timing
         query(clear[0])
     times = {m: [] for m in methods}

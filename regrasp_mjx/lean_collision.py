@@ -73,6 +73,12 @@ def point_distance(seg, i, px, py, pz):
 
 
 @njit(cache=True)
+def _norm(ends, i, k):
+    """The length of end point ``k`` of capsule ``i``."""
+    return math.sqrt(ends[i, k, 0] * ends[i, k, 0] + ends[i, k, 1] * ends[i, k, 1] + ends[i, k, 2] * ends[i, k, 2])
+
+
+@njit(cache=True)
 def _sphere_gap(mid, i, cx, cy, cz):
     """Distance of ``mid[i]`` to the point ``(cx, cy, cz)``."""
     x, y, z = mid[i, 0] - cx, mid[i, 1] - cy, mid[i, 2] - cz
@@ -107,7 +113,6 @@ class Capsules(NamedTuple):
 
     tool_local: np.ndarray  # [T, 2, 3] end points in the regrasping end-effector frame
     tool_half: np.ndarray  # [T] half lengths
-    tool_reach: np.ndarray  # [T] the end point farthest from the end-effector's origin, its distance
     other_local: np.ndarray  # [O, 2, 3] in the needle frame (chords) or e_g (the grasping tool)
     on_needle: np.ndarray  # [O] bool
     pair_index: np.ndarray  # [T, O] -> pair
@@ -162,7 +167,6 @@ def capsules(frames: Any, needle_radius: float, group_size: int = CHORD_GROUP) -
     return Capsules(
         tool_local=np.asarray(f.tool_ends, np.float64),
         tool_half=0.5 * np.linalg.norm(f.tool_ends[:, 1] - f.tool_ends[:, 0], axis=-1),
-        tool_reach=np.linalg.norm(np.asarray(f.tool_ends, np.float64), axis=-1).max(axis=1),
         other_local=np.asarray(f.other_ends, np.float64),
         on_needle=np.asarray(f.on_needle, bool),
         pair_index=np.arange(n_tools * n_others).reshape(n_tools, n_others),
@@ -224,7 +228,7 @@ def fixed_ends(geo, varies, needle_p, needle_q, radius, wire):
 
 
 @njit(cache=True)
-def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold):
+def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=0.0):
     """Whether the smallest signed distance over the counted pairs is below ``threshold`` for one
     end-effector pose (``ee_p`` a 3-tuple, ``ee_q`` a unit 4-tuple; ``tool`` ``[T, 2, 3]`` and
     ``tool_mid`` ``[T, 3]``: scratch space for the regrasping tool's end points and midpoints).
@@ -232,16 +236,12 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold):
     The same verdict as comparing the minimum over every pair, found with less work: a pair is
     skipped when its bounding spheres keep it at least ``threshold`` apart; the needle's chords
     when a sphere holding them all does, then group by group by a sphere and a bounding capsule;
-    the first pair below the threshold ends the search."""
-    return near(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, 0.0, 0.0)
+    the first pair below the threshold ends the search.
 
-
-@njit(cache=True)
-def near(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift, turn):
-    """:func:`collides` with each tool capsule t's threshold raised by ``shift + turn *
-    tool_reach[t]`` [m]: False proves that no pose whose tool points each lie within that
-    distance of this pose's (a translation by at most ``shift`` and a rotation by at most ``turn``
-    rad about the end-effector's origin) collides at ``threshold``."""
+    ``shift`` and ``turn`` raise each tool capsule t's threshold by ``shift + turn * r_t`` [m], r_t
+    its end points' largest distance from the end-effector's origin: False then proves that no pose whose tool points each lie within that distance of this
+    pose's (a translation by at most ``shift`` and a rotation by at most ``turn`` rad about the
+    end-effector's origin) collides at ``threshold``."""
     f = fixed
     m = matrix(ee_q)
     n_tools = geo.tool_local.shape[0]
@@ -250,7 +250,9 @@ def near(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift, turn):
         for r in range(3):
             tool_mid[t, r] = 0.5 * (tool[t, 0, r] + tool[t, 1, r])
     for t in range(n_tools):
-        below = threshold + shift + turn * geo.tool_reach[t]
+        below = threshold + shift
+        if turn > 0.0:  # its end point farthest from the end-effector's origin moves the most
+            below += turn * max(_norm(geo.tool_local, t, 0), _norm(geo.tool_local, t, 1))
         clear = geo.tool_half[t] + below + BOUND_SLACK  # a pair whose bound reaches this is clear
         for o in geo.plain:
             k = geo.pair_index[t, o]

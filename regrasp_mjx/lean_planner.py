@@ -32,7 +32,7 @@ from numba.experimental import structref
 
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE
-from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends, near
+from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends
 from regrasp_mjx.lean_geometry import angle, canonical, goal_pose, nearest_grasp, qexp, qmul, relative, unit
 from regrasp_mjx.lean_network import member_actions, observe
 from regrasp_mjx.shield import candidate_noise, step_key
@@ -72,7 +72,7 @@ def _step(geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_
     # pair by that much more, so is every sub-step, and one test stands for n (most steps).
     s = 1.0 - 1.0 / n
     shift = s * math.sqrt(dx * dx + dy * dy + dz * dz) + MOTION_SLACK
-    collision = near(
+    collision = collides(
         geo, fixed, pos, quat, scratch[0], scratch[1], clearance, shift, s * math.sqrt(wx * wx + wy * wy + wz * wz)
     )
     if collision:  # not proved clear: each sub-step tested as the JAX path tests them

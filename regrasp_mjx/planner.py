@@ -28,15 +28,21 @@ from regrasp_mjx.shield import shield_rows
 PLANNERS: dict[tuple, Any] = {}  # planners by (hidden, members, env, camera, shield)
 CUT_FROM_QUERIES = 2048  # batches this large, off the CPU, copy only the planned part of their trajectories
 
+# The network's matmuls when a policy plans or acts: full float32. JAX's default on recent NVIDIA
+# GPUs is TF32 (a 10-bit mantissa), with which a GPU's plans drifted from the CPU's (and the lean
+# path's) by up to 1e-2 in an action; on the CPU both are float32 and the programs are the same.
+PLAN_MATMUL_PRECISION = "highest"
+
 
 def members_apply(hidden: tuple[int, ...]):
     """``apply(weights, obs) -> [each member's action]``, ``weights`` one ``(params, mean, std)``
-    per member. Members are unrolled (not vmapped): K is small, and exporters (jax2onnx) see plain
-    dense layers."""
+    per member, multiplied at :data:`PLAN_MATMUL_PRECISION`. Members are unrolled (not vmapped): K
+    is small, and exporters (jax2onnx) see plain dense layers."""
     nets = make_networks(6, hidden)
 
     def apply(weights, obs):
-        return [nets.policy(p, types.SimpleNamespace(mean=m, std=s), obs) for p, m, s in weights]
+        with jax.default_matmul_precision(PLAN_MATMUL_PRECISION):
+            return [nets.policy(p, types.SimpleNamespace(mean=m, std=s), obs) for p, m, s in weights]
 
     return apply
 

@@ -179,7 +179,7 @@ def test_a_single_query_names_its_bad_pose_as_a_batch_does():
 
 
 def test_a_motion_proved_clear_is_clear_all_along_it():
-    """lean_collision.near: its verdict is that of each tool capsule's closest pair against its own
+    """lean_collision.collides with a motion bound: its verdict is that of each tool capsule's closest pair against its own
     raised threshold (threshold + shift + turn * reach), and where it finds a step's end pose clear
     so is every pose along the step (sampled far finer than the sub-steps), as the planner's step
     relies on it to test one pose instead of each sub-step."""
@@ -215,14 +215,14 @@ def test_a_motion_proved_clear_is_clear_all_along_it():
             shift, turn = 0.5 * np.linalg.norm(dp), 0.5 * np.linalg.norm(w)  # from the halfway sub-step on
             d = closest(fixed, p0 + dp, end_q)
             threshold = float(np.sort(d)[0]) - rng.uniform(0, 3e-3)  # near the margin: both verdicts occur
-            raised = threshold + shift + turn * geo.tool_reach
+            raised = threshold + shift + turn * np.linalg.norm(geo.tool_local, axis=-1).max(axis=1)
             for bump, expected in ((-1e-9, False), (1e-9, True)):  # exact at each capsule's own margin
                 t = int(np.argmin(d - raised))
-                got = lean_collision.near(
+                got = lean_collision.collides(
                     geo, fixed, tuple(p0 + dp), end_q, tool, tool_mid, threshold + (d - raised)[t] + bump, shift, turn
                 )
                 assert got == expected, (i, bump)
-            if lean_collision.near(geo, fixed, tuple(p0 + dp), end_q, tool, tool_mid, threshold, shift, turn):
+            if lean_collision.collides(geo, fixed, tuple(p0 + dp), end_q, tool, tool_mid, threshold, shift, turn):
                 continue
             proved += 1
             for s in np.linspace(0.5, 1.0, 26):
