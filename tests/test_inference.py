@@ -259,3 +259,19 @@ def test_shipped_policies_by_name_and_one_compiled_planner_per_network_shape(pol
     assert dict(planner_module.PLANNERS) == compiled
     b = policy.plan(*(x[:3] for x in problems), check_grasp=False)
     np.testing.assert_array_equal(a.poses, b.poses)
+
+
+def test_planning_multiplies_at_full_float32_on_any_device():
+    """The network's matmuls in the planning and closed-loop programs (planner.members_apply) ask
+    for HIGHEST precision: JAX's default on recent NVIDIA GPUs is TF32, with which GPU plans drifted
+    from the CPU's by up to 1e-2 in an action. Checked in the traced program, so on the CPU too."""
+    import jax
+
+    from regrasp_mjx.planner import members_apply
+
+    policy = load_policy("ensemble3")
+    apply = members_apply(policy.hidden)
+    program = jax.make_jaxpr(apply)(policy._weights, np.zeros((3, policy.obs_size), np.float32))
+    dots = [e.params["precision"] for e in program.jaxpr.eqns if e.primitive.name == "dot_general"]
+    assert len(dots) == 3 * (len(policy.hidden) + 1)  # every layer of every member
+    assert all(p == (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST) for p in dots)

@@ -8,8 +8,9 @@ dies (a crash in native code, say) is replaced and its job reported failed; an e
 plan is reported as that job's failure and the worker carries on. Workers exit by themselves if
 their parent dies, so no process outlives the pool.
 
-This module imports no JAX: workers are spawned (not forked, which JAX does not survive) and set
-``JAX_PLATFORMS=cpu`` before the planner's imports.
+Workers are spawned (not forked, which JAX does not survive) and set ``JAX_PLATFORMS=cpu`` before
+the planner's imports (this module imports JAX through ``host`` and ``scene``), so no worker takes
+a GPU.
 """
 
 from __future__ import annotations
