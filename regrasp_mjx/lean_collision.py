@@ -239,9 +239,10 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=
     the first pair below the threshold ends the search.
 
     ``shift`` and ``turn`` raise each tool capsule t's threshold by ``shift + turn * r_t`` [m], r_t
-    its end points' largest distance from the end-effector's origin: False then proves that no pose whose tool points each lie within that distance of this
-    pose's (a translation by at most ``shift`` and a rotation by at most ``turn`` rad about the
-    end-effector's origin) collides at ``threshold``."""
+    its end points' largest distance from the end-effector's origin. False then proves that no
+    pose whose tool points each lie within that distance of this pose's (a translation by at most
+    ``shift`` and a rotation by at most ``turn`` rad about the end-effector's origin) collides at
+    ``threshold``."""
     f = fixed
     m = matrix(ee_q)
     n_tools = geo.tool_local.shape[0]

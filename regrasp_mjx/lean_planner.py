@@ -6,11 +6,13 @@ compute is tiny (a few matrix-vector products and a few dozen capsule distances 
 about seven steps), so this module runs the same rollout as :func:`regrasp_mjx.planner.make_planner`
 for one query, as plain loops compiled once by numba: the network (members averaged), the
 ego-centric observation (:mod:`regrasp_mjx.lean_network`), the step with its collision sub-steps
-(:mod:`regrasp_mjx.lean_collision`; poses: :mod:`regrasp_mjx.lean_geometry`),
+(:mod:`regrasp_mjx.lean_collision`; one test of the end pose stands for all of them where it is
+clear by as far as the tool moves between them; poses: :mod:`regrasp_mjx.lean_geometry`),
 the shield's alternatives in the same order with the same random draws
 (:func:`regrasp_mjx.shield.shield_candidates`, drawn once here for every step of the horizon), the
 success test, the trajectory. Nothing is allocated per step: the network's layers, the
-observation and the member actions use buffers made once per query, poses are tuples.
+observation and the member actions use buffers made once per query, poses are tuples. What every
+query passes is held in one native object (:class:`Held`), so a call unboxes one pointer.
 
 It mirrors the JAX path, which stays the reference (batches, the GPU, camera-frame queries and
 the joint-limit check given PSM bases go there): geometry in float64 here against float32 there,
@@ -249,8 +251,9 @@ def _hold(state):
 
 @njit(cache=True)
 def _query(held, needle, start, goal, task, library_p, library_q, columns, tolerance):
-    """One query (``held``: a :class:`Held` planner state) from unchecked input: ``needle``, ``start`` and ``goal`` ``[7]`` (an empty goal: the
-    goal grasp ``task[:4]`` on the needle), ``task`` ``(alpha*, d*, theta*, phi*, R, wire)`` [m].
+    """One query (``held``: a :class:`Held` planner state) from unchecked input: ``needle``,
+    ``start`` and ``goal`` ``[7]`` (an empty goal: the goal grasp ``task[:4]`` on the needle),
+    ``task`` ``(alpha*, d*, theta*, phi*, R, wire)`` [m].
     Checks the poses, makes the goal, measures the start's distance from the needle and the
     needle's from the grasp library (when it is not empty), and plans. Returns the fields of a
     :class:`LeanResult` (its ``status`` names a pose that failed its check, and nothing was planned

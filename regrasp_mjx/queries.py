@@ -186,7 +186,8 @@ class TaskRanges:
         """:meth:`vector` of ``Policy.plan``'s keywords as given (no :class:`TaskSpec` made), or None
         where a name is unknown, a value is not a scalar or None, or a value is out of range: the
         caller's checks then name it. Checked in plain floats (numpy's calls, and making the spec,
-        would cost a tenth of a lean plan)."""
+        would cost a tenth of a lean plan), and kept for the same keywords again: the vector is
+        shared, to be read only."""
         if not task:
             return self._plain_vector
         try:  # the same keywords again (a needle's radii on every query): the vector made for them
