@@ -15,7 +15,8 @@ import math
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.experimental import structref
 
 from regrasp_mjx.config import is_number, require
 from regrasp_mjx.host import MARGIN_ACCEPTED
@@ -277,24 +278,59 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=
     return False
 
 
+# ---- what a compiled call takes: many arrays as one ----------------------------------------------
+
+
+@structref.register
+class _HeldType(types.StructRef):
+    """numba's type of :class:`Held`."""
+
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(t)) for name, t in fields)
+
+
+class Held(structref.StructRefProxy):
+    """A tuple of arrays (its ``state``) held in one native object: a compiled call unboxes it as
+    one pointer, where numba unboxes a tuple array by array (about 0.08 us each; the lean planner's
+    state has some 30)."""
+
+
+structref.define_proxy(Held, _HeldType, ["state"])
+
+
+@njit(cache=True)
+def hold(state):
+    """``Held(state)``, made in compiled code (``Held(...)`` from Python would compile uncached)."""
+    return Held(state)
+
+
 # ---- one pose or one motion at a time: the OMPL planners' checker ---------------------------------
 
 
 @njit(cache=True)
-def _pose_collides(geo_t, fixed_t, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid):
+def _unit_collides(geo, fixed, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid):
     """:func:`collides` of the pose ``(x, y, z, qw, qx, qy, qz)``, its quaternion normalised (as
     MuJoCo's kinematics does for the host checker)."""
     n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    q = (qw / n, qx / n, qy / n, qz / n)
-    return collides(Capsules(*geo_t), Fixed(*fixed_t), (x, y, z), q, tool, tool_mid, threshold)
+    return collides(geo, fixed, (x, y, z), (qw / n, qx / n, qy / n, qz / n), tool, tool_mid, threshold)
 
 
 @njit(cache=True)
-def _motion_collides(geo_t, fixed_t, a, b, segments, threshold, tool, tool_mid):
+def _pose_collides(placed, x, y, z, qw, qx, qy, qz, threshold):
+    """:func:`_unit_collides` around the needle ``placed`` (:meth:`LeanChecker.place`)."""
+    geo_t, fixed_t, tool, tool_mid = placed.state
+    return _unit_collides(Capsules(*geo_t), Fixed(*fixed_t), x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid)
+
+
+@njit(cache=True)
+def _motion_collides(placed, a, b, segments, threshold):
     """Whether ``b`` or a pose between ``a`` and ``b`` (7-vectors) at ``k / segments``, k = 1 ...
-    segments - 1, collides: the states OMPL's ``DiscreteMotionValidator`` checks (positions linear,
-    rotations as ``ompl::base::SO3StateSpace::interpolate`` slerps them), the verdict in one call."""
-    if _pose_collides(geo_t, fixed_t, b[0], b[1], b[2], b[3], b[4], b[5], b[6], threshold, tool, tool_mid):
+    segments - 1, collides around the needle ``placed``: the states OMPL's
+    ``DiscreteMotionValidator`` checks (positions linear, rotations as
+    ``ompl::base::SO3StateSpace::interpolate`` slerps them), the verdict in one call."""
+    geo_t, fixed_t, tool, tool_mid = placed.state
+    geo, fixed = Capsules(*geo_t), Fixed(*fixed_t)
+    if _unit_collides(geo, fixed, b[0], b[1], b[2], b[3], b[4], b[5], b[6], threshold, tool, tool_mid):
         return True
     dq = a[3] * b[3] + a[4] * b[4] + a[5] * b[5] + a[6] * b[6]
     theta = 0.0 if abs(dq) > 1.0 - 1e-9 else math.acos(abs(dq))  # SO3StateSpace::distance
@@ -308,7 +344,7 @@ def _motion_collides(geo_t, fixed_t, a, b, segments, threshold, tool, tool_mid):
             qy, qz = (a[5] * s0 + b[5] * s1) * d, (a[6] * s0 + b[6] * s1) * d
         else:
             qw, qx, qy, qz = a[3], a[4], a[5], a[6]
-        if _pose_collides(geo_t, fixed_t, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid):
+        if _unit_collides(geo, fixed, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid):
             return True
     return False
 
@@ -351,11 +387,13 @@ class LeanChecker:
         other.scratch = tuple(np.empty_like(s) for s in self.scratch)
         return other
 
-    def place(self, needle: np.ndarray) -> tuple:
+    def place(self, needle: np.ndarray) -> Held:
         """The needle at ``needle`` (7-vector) placed for :meth:`pose_collides` and :meth:`motion_collides`
-        (another needle than the scene's: the scene's scaled to it, as the environment scales it)."""
+        (another needle than the scene's: the scene's scaled to it, as the environment scales it),
+        held with the capsules and this checker's scratch arrays as one object."""
         varies = not _same(self.needle, self.scene_needle)
-        return tuple(_placed(self.geo, varies, np.asarray(needle, np.float64), *self.needle))
+        fixed = tuple(_placed(self.geo, varies, np.asarray(needle, np.float64), *self.needle))
+        return hold((self.geo, fixed, *self.scratch))
 
     def collides(self, needle_pos, needle_quat, ee_pos, ee_quat) -> bool:
         """:meth:`regrasp_mjx.host.HostChecker.collides`: whether the pose collides. The last needle's
@@ -365,14 +403,14 @@ class LeanChecker:
             self._last = (needle, self.place(np.array(needle)))
         return self.pose_collides(self._last[1], *map(float, ee_pos), *map(float, ee_quat))
 
-    def pose_collides(self, placed: tuple, x, y, z, qw, qx, qy, qz) -> bool:
+    def pose_collides(self, placed: Held, x, y, z, qw, qx, qy, qz) -> bool:
         """Whether the pose collides with the needle :meth:`place` placed."""
-        return _pose_collides(self.geo, placed, x, y, z, qw, qx, qy, qz, self.margin, *self.scratch)
+        return _pose_collides(placed, x, y, z, qw, qx, qy, qz, self.margin)
 
-    def motion_collides(self, placed: tuple, a: np.ndarray, b: np.ndarray, segments: int) -> bool:
+    def motion_collides(self, placed: Held, a: np.ndarray, b: np.ndarray, segments: int) -> bool:
         """Whether ``b`` or a pose between ``a`` and ``b`` at ``k / segments`` collides (OMPL's
         discrete motion check, one call for the whole motion)."""
-        return _motion_collides(self.geo, placed, a, b, segments, self.margin, *self.scratch)
+        return _motion_collides(placed, a, b, segments, self.margin)
 
 
 def _same(a: tuple, b: tuple) -> bool:

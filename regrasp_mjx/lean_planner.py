@@ -12,7 +12,8 @@ the shield's alternatives in the same order with the same random draws
 (:func:`regrasp_mjx.shield.shield_candidates`, drawn once here for every step of the horizon), the
 success test, the trajectory. Nothing is allocated per step: the network's layers, the
 observation and the member actions use buffers made once per query, poses are tuples. What every
-query passes is held in one native object (:class:`Held`), so a call unboxes one pointer.
+query passes is held in one native object (:class:`~regrasp_mjx.lean_collision.Held`), so a call
+unboxes one pointer.
 
 It mirrors the JAX path, which stays the reference (batches, the GPU, camera-frame queries and
 the joint-limit check given PSM bases go there): geometry in float64 here against float32 there,
@@ -29,12 +30,11 @@ from typing import Any, NamedTuple
 
 import jax
 import numpy as np
-from numba import njit, types
-from numba.experimental import structref
+from numba import njit
 
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE
-from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends
+from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends, hold
 from regrasp_mjx.lean_geometry import angle, canonical, goal_pose, nearest_grasp, qexp, qmul, relative, unit
 from regrasp_mjx.lean_network import member_actions, observe
 from regrasp_mjx.shield import candidate_noise, step_key
@@ -228,30 +228,9 @@ def _checked(v, tolerance, out):
     return True
 
 
-@structref.register
-class _HeldType(types.StructRef):
-    """numba's type of :class:`Held`."""
-
-    def preprocess_fields(self, fields):
-        return tuple((name, types.unliteral(t)) for name, t in fields)
-
-
-class Held(structref.StructRefProxy):
-    """:attr:`LeanPlanner.state` held in one native object. A call unboxes it as one pointer; a tuple
-    of some 30 arrays numba unboxes array by array, about 2 us of every query."""
-
-
-structref.define_proxy(Held, _HeldType, ["state"])
-
-
-@njit(cache=True)
-def _hold(state):
-    return Held(state)  # made in compiled code: Held(...) from Python would compile uncached
-
-
 @njit(cache=True)
 def _query(held, needle, start, goal, task, library_p, library_q, columns, tolerance):
-    """One query (``held``: a :class:`Held` planner state) from unchecked input: ``needle``,
+    """One query (``held``: :attr:`LeanPlanner.held`) from unchecked input: ``needle``,
     ``start`` and ``goal`` ``[7]`` (an empty goal: the goal grasp ``task[:4]`` on the needle),
     ``task`` ``(alpha*, d*, theta*, phi*, R, wire)`` [m].
     Checks the poses, makes the goal, measures the start's distance from the needle and the
@@ -342,7 +321,7 @@ class LeanPlanner:
             self.noise,
             self.shield,
         )
-        self.held = _hold(self.state)
+        self.held = hold(self.state)  # what a call passes: the state as one native object
 
     def goal(self, needle: np.ndarray, grasp: np.ndarray, radius: float) -> np.ndarray:
         """The goal end-effector pose ``[7]`` (e_g) of a goal grasp ``(alpha*, d* [m], theta*, phi*)``

@@ -221,7 +221,7 @@ class OmplPlanner:
         return PlanResult(True, elapsed, poses, translation_length_mm(poses))
 
 
-def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: tuple) -> Any:
+def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: Any) -> Any:
     """An OMPL motion validator that checks what ``DiscreteMotionValidator`` checks (the end state,
     then the states at ``k / n`` of the way, n the space's valid segment count) with one compiled
     call per motion (:meth:`LeanChecker.motion_collides`) instead of a Python call per state."""
