@@ -190,8 +190,9 @@ class TaskRanges:
         shared, to be read only."""
         if not task:
             return self._plain_vector
+        key = tuple(task.items())
         try:  # the same keywords again (a needle's radii on every query): the vector made for them
-            return self._memo[tuple(task.items())]
+            return self._memo[key]
         except (KeyError, TypeError):  # new, or an unhashable value (not a scalar: refused below)
             pass
         (lo, hi), values = self._bounds, self._default_list.copy()
@@ -207,7 +208,7 @@ class TaskRanges:
             return None
         vector = np.array([values[0], values[1] * 1e-3, values[2], values[3], values[4] * 1e-3, values[5] * 1e-3])
         if len(self._memo) < MEMO_SIZE:
-            self._memo[tuple(task.items())] = vector
+            self._memo[key] = vector
         return vector
 
     @functools.cached_property

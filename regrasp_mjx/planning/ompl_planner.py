@@ -23,7 +23,7 @@ import numpy as np
 from regrasp_mjx.config import require, require_numbers
 from regrasp_mjx.geometry import unit_quaternions
 from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
-from regrasp_mjx.lean_collision import LeanChecker
+from regrasp_mjx.lean_collision import Held, LeanChecker
 
 PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar", "RRTConnect")
 DIRECTIONS = ("forward", "reverse")
@@ -221,7 +221,7 @@ class OmplPlanner:
         return PlanResult(True, elapsed, poses, translation_length_mm(poses))
 
 
-def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: Any) -> Any:
+def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: Held) -> Any:
     """An OMPL motion validator that checks what ``DiscreteMotionValidator`` checks (the end state,
     then the states at ``k / n`` of the way, n the space's valid segment count) with one compiled
     call per motion (:meth:`LeanChecker.motion_collides`) instead of a Python call per state."""
