@@ -4,7 +4,7 @@ A rollout is ``reset`` of B environments from the paper's distributions (collisi
 redrawn) and ``T`` steps of uniformly random actions in one ``lax.scan``, under brax's
 ``AutoResetWrapper(VmapWrapper(env))``; env-steps/s = B * T * rollouts / wall time, compile time
 excluded and printed apart. The CPU row steps the same MDP (:class:`regrasp_mjx.host.HostEnv`, same
-substeps, observation and reward) one problem at a time on one thread, restarting a problem when it
+continuous collision test, observation and reward) one problem at a time on one thread, restarting a problem when it
 ends, as the auto-reset does.
 
     python experiments/bench_env.py --batch-sizes 1024,8192,32768 --out experiments/results
@@ -29,6 +29,9 @@ from regrasp_mjx.host import HostEnv
 from regrasp_mjx.testset import make_testset
 
 POSE_FIELDS = ("needle_pos", "needle_quat", "start_pos", "start_quat")
+# the fewest poses a step's continuous test looks at (its end pose and its midpoint): the raw CPU
+# row's C calls per step, so that its rate bounds any one-thread implementation from above
+RAW_CALLS = 2
 
 
 def make_rollout(env: RegraspEnv, batch: int, steps: int):
@@ -68,7 +71,7 @@ def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: in
         "steps": steps,
         "rollouts": rollouts,
         "check_actions": config.check_actions,
-        "substeps": env.substeps,
+        "halvings_bound": env.levels,
         "compile_s": round(compile_s, 2),
         "wall_s": round(wall, 4),
         "env_steps_per_s": batch * steps * rollouts / wall,
@@ -78,8 +81,8 @@ def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: in
 
 def bench_cpu(config: EnvConfig, total_steps: int, steps: int, seed: int, raw: bool = False) -> dict:
     """The same MDP on CPU MuJoCo, one thread (:class:`HostEnv`), restarting a problem when it ends;
-    ``raw``: the C work of a step alone, ``substeps`` x (mj_kinematics + mj_collision) with no Python
-    MDP, an upper bound for any one-thread CPU implementation (so the ratio against it is the
+    ``raw``: the C work of a step alone, :data:`RAW_CALLS` x (mj_kinematics + mj_collision) with no
+    Python MDP, an upper bound for any one-thread CPU implementation (so the ratio against it is the
     conservative one)."""
     env = HostEnv(config)
     problems = make_testset(64, seed, config)
@@ -87,7 +90,7 @@ def bench_cpu(config: EnvConfig, total_steps: int, steps: int, seed: int, raw: b
     model, data, scene = env.checker.model, env.checker.data, env.checker.scene
     qpos = [scene.qpos(*(np.asarray(getattr(problems, f)[i]) for f in POSE_FIELDS)) for i in range(len(problems))]
     t0 = time.perf_counter()
-    for i in range(total_steps * env.substeps if raw else 0):  # the C calls alone, on states made before
+    for i in range(total_steps * RAW_CALLS if raw else 0):  # the C calls alone, on states made before
         data.qpos[:] = qpos[i % len(qpos)]
         mujoco.mj_kinematics(model, data)
         mujoco.mj_collision(model, data)
@@ -106,7 +109,6 @@ def bench_cpu(config: EnvConfig, total_steps: int, steps: int, seed: int, raw: b
         "steps": n,
         "wall_s": round(wall, 3),
         "env_steps_per_s": n / wall,
-        "substeps": env.substeps,
     }
 
 

@@ -244,12 +244,9 @@ class EnvConfig:
       step_reward: beta, the reward of a step that neither collides nor succeeds.
       collision_reward, success_reward: terminal rewards.
       success_pos_mm, success_rot_deg: the success tolerances of eqs. (8) and (9).
-      clearance_mm: a pose collides when any counted pair is closer than this (ours; 0 = only
-        penetration, SPEC). With a margin > 0 the derived sub-step count also guarantees that no
-        pose between two checked ones penetrates (:meth:`regrasp_mjx.scene.Scene.required_substeps`).
-      collision_substeps: poses checked per step, the end pose included. ``None`` derives the
-        smallest count that makes tunnelling impossible from the geometry
-        (:meth:`regrasp_mjx.scene.Scene.required_substeps`); a smaller count is refused.
+      clearance_mm: a step collides when any counted pair comes closer than this anywhere along
+        its motion (ours; 0 = only penetration, SPEC): the continuous test of
+        :mod:`regrasp_mjx.continuous`, the whole motion and not sampled poses.
       check_actions: raise a runtime error on a non-finite action (costs a little speed; the
         learner, whose actions are tanh outputs, turns it off).
     """
@@ -265,7 +262,6 @@ class EnvConfig:
     success_pos_mm: float = 1.0
     success_rot_deg: float = 5.0
     clearance_mm: float = 0.0
-    collision_substeps: int | None = None
     check_actions: bool = True
 
     def __post_init__(self) -> None:
@@ -315,13 +311,6 @@ class EnvConfig:
             self.clearance_mm,
             "a margin in [0, 1] mm",
         )
-        require(
-            self.collision_substeps is None
-            or (isinstance(self.collision_substeps, int) and 1 <= self.collision_substeps <= 64),
-            "collision_substeps",
-            self.collision_substeps,
-            "None (derived) or an integer in [1, 64]",
-        )
         require(isinstance(self.check_actions, bool), "check_actions", self.check_actions, "True or False")
         for field, value, rng in (
             ("needle_radius_mm", self.scene.needle_radius_mm, self.task.needle_radius_range_mm),
@@ -358,6 +347,12 @@ def env_config_from_dict(d: dict[str, Any]) -> EnvConfig:
     try:
         task = {k: tuple(v) if isinstance(v, list) else v for k, v in d["task"].items()}
         rest = {k: v for k, v in d.items() if k not in ("scene", "task")}
+        if "collision_substeps" in rest:  # files from before the continuous test (issue 44)
+            if rest.pop("collision_substeps") is not None:
+                raise ConfigError(
+                    "collision_substeps is no longer accepted (every step is tested along its whole "
+                    "motion, regrasp_mjx.continuous); accepted: null or absent"
+                )
         return EnvConfig(scene=SceneConfig(**d["scene"]), task=TaskConfig(**task), **rest)
     except (KeyError, TypeError) as err:
         raise ConfigError(f"not an EnvConfig description: {err}") from err

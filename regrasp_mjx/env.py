@@ -17,15 +17,19 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import Env, State
 from flax import struct
 
-from regrasp_mjx import geometry
+from regrasp_mjx import continuous, geometry
 from regrasp_mjx.config import ConfigError, EnvConfig
 from regrasp_mjx.sampling import Episode, sample_episode
 from regrasp_mjx.scene import Scene, load_scene
 
 ACTION_SIZE = 6
+# the pairs a step's continuous test follows past its root interval, where the root left no more
+# unproved (a jaw straddling the wire leaves about a dozen); steps that leave more test every pair
+FEW_PAIRS = 32
 
 
 @struct.dataclass
@@ -82,7 +86,8 @@ class RegraspEnv(Env):
     ``reset(rng)`` samples a problem from the paper's distributions; ``reset_from(episode)`` starts
     from a given one (a test-set row). Both and ``step`` are pure and jit/vmap-able.
 
-    Reward: ``collision_reward`` (-1, ends the episode) if any checked pose of the step collides;
+    Reward: ``collision_reward`` (-1, ends the episode) if the step's motion is not proved clear
+    along its whole length (:mod:`regrasp_mjx.continuous`);
     ``success_reward`` (+1, ends it) if the end pose is within ``success_pos_mm`` and
     ``success_rot_deg`` of the goal; ``step_reward`` (beta = -0.02) otherwise. Reaching ``horizon``
     steps ends the episode as a time-out: ``info['truncation'] = 1``, not a terminal state.
@@ -106,17 +111,15 @@ class RegraspEnv(Env):
         self.clearance = config.clearance_mm * 1e-3
         self.varies_needle = config.task.varies_needle
         self.general = config.task.general
-        thinnest = config.task.span("wire_radius_range_mm", config.scene.wire_radius_mm)[0] * 1e-3
-        required = self.scene.required_substeps(self.max_dp, self.max_drot, self.clearance, thinnest)
-        if config.collision_substeps is not None and config.collision_substeps < required:
-            raise ConfigError(
-                f"collision_substeps={config.collision_substeps} is not accepted: with max_dp_mm="
-                f"{config.max_dp_mm} and max_drot_deg={config.max_drot_deg} a step could pass through "
-                f"the wire between checks{' or come closer than its clearance margin' if self.clearance else ''}; "
-                f"accepted: None or an integer >= {required}"
-            )
-        self.substeps = config.collision_substeps or required
+        # the continuous test of a step (regrasp_mjx.continuous): each tool capsule's lever, and a
+        # static bound on how often a step may be halved
+        frames = self.scene.capsule_frames
+        self.levers = jnp.asarray(continuous.levers(frames.tool_ends), jnp.float32)
+        self.others = len(frames.other_ends)
+        fastest = math.sqrt(3.0) * (self.max_dp + self.max_drot * float(np.max(continuous.levers(frames.tool_ends))))
+        self.levels = continuous.max_levels(fastest)
         self.distances = self.scene.distance_fn()
+        self._place_others, self._gaps = self.scene.motion_distance_fn()
         # what the validity tests use: clearances less the margin (negative = colliding)
         distances, margin = self.distances, self.clearance
         self._free_distances = distances if margin == 0.0 else (lambda *pose: distances(*pose) - margin)
@@ -201,8 +204,9 @@ class RegraspEnv(Env):
         """Moves the regrasping end-effector by ``action`` and checks the swept motion.
 
         ``dp = a[0:3] max_dp`` in the e_g frame and ``q_t = exp(a[3:6] max_drot) q_{t-1}`` (paper
-        eq. 7); actions are clipped to [-1, 1]. The poses at ``s = k/n``, k = 1..n, along the step
-        are checked for collision, with n = ``self.substeps`` (see ``Scene.required_substeps``).
+        eq. 7); actions are clipped to [-1, 1]. The step collides unless every pose along it,
+        ``(p + s dp, exp(s w) q)`` for s in [0, 1], is proved clear of the margin
+        (:func:`regrasp_mjx.continuous.motion_collides`: not only sampled poses).
         """
         action = jnp.asarray(action)
         if action.shape != (ACTION_SIZE,):
@@ -223,15 +227,24 @@ class RegraspEnv(Env):
         dp = a[:3] * self.max_dp
         rotvec = a[3:] * self.max_drot
 
-        s = jnp.arange(1, self.substeps + 1, dtype=jnp.float32) / self.substeps
-        sub_pos = es.ee_pos + s[:, None] * dp
-        sub_quat = geometry.quat_mul(geometry.quat_from_rotvec(s[:, None] * rotvec), es.ee_quat)
-        dist = jax.vmap(self.needle_distances, in_axes=(None, 0, 0))(es, sub_pos, sub_quat)
-        collision = jnp.any(jnp.min(dist, axis=-1) < self.clearance)
+        end_pos = es.ee_pos + dp
+        end_quat = geometry.quat_mul(geometry.quat_from_rotvec(rotvec), es.ee_quat)
+        needle = (es.needle_radius, es.wire_radius) if self.varies_needle else ()
+        placed = self._place_others(es.needle_pos, es.needle_quat, *needle)  # once for the step's poses
+        end = self._gaps(placed, end_pos, end_quat)
+
+        def dist_at(s, pairs=None):
+            quat = geometry.quat_mul(geometry.quat_from_rotvec(s * rotvec), es.ee_quat)
+            return self._gaps(placed, es.ee_pos + s * dp, quat, pairs)
+
+        speed = jnp.repeat(jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * self.levers, self.others)
+        collision = jnp.any(end < self.clearance) | continuous.motion_collides(
+            dist_at, speed, self.clearance, self.levels, dist_at, FEW_PAIRS
+        )
 
         es = es.replace(
-            ee_pos=sub_pos[-1],
-            ee_quat=geometry.canonical_quat(sub_quat[-1]),
+            ee_pos=end_pos,
+            ee_quat=geometry.canonical_quat(end_quat),
             t=es.t + 1,
             path_length=es.path_length + jnp.linalg.norm(dp),
         )
@@ -248,7 +261,7 @@ class RegraspEnv(Env):
             self.config.collision_reward,
             jnp.where(success, self.config.success_reward, self.config.step_reward),
         ).astype(jnp.float32)
-        metrics = self._metrics(es, jnp.min(dist[-1]), success, collision, time_out, distance, angle)
+        metrics = self._metrics(es, jnp.min(end), success, collision, time_out, distance, angle)
         metrics["reset_valid"] = state.metrics["reset_valid"]
         info = {**state.info, "truncation": time_out.astype(jnp.float32)}
         return state.replace(

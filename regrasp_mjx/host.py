@@ -1,7 +1,7 @@
 """The same task on the host: CPU MuJoCo, one thread, the same MJCF, geoms and filtering.
 
 :class:`HostChecker` is the collision checker that the OMPL planners call; :class:`HostEnv` steps
-the MDP exactly as :class:`regrasp_mjx.env.RegraspEnv` does (same substeps, reward and success
+the MDP exactly as :class:`regrasp_mjx.env.RegraspEnv` does (same continuous collision test, reward and success
 test), one problem at a time, for cross-checks and as the CPU baseline of the benchmarks.
 Quaternion and pose arithmetic uses MuJoCo's own ``mju_*`` functions.
 """
@@ -13,6 +13,7 @@ import math
 import mujoco
 import numpy as np
 
+from regrasp_mjx import continuous
 from regrasp_mjx.config import EnvConfig, is_number, require
 from regrasp_mjx.scene import Scene, load_scene, needle_scene
 
@@ -115,6 +116,33 @@ class HostChecker:
             [mujoco.mj_geomDistance(self.model, self.data, g1, g2, distmax, None) for g1, g2 in self.scene.pairs]
         )
 
+    def motion_collides(self, needle_pos, needle_quat, pos, quat, dp, rotvec) -> bool:
+        """Whether the motion from ``(pos, quat)`` along ``(pos + s dp, exp(s rotvec) quat)``, s in
+        [0, 1], comes closer than the margin anywhere (:mod:`regrasp_mjx.continuous`: every pose
+        proved clear, not sampled ones)."""
+        pos, quat = np.asarray(pos, float), np.asarray(quat, float)
+        dp, rotvec = np.asarray(dp, float), np.asarray(rotvec, float)
+        lever = self._levers()
+        speed = np.repeat(np.linalg.norm(dp) + np.linalg.norm(rotvec) * lever, len(self.scene.pairs) // len(lever))
+
+        def dist_at(s: float, reach: float) -> np.ndarray:
+            at = quat_mul(quat_from_rotvec(s * rotvec), quat)
+            return self.distances(needle_pos, needle_quat, pos + s * dp, at, reach)
+
+        return continuous.motion_collides_host(dist_at, speed, self.margin)
+
+    def motion_collides_between(self, needle: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+        """:meth:`motion_collides` of the motion from pose ``a`` to pose ``b`` (7-vectors), position
+        linear and orientation slerped the shorter way (OMPL's interpolation)."""
+        needle, a, b = (np.asarray(x, float) for x in (needle, a, b))
+        rotvec = quat_to_rotvec(quat_mul(b[3:], quat_conj(a[3:])))
+        return self.motion_collides(needle[:3], needle[3:], a[:3], a[3:], b[:3] - a[:3], rotvec)
+
+    def _levers(self) -> np.ndarray:
+        if not hasattr(self, "_lever_cache"):
+            self._lever_cache = continuous.levers(self.scene.capsule_frames.tool_ends)
+        return self._lever_cache
+
     def clear_problems(self, needle, start, goal) -> list[int]:
         """Rows of ``[N, 7]`` needle, start and goal poses whose start and goal both keep this
         checker's margin (the others fail before a step is taken)."""
@@ -163,15 +191,10 @@ class HostEnv:
 
     def __init__(self, config: EnvConfig = EnvConfig(), scene: Scene | None = None):
         self.config = config
-        clearance = config.clearance_mm * 1e-3
         self.scene_checker = HostChecker(scene if scene is not None else load_scene(config.scene), config.clearance_mm)
         self.checker = self.scene_checker
         self.max_dp = config.max_dp_mm * 1e-3
         self.max_drot = math.radians(config.max_drot_deg)
-        thinnest = config.task.span("wire_radius_range_mm", config.scene.wire_radius_mm)[0] * 1e-3
-        self.substeps = config.collision_substeps or self.checker.scene.required_substeps(
-            self.max_dp, self.max_drot, clearance, thinnest
-        )
 
     def reset_from(self, episode) -> np.ndarray:
         """Starts from one problem (an :class:`~regrasp_mjx.sampling.Episode` row, around its own
@@ -205,12 +228,10 @@ class HostEnv:
         if a.shape != (6,) or not np.all(np.isfinite(a)):
             raise ValueError(f"action must be 6 finite numbers, got {action!r}")
         dp, rotvec = a[:3] * self.max_dp, a[3:] * self.max_drot
-        collision = False
-        for k in range(1, self.substeps + 1):
-            s = k / self.substeps
-            pos = self.ee[0] + s * dp
-            quat = quat_mul(quat_from_rotvec(s * rotvec), self.ee[1])
-            collision = collision or self.checker.collides(*self.needle, pos, quat)
+        pos, quat = self.ee[0] + dp, quat_mul(quat_from_rotvec(rotvec), self.ee[1])
+        collision = self.checker.collides(*self.needle, pos, quat) or self.checker.motion_collides(
+            *self.needle, *self.ee, dp, rotvec
+        )
         self.ee = (pos, canonical(quat))
         self.t += 1
         er_n = relative(*self.ee, *self.needle)

@@ -19,8 +19,10 @@ from numba import njit, types
 from numba.experimental import structref
 
 from regrasp_mjx.config import is_number, require
+from regrasp_mjx.continuous import MAX_TESTS, RESOLUTION
+from regrasp_mjx.continuous import SLACK as MOTION_SLACK
 from regrasp_mjx.host import MARGIN_ACCEPTED
-from regrasp_mjx.lean_geometry import matrix, rotate
+from regrasp_mjx.lean_geometry import conj, log_rotation, matrix, qexp, qmul, rotate, unit
 from regrasp_mjx.scene import Scene, load_scene
 
 # chords per bounding capsule in the collision test (7 x 8 for the MJCF's 56; measured fastest of
@@ -318,35 +320,66 @@ def _unit_collides(geo, fixed, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mi
 @njit(cache=True)
 def _pose_collides(placed, x, y, z, qw, qx, qy, qz, threshold):
     """:func:`_unit_collides` around the needle ``placed`` (:meth:`LeanChecker.place`)."""
-    geo_t, fixed_t, tool, tool_mid = placed.state
+    geo_t, fixed_t, tool, tool_mid, _ = placed.state
     return _unit_collides(Capsules(*geo_t), Fixed(*fixed_t), x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid)
 
 
 @njit(cache=True)
-def _motion_collides(placed, a, b, segments, threshold):
-    """Whether ``b`` or a pose between ``a`` and ``b`` (7-vectors) at ``k / segments``, k = 1 ...
-    segments - 1, collides around the needle ``placed``: the states OMPL's
-    ``DiscreteMotionValidator`` checks (positions linear, rotations as
-    ``ompl::base::SO3StateSpace::interpolate`` slerps them), the verdict in one call."""
-    geo_t, fixed_t, tool, tool_mid = placed.state
-    geo, fixed = Capsules(*geo_t), Fixed(*fixed_t)
-    if _unit_collides(geo, fixed, b[0], b[1], b[2], b[3], b[4], b[5], b[6], threshold, tool, tool_mid):
+def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack):
+    """Whether the motion ``(p0 + s dp, exp(s w) q0)``, s in [0, 1] (tuples; ``q0`` unit), comes
+    below ``threshold`` anywhere: :func:`regrasp_mjx.continuous.motion_collides`' verdict, each
+    interval proved by one :func:`collides` at its midpoint with the thresholds raised by how far
+    the tool moves within it (``stack``: ``[64, 2]`` int64 scratch). The end pose is tested first,
+    raised by the whole motion: where it is clear by that much (most steps) one test proves all."""
+    move, turn = (
+        math.sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]),
+        math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]),
+    )
+    lever = 0.0
+    for t in range(geo.tool_local.shape[0]):
+        lever = max(lever, _norm(geo.tool_local, t, 0), _norm(geo.tool_local, t, 1))
+    fastest = move + turn * lever
+    end = (p0[0] + dp[0], p0[1] + dp[1], p0[2] + dp[2])
+    end_q = qmul(qexp(w[0], w[1], w[2]), q0)
+    if not collides(geo, fixed, end, end_q, tool, tool_mid, threshold, move + MOTION_SLACK, turn):
+        return False  # implies the root interval's proof (its midpoint clear by half as much)
+    if collides(geo, fixed, end, end_q, tool, tool_mid, threshold):
         return True
-    dq = a[3] * b[3] + a[4] * b[4] + a[5] * b[5] + a[6] * b[6]
-    theta = 0.0 if abs(dq) > 1.0 - 1e-9 else math.acos(abs(dq))  # SO3StateSpace::distance
-    for k in range(1, segments):
-        t = k / segments
-        x, y, z = a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t
-        if theta > 2.220446049250313e-16:
-            d, s0, s1 = 1.0 / math.sin(theta), math.sin((1.0 - t) * theta), math.sin(t * theta)
-            s1 = -s1 if dq < 0.0 else s1  # the shorter way round
-            qw, qx = (a[3] * s0 + b[3] * s1) * d, (a[4] * s0 + b[4] * s1) * d
-            qy, qz = (a[5] * s0 + b[5] * s1) * d, (a[6] * s0 + b[6] * s1) * d
-        else:
-            qw, qx, qy, qz = a[3], a[4], a[5], a[6]
-        if _unit_collides(geo, fixed, x, y, z, qw, qx, qy, qz, threshold, tool, tool_mid):
+    stack[0, 0], stack[0, 1] = 0, 0
+    n, tests = 1, 0
+    while n > 0:
+        n -= 1
+        tests += 1
+        k, i = stack[n, 0], stack[n, 1]
+        h = math.ldexp(1.0, -(k + 1))
+        s = (2 * i + 1) * h
+        at = (p0[0] + s * dp[0], p0[1] + s * dp[1], p0[2] + s * dp[2])
+        at_q = qmul(qexp(s * w[0], s * w[1], s * w[2]), q0)
+        if not collides(geo, fixed, at, at_q, tool, tool_mid, threshold, h * move + MOTION_SLACK, h * turn):
+            continue
+        if h * fastest <= RESOLUTION or tests >= MAX_TESTS or n + 2 > stack.shape[0]:
             return True
+        if collides(geo, fixed, at, at_q, tool, tool_mid, threshold):
+            return True
+        stack[n, 0], stack[n, 1] = k + 1, 2 * i + 1
+        stack[n + 1, 0], stack[n + 1, 1] = k + 1, 2 * i
+        n += 2
     return False
+
+
+@njit(cache=True)
+def _motion_between(placed, a, b, threshold):
+    """:func:`motion_collides` of the motion from pose ``a`` to pose ``b`` (7-vectors, quaternions
+    normalised), position linear and orientation slerped the shorter way (OMPL's
+    ``SO3StateSpace::interpolate``), around the needle ``placed``."""
+    geo_t, fixed_t, tool, tool_mid, stack = placed.state
+    qa = unit((a[3], a[4], a[5], a[6]))
+    qb = unit((b[3], b[4], b[5], b[6]))
+    w = log_rotation(qmul(qb, conj(qa)))
+    dp = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
+    return motion_collides(
+        Capsules(*geo_t), Fixed(*fixed_t), (a[0], a[1], a[2]), qa, dp, w, threshold, tool, tool_mid, stack
+    )
 
 
 @njit(cache=True)
@@ -372,7 +405,7 @@ class LeanChecker:
         self.geo = tuple(geo)  # a plain tuple: numba types it in C
         self.scene_needle = (geo.radius0, self.scene.config.wire_radius_mm * 1e-3)  # radius, wire [m]
         self.needle = self.scene_needle  # the one checked around (for_needle)
-        self.scratch = (np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)))
+        self.scratch = scratch(geo)
         self._last = None  # (needle pose, its placement) of the last collides call
 
     def for_needle(self, radius: float | None, wire: float | None) -> LeanChecker:
@@ -407,10 +440,24 @@ class LeanChecker:
         """Whether the pose collides with the needle :meth:`place` placed."""
         return _pose_collides(placed, x, y, z, qw, qx, qy, qz, self.margin)
 
-    def motion_collides(self, placed: Held, a: np.ndarray, b: np.ndarray, segments: int) -> bool:
-        """Whether ``b`` or a pose between ``a`` and ``b`` at ``k / segments`` collides (OMPL's
-        discrete motion check, one call for the whole motion)."""
-        return _motion_collides(placed, a, b, segments, self.margin)
+    def motion_collides(self, placed: Held, a: np.ndarray, b: np.ndarray) -> bool:
+        """Whether any pose of the motion from ``a`` to ``b`` (7-vectors; position linear, orientation
+        slerped) collides: :mod:`regrasp_mjx.continuous`'s test, one compiled call."""
+        return _motion_between(placed, np.asarray(a, np.float64), np.asarray(b, np.float64), self.margin)
+
+    def motion_collides_between(self, needle: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+        """:meth:`motion_collides` around the needle at ``needle`` (7-vector; the last one's
+        placement is kept, as :meth:`collides` keeps it)."""
+        needle = tuple(map(float, needle))
+        if self._last is None or self._last[0] != needle:
+            self._last = (needle, self.place(np.array(needle)))
+        return self.motion_collides(self._last[1], a, b)
+
+
+def scratch(geo: Capsules) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scratch arrays a collision test writes: the tool's end points and midpoints, and the
+    continuous test's stack of intervals."""
+    return np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)), np.zeros((64, 2), np.int64)
 
 
 def _same(a: tuple, b: tuple) -> bool:

@@ -59,6 +59,18 @@ def qexp(vx, vy, vz):
 
 
 @njit(cache=True)
+def log_rotation(q):
+    """The rotation vector of the unit quaternion ``q`` the shorter way round (angle in [0, pi]):
+    ``qexp(*log_rotation(q))`` is ``q`` up to sign."""
+    w, x, y, z = q if q[0] >= 0.0 else (-q[0], -q[1], -q[2], -q[3])
+    n = math.sqrt(x * x + y * y + z * z)
+    if n < 1e-12:
+        return (2.0 * x, 2.0 * y, 2.0 * z)
+    f = 2.0 * math.atan2(n, w) / n
+    return (f * x, f * y, f * z)
+
+
+@njit(cache=True)
 def matrix(q):
     w, x, y, z = q
     return (

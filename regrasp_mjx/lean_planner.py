@@ -34,14 +34,10 @@ from numba import njit
 
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE
-from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends, hold
+from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends, hold, motion_collides
 from regrasp_mjx.lean_geometry import angle, canonical, goal_pose, nearest_grasp, qexp, qmul, relative, unit
 from regrasp_mjx.lean_network import member_actions, observe
 from regrasp_mjx.shield import candidate_noise, step_key
-
-# added to the sub-steps' motion bound [m] against rounding in the poses (a nanometre: far above
-# float64's, far below any clearance)
-MOTION_SLACK = 1e-9
 
 # ---- the step and the rollout (regrasp_mjx.env.RegraspEnv.step, regrasp_mjx.rollout.rollout) -----
 
@@ -50,7 +46,7 @@ MOTION_SLACK = 1e-9
 def _step(geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, action):
     """One step of the float32 ``action``: the new pose, whether the swept motion collides, whether
     it reached the goal, and its translation [m]."""
-    max_dp, max_drot, substeps, clearance, tol_pos, tol_rot = (
+    max_dp, max_drot, _, clearance, tol_pos, tol_rot = (
         consts[0],
         consts[1],
         consts[2],
@@ -66,25 +62,12 @@ def _step(geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_
     wx = np.float64(min(max(action[3], lo), hi)) * max_drot
     wy = np.float64(min(max(action[4], lo), hi)) * max_drot
     wz = np.float64(min(max(action[5], lo), hi)) * max_drot
-    n = int(substeps)
     pos = (ee_p[0] + dx, ee_p[1] + dy, ee_p[2] + dz)
     quat = qmul(qexp(wx, wy, wz), ee_q)
-    # Sub-step k's pose is the end pose moved back by (1 - k/n) of the translation and turned back
-    # by (1 - k/n) of the rotation (the same axis): when the end pose is clear of every counted
-    # pair by that much more, so is every sub-step, and one test stands for n (most steps).
-    s = 1.0 - 1.0 / n
-    shift = s * math.sqrt(dx * dx + dy * dy + dz * dz) + MOTION_SLACK
-    collision = collides(
-        geo, fixed, pos, quat, scratch[0], scratch[1], clearance, shift, s * math.sqrt(wx * wx + wy * wy + wz * wz)
+    # the whole motion proved clear, not sampled poses (regrasp_mjx.continuous)
+    collision = motion_collides(
+        geo, fixed, ee_p, ee_q, (dx, dy, dz), (wx, wy, wz), clearance, scratch[0], scratch[1], scratch[2]
     )
-    if collision:  # not proved clear: each sub-step tested as the JAX path tests them
-        collision = False
-        for k in range(1, n + 1):
-            sk = k / n
-            at = (ee_p[0] + sk * dx, ee_p[1] + sk * dy, ee_p[2] + sk * dz)
-            if collides(geo, fixed, at, qmul(qexp(sk * wx, sk * wy, sk * wz), ee_q), scratch[0], scratch[1], clearance):
-                collision = True
-                break
     quat = canonical(quat)
     p, q = relative(pos, quat, needle_p, needle_q)
     ex, ey, ez = gn_p[0] - p[0], gn_p[1] - p[1], gn_p[2] - p[2]
@@ -125,7 +108,7 @@ def _rollout(state, needle, start, goal, radii, outcome):
     ee_p, ee_q = _pose(start)
     goal_p, goal_q = _pose(goal)
     fixed = fixed_ends(geo, varies, needle_p, needle_q, radius, wire)
-    scratch = (np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)))
+    scratch = (np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)), np.zeros((64, 2), np.int64))
     gn_p, gn_q = relative(goal_p, goal_q, needle_p, needle_q)
     valid = not collides(geo, fixed, ee_p, ee_q, scratch[0], scratch[1], consts[3])
     outcome[0] = 1.0 if valid else 0.0
@@ -282,7 +265,7 @@ class LeanPlanner:
             [
                 np.float32(env.max_dp),
                 np.float32(env.max_drot),
-                env.substeps,
+                0.0,  # unused (was the sub-step count before the continuous test)
                 np.float32(env.clearance),
                 np.float32(cfg.success_pos_mm * 1e-3),
                 np.float32(math.radians(cfg.success_rot_deg)),

@@ -23,7 +23,10 @@ import numpy as np
 from mujoco import mjx
 
 from regrasp_mjx.config import SceneConfig
-from regrasp_mjx.geometry import segment_distance  # re-exported: the capsule distance lives with the other geometry
+from regrasp_mjx.geometry import (
+    rotation_matrix,
+    segment_distance,
+)  # segment_distance re-exported: the capsule distance lives with the other geometry
 
 MJCF_PATH = Path(__file__).resolve().parent / "models" / "regrasp_scene.xml"  # package data
 
@@ -104,50 +107,6 @@ class Scene:
         needle = xp.concatenate([needle_pos, needle_quat], -1)
         ee = xp.concatenate([ee_pos, ee_quat], -1)
         return xp.concatenate([needle, ee] if self.needle_qpos < self.regrasp_qpos else [ee, needle], -1)
-
-    def required_substeps(
-        self, max_dp: float, max_drot: float, clearance: float = 0.0, wire_radius: float | None = None
-    ) -> int:
-        """Collision checks per step (end pose included) that make tunnelling impossible, and with a
-        clearance margin > 0 also any penetration between the checked poses.
-
-        A step moves the regrasping tool along ``p(s) = p0 + s dp``, ``R(s) = exp(s w) R0`` for s in
-        [0, 1] with ``|dp| <= sqrt(3) max_dp`` and ``|w| <= sqrt(3) max_drot`` (the action is clipped
-        to [-1, 1] per axis). A point at distance L from the end-effector origin then moves at most
-        ``D = sqrt(3) (max_dp + L max_drot)`` per unit s, so the distance between the axes of a
-        moving capsule and a fixed one, and so their surface distance d(s), is D-Lipschitz in s.
-
-        Margin 0 (no tunnelling): for one capsule to pass through another the axes must meet at
-        some s*; around s* the axes are closer than the sum of the radii r (a collision) for all
-        |s - s*| < r / D, a window of length 2r / D (r with the true wire radius, which the
-        conservative chords contain). Checks spaced 1/n apart (s = 0 is the
-        previous, already checked pose) always fall in that window when ``n > D / (2 r)``, i.e.
-        ``n = floor(D / 2r) + 1``.
-
-        Margin m > 0 (no penetration at all): every checked pose has d >= m, and every s lies within
-        1/(2n) of a checked pose, so ``d(s) >= m - D / (2n) >= 0`` when ``n >= D / (2m)``, i.e.
-        ``n = ceil(D / 2m)``. A plan accepted with a margin therefore never touches, between checks
-        included. We take the worst pair, and the larger of the two counts.
-
-        Args:
-          max_dp: metres per action unit and axis.
-          max_drot: radians per action unit and axis.
-          clearance: the margin m in metres (0: penetration only).
-          wire_radius: the thinnest wire the count must guard [m] (default the scene's); a task that
-            draws its needles passes its range's low end.
-        """
-        n = 1
-        # the true wire's radius, not the chords' grown one: the count guards the true wire
-        wire = self.config.wire_radius_mm * 1e-3 if wire_radius is None else wire_radius
-        others = [min(c.radius, wire) for c in self.needle_capsules] + [c.radius for c in self.grasp_capsules]
-        for cap in self.regrasp_capsules:
-            lever = max(float(np.linalg.norm(cap.p0)), float(np.linalg.norm(cap.p1)))
-            speed = math.sqrt(3.0) * (max_dp + lever * max_drot)
-            for other in others:
-                n = max(n, math.floor(speed / (2.0 * (cap.radius + other))) + 1)
-            if clearance > 0.0:
-                n = max(n, math.ceil(speed / (2.0 * clearance) - 1e-9))
-        return n
 
     @property
     def needle_inflation(self) -> float:
@@ -244,6 +203,48 @@ class Scene:
             return (gap - tool_radii - others).reshape(-1)
 
         return distances
+
+    def motion_distance_fn(self) -> tuple[Callable, Callable]:
+        """:meth:`distance_fn` cut in two for the many poses of one motion (the continuous test):
+        ``others(needle_pos, needle_quat[, radius, wire]) -> (ends [1, O, 2, 3], radii [O])``, the
+        counted capsules placed once, and ``gaps(others, ee_pos, ee_quat[, pairs]) -> [npairs]``, the
+        signed distances for one end-effector pose (of the pair indices ``pairs`` alone if given); the bodies posed from their quaternions directly (the
+        same frames ``mjx.kinematics`` computes, without its per-call work)."""
+        f = self.capsule_frames
+        tool_ends = jnp.asarray(f.tool_ends, jnp.float32)
+        other_ends = jnp.asarray(f.other_ends, jnp.float32)
+        on_needle = jnp.asarray(f.on_needle)
+        tool_radii = jnp.asarray(f.tool_radii, jnp.float32)[:, None]
+        other_radii = jnp.asarray(f.other_radii, jnp.float32)
+        inflation0 = jnp.asarray(f.inflation, jnp.float32)
+        radius0 = self.config.needle_radius_mm * 1e-3
+
+        def place(ends, pos, quat):
+            # products and sums, not a matmul (TF32 on a GPU; see distance_fn)
+            return pos + jnp.sum(rotation_matrix(quat) * ends[..., None, :], axis=-1)
+
+        def others(needle_pos, needle_quat, radius=None, wire=None):
+            scale = 1.0 if radius is None else radius / radius0
+            needle = place(scale * other_ends, needle_pos, needle_quat)
+            ends = jnp.where(on_needle[:, None, None], needle, other_ends)[None]
+            radii = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
+            return ends, radii
+
+        n_others = len(f.other_ends)
+
+        def gaps(placed, ee_pos, ee_quat, pairs=None):
+            """Every pair's signed distance, or those of the pair indices ``pairs`` alone."""
+            ends, radii = placed
+            tool = place(tool_ends, ee_pos, ee_quat)
+            if pairs is not None:
+                t, o = pairs // n_others, pairs % n_others
+                a, b = tool[t], ends[0, o]
+                return segment_distance(a[:, 0], a[:, 1], b[:, 0], b[:, 1]) - tool_radii[t, 0] - radii[o]
+            tool = tool[:, None]
+            gap = segment_distance(tool[..., 0, :], tool[..., 1, :], ends[..., 0, :], ends[..., 1, :])
+            return (gap - tool_radii - radii).reshape(-1)
+
+        return others, gaps
 
 
 @dataclasses.dataclass(frozen=True)

@@ -3,6 +3,7 @@ the true wire, the margin in the environment and the host checker, and plans re-
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -18,17 +19,17 @@ from regrasp_mjx.host import HostChecker
 from regrasp_mjx.scene import load_scene
 
 
-def test_substeps_with_a_margin_by_hand():
-    scene = load_scene()
-    # The shaft's axis reaches L = 54.1 mm: D = sqrt3 (0.5 + 54.1 * 3 deg) = sqrt3 * 3.33267 mm =
-    # 5.7723 mm; a margin m needs n >= D / 2m: 28.86 -> 29 at 0.1 mm, 14.43 -> 15 at 0.2 mm.
-    assert scene.required_substeps(0.0005, math.radians(3.0), 1e-4) == 29
-    assert scene.required_substeps(0.0005, math.radians(3.0), 2e-4) == 15
-    assert scene.required_substeps(0.0005, math.radians(3.0)) == 2  # margin 0: tunnelling only
+def test_margin_is_checked_and_old_substep_settings_are_refused():
     with pytest.raises(ConfigError, match="clearance_mm"):
         EnvConfig(clearance_mm=-0.1)
-    with pytest.raises(ConfigError, match=r"or come closer than its clearance margin; accepted: .* >= 15"):
-        RegraspEnv(EnvConfig(clearance_mm=0.2, collision_substeps=4))
+    with pytest.raises(TypeError):
+        EnvConfig(collision_substeps=4)  # gone: every step is tested along its whole motion
+    from regrasp_mjx.config import env_config_from_dict
+
+    d = dataclasses.asdict(EnvConfig())
+    assert env_config_from_dict({**d, "collision_substeps": None}) == EnvConfig()  # policy files before issue 44
+    with pytest.raises(ConfigError, match="collision_substeps is no longer accepted"):
+        env_config_from_dict({**d, "collision_substeps": 4})
 
 
 _HALF = math.pi / 112  # the half-angle of the MJCF's 56 chords over the semicircle

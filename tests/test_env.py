@@ -204,7 +204,6 @@ def test_a_step_that_would_jump_through_the_wire_is_caught(paper_testset):
     # Steps of up to 2.5 mm: the tool at the goal (wire between the jaws) moves 2.5 mm along -y_e.
     # At the end pose jaw a has passed the wire (free); halfway it sits on the wire.
     env = RegraspEnv(EnvConfig(max_dp_mm=2.5))
-    assert env.substeps == 4
     ep = _rows(paper_testset, [0]).row(0)
     ep = ep.replace(start_pos=ep.goal_pos, start_quat=ep.goal_quat)
     state = env.reset_from(ep)
@@ -217,8 +216,6 @@ def test_a_step_that_would_jump_through_the_wire_is_caught(paper_testset):
     state = jax.jit(env.step)(state, action)
     assert float(state.metrics["collision"]) == 1.0
     assert float(state.reward) == -1.0 and float(state.done) == 1.0
-    with pytest.raises(ConfigError, match="collision_substeps=1"):
-        RegraspEnv(EnvConfig(max_dp_mm=2.5, collision_substeps=1))
 
 
 def test_time_out_is_a_truncation_not_a_terminal_state(paper_testset):

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import geometry as g
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
-from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.config import SceneConfig
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.scene import load_scene, segment_distance
 
@@ -62,17 +61,6 @@ def test_only_the_counted_pairs_collide():
             counted = (i in regrasp) != (j in regrasp)
             assert can_collide(i, j) == counted, (m.geom(i).name, m.geom(j).name)
     assert len(scene.pairs) == len(regrasp) * (len(needle) + len(grasp))
-
-
-def test_required_substeps_by_hand():
-    scene = load_scene()
-    # Defaults: jaw axis reaches L = 9.6 mm. D = sqrt3 (0.5 + 9.6 * 3deg) = sqrt3 (0.5 + 0.50265) mm
-    # = 1.7366 mm; jaw + wire radii r = 0.85 mm; floor(D / 2r) + 1 = floor(1.0216) + 1 = 2.
-    assert scene.required_substeps(0.0005, math.radians(3.0)) == 2
-    # max_dp 2.5 mm: D = sqrt3 (2.5 + 0.50265) = 5.2008 mm; floor(3.0593) + 1 = 4.
-    assert scene.required_substeps(0.0025, math.radians(3.0)) == 4
-    with pytest.raises(ConfigError, match="collision_substeps=1 .* >= 2"):
-        RegraspEnv(EnvConfig(collision_substeps=1))
 
 
 def test_host_checker_agrees_with_mjx(distance_fn, paper_testset):

@@ -3,9 +3,8 @@
 The state is the regrasping end-effector pose in the grasping end-effector frame. A state is valid
 when it lies in the planning box and the scene has no counted collision (CPU MuJoCo, the same MJCF
 and filtering as the MJX environment; or, with ``checker="lean"``, the same capsule pairs tested by
-compiled code, a whole motion per call). Motions are checked at a resolution that no tool point moves
-more than ``check_step_mm`` between checks (see :func:`make_setup`), well under the 1.7 mm window in
-which a jaw passing through the wire would show as a penetration.
+compiled code, a whole motion per call). A motion between two states is valid only where every pose
+along it is proved clear (:mod:`regrasp_mjx.continuous`), not at sampled states.
 
 OMPL 2.x (nanobind) Python API: states come from ``space.allocState()``; validity checkers are plain
 callables; ``ou.RNG.setSeed`` must be called before any space or planner is built.
@@ -22,7 +21,7 @@ import numpy as np
 
 from regrasp_mjx.config import require, require_numbers
 from regrasp_mjx.geometry import unit_quaternions
-from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
+from regrasp_mjx.host import HostChecker
 from regrasp_mjx.lean_collision import Held, LeanChecker
 
 PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar", "RRTConnect")
@@ -43,7 +42,8 @@ class PlannerConfig:
       margin_mm: the planning box is the start/goal bounding box grown by this much.
       rotation_weight_mm: metres of translation one radian of rotation counts as in OMPL's SE(3)
         distance; the jaw length, so that a distance bounds the motion of any jaw point.
-      check_step_mm: largest motion of any tool point between two checked states.
+      check_step_mm: the state spacing OMPL uses where a planner cuts a motion into states itself
+        (largest motion of any tool point between two); motions are validated whole.
       rrt_range_mm: RRT*'s and RRT-Connect's longest extension (OMPL's "range"), in the weighted
         SE(3) distance.
       checker: ``mujoco`` (:class:`~regrasp_mjx.host.HostChecker`: CPU MuJoCo's collision of the
@@ -182,9 +182,13 @@ class OmplPlanner:
                 p = _get_pose(state)
                 return not checker.collides(needle_pos, needle_quat, p[:3], p[3:])
 
+            motions = _host_motions(ob, si, space, checker, needle)  # kept alive by this frame while planning
+            si.setMotionValidator(motions)
+
         setup.setStateValidityChecker(is_valid)
-        # OMPL checks a motion every `resolution * maximum extent` of distance; with the rotation
-        # weighted by the jaw length, a distance bounds how far any jaw point moves.
+        # Motions are tested whole (the validators above); the resolution remains what OMPL's
+        # planners use to cut motions into states of their own (a distance bounds how far any jaw
+        # point moves, the rotation weighted by the jaw length).
         si.setStateValidityCheckingResolution(cfg.check_step_mm * 1e-3 / space.getMaximumExtent())
         a, b = (goal, start) if cfg.direction == "reverse" else (start, goal)
         s_a, s_b = space.allocState(), space.allocState()
@@ -222,9 +226,9 @@ class OmplPlanner:
 
 
 def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: Held) -> Any:
-    """An OMPL motion validator that checks what ``DiscreteMotionValidator`` checks (the end state,
-    then the states at ``k / n`` of the way, n the space's valid segment count) with one compiled
-    call per motion (:meth:`LeanChecker.motion_collides`) instead of a Python call per state."""
+    """An OMPL motion validator that tests the whole motion between two states (position linear,
+    orientation slerped, as OMPL interpolates; :mod:`regrasp_mjx.continuous`) in one compiled call
+    (:meth:`LeanChecker.motion_collides`)."""
 
     class LeanMotions(ob.MotionValidator):
         def checkMotion(self, s1: Any, s2: Any, *last_valid: Any) -> bool:
@@ -232,10 +236,27 @@ def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: He
                 raise NotImplementedError("checker='lean' checks two-state motions only (what the PLANNERS call)")
             if not space.satisfiesBounds(s2):  # the states between are inside the box when both ends are
                 return False
-            n = space.validSegmentCount(s1, s2)
-            return not checker.motion_collides(placed, _get_pose(s1), _get_pose(s2), n)
+            return not checker.motion_collides(placed, _get_pose(s1), _get_pose(s2))
 
     return LeanMotions(si)
+
+
+def _host_motions(ob: Any, si: Any, space: Any, checker: HostChecker, needle: np.ndarray) -> Any:
+    """An OMPL motion validator that tests the whole motion between two states (position linear,
+    orientation slerped, as OMPL interpolates) with the host checker's continuous test."""
+
+    class HostMotions(ob.MotionValidator):
+        def checkMotion(self, s1: Any, s2: Any, *last_valid: Any) -> bool:
+            if last_valid:  # the planners used here call the two-state form only
+                raise NotImplementedError("the motion validator checks two-state motions only (what the PLANNERS call)")
+            if not space.satisfiesBounds(s2):
+                return False
+            a, b = _get_pose(s1), _get_pose(s2)
+            return not (
+                checker.collides(needle[:3], needle[3:], b[:3], b[3:]) or checker.motion_collides_between(needle, a, b)
+            )
+
+    return HostMotions(si)
 
 
 def straight_line(
@@ -245,19 +266,15 @@ def straight_line(
     goal: np.ndarray,
     config: PlannerConfig = PlannerConfig(),
 ) -> PlanResult:
-    """The straight-line baseline (SPEC): position interpolated, orientation slerped, checked at the
-    planners' motion resolution (no tool point moves more than ``check_step_mm`` between checks)."""
+    """The straight-line baseline (SPEC): position interpolated, orientation slerped, the whole
+    motion tested (:mod:`regrasp_mjx.continuous`)."""
 
     t0 = time.perf_counter()
     needle, start, goal = (_unit_pose(name, v) for name, v in (("needle", needle), ("start", start), ("goal", goal)))
-    rotvec = quat_to_rotvec(quat_mul(goal[3:], quat_conj(start[3:])))
-    dist = np.linalg.norm(goal[:3] - start[:3]) + config.rotation_weight_mm * 1e-3 * np.linalg.norm(rotvec)
-    n = max(1, math.ceil(dist / (config.check_step_mm * 1e-3)))
-    for k in range(n + 1):
-        s = k / n
-        pos = start[:3] + s * (goal[:3] - start[:3])
-        quat = quat_mul(quat_from_rotvec(s * rotvec), start[3:])
-        if checker.collides(needle[:3], needle[3:], pos, quat):
-            return PlanResult(False, time.perf_counter() - t0, error=f"collision at s={s:.3f}")
+    for name, pose in (("start", start), ("goal", goal)):
+        if checker.collides(needle[:3], needle[3:], pose[:3], pose[3:]):
+            return PlanResult(False, time.perf_counter() - t0, error=f"{name} in collision")
+    if checker.motion_collides_between(needle, start, goal):
+        return PlanResult(False, time.perf_counter() - t0, error="the straight line collides")
     poses = np.stack([start, goal])
     return PlanResult(True, time.perf_counter() - t0, poses, translation_length_mm(poses))
