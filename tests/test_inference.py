@@ -69,13 +69,14 @@ def test_shipped_policy_plans_the_test_problems(policy, problems):
 
 def test_the_decay_recipes_network_plans_bare_without_a_collision(problems):
     """``load_policy("decay")``: one 3x512 network of the ``decay`` preset (RESULTS, "The stalls'
-    cause"), trained with the chord needle and planning under the conservative one; 1.000 bare on
-    paper300 in RESULTS, here its first 40 problems, in fewer steps than the default takes."""
+    cause"), trained with the chord needle and planning under the conservative one; 0.993 bare on
+    paper300 under the continuous collision test (issue 44; 1.000 when only s = 1/2 and 1 of a
+    step were checked), here its first 40 problems, in fewer steps than the default takes."""
     decay = load_policy("decay")
     assert decay.members == 1 and decay.contract["network"]["hidden"] == [512, 512, 512]
     assert decay.env_config.scene.conservative_needle and decay.contract["training"]["config"]["bc_decay_epochs"] == 20
     plan = decay.plan(*problems, check_grasp=False, shield=False)
-    assert plan.success.all()
+    assert plan.success.sum() >= 39  # one bare step now grazes (is caught) along its motion
     assert plan.steps.mean() < 7.5  # ~6.3; the earlier default (student_v2) takes ~9.3
 
 
