@@ -12,8 +12,9 @@ half-width h about s_m is clear when every pair keeps ``d(s_m) >= m + h v_t`` (m
 margin; one pose test with each tool capsule's threshold raised). Otherwise the pose at s_m is
 tested at m itself (below: a pose collides, the motion collides) and the interval is halved, down
 to the size where no tool point moves more than :data:`RESOLUTION` within half an interval, depth
-first, left half first; an interval not proved clear there, or a motion not proved clear within
-:data:`MAX_TESTS` interval tests, is reported colliding. So:
+first, left half first; an interval not proved clear there, or a step not proved clear within
+:data:`MAX_TESTS` interval tests, is reported colliding (a planner's longer motion: each of the
+steps that replay it, :func:`pieces`). So:
 
 - a motion reported free keeps every pair at >= m along all of it (within the capsule model,
   which holds the true wire: ``Scene.needle_error_bound``);
@@ -40,6 +41,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from regrasp_mjx.config import EnvConfig
+
 # the finest a motion is cut: no tool point moves more than this within half an interval [m]
 RESOLUTION = 1e-6
 
@@ -50,6 +53,20 @@ SLACK = 1e-9
 # stays within about v / (2 MAX_TESTS) of the margin for much of its length) is reported colliding.
 # It bounds the batched test's work: a vmapped while loop runs as long as its slowest lane.
 MAX_TESTS = 32
+
+# a planner's motion between two states (OMPL's edges, the straight line) is tested as the
+# environment steps that replay it (regrasp_mjx.planning.episodes.path_to_actions): cut into the
+# fewest equal pieces within the default action bounds, each piece a step with a step's budget, so
+# that a path a planner calls free replays free
+STEP_DP = EnvConfig().max_dp_mm * 1e-3
+STEP_DROT = math.radians(EnvConfig().max_drot_deg)
+
+
+def pieces(dp, rotvec, max_dp: float = STEP_DP, max_drot: float = STEP_DROT) -> int:
+    """The fewest equal steps of a motion ``(dp, rotvec)`` whose every translation axis is at most
+    ``max_dp`` and every rotation-vector axis at most ``max_drot``."""
+    size = max(float(np.abs(dp).max()) / max_dp, float(np.abs(rotvec).max()) / max_drot)
+    return max(1, math.ceil(size - 1e-9))
 
 
 def levers(tool_ends: np.ndarray) -> np.ndarray:

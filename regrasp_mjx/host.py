@@ -119,7 +119,7 @@ class HostChecker:
     def motion_collides(self, needle_pos, needle_quat, pos, quat, dp, rotvec) -> bool:
         """Whether the motion from ``(pos, quat)`` along ``(pos + s dp, exp(s rotvec) quat)``, s in
         [0, 1], comes closer than the margin anywhere (:mod:`regrasp_mjx.continuous`: every pose
-        proved clear, not sampled ones)."""
+        proved clear, not sampled ones), as one environment step."""
         pos, quat = np.asarray(pos, float), np.asarray(quat, float)
         dp, rotvec = np.asarray(dp, float), np.asarray(rotvec, float)
         lever = self._levers()
@@ -132,11 +132,20 @@ class HostChecker:
         return continuous.motion_collides_host(dist_at, speed, self.margin)
 
     def motion_collides_between(self, needle: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
-        """:meth:`motion_collides` of the motion from pose ``a`` to pose ``b`` (7-vectors), position
-        linear and orientation slerped the shorter way (OMPL's interpolation)."""
+        """Whether a planner's motion from pose ``a`` to pose ``b`` (7-vectors; position linear,
+        orientation slerped the shorter way, as OMPL interpolates) collides, tested as the
+        environment steps that replay it (:func:`~regrasp_mjx.continuous.pieces`), each with
+        :meth:`motion_collides`."""
         needle, a, b = (np.asarray(x, float) for x in (needle, a, b))
-        rotvec = quat_to_rotvec(quat_mul(b[3:], quat_conj(a[3:])))
-        return self.motion_collides(needle[:3], needle[3:], a[:3], a[3:], b[:3] - a[:3], rotvec)
+        quat = a[3:] / np.linalg.norm(a[3:])
+        rotvec = quat_to_rotvec(quat_mul(b[3:], quat_conj(quat)))
+        dp = b[:3] - a[:3]
+        n = continuous.pieces(dp, rotvec)
+        for k in range(n):
+            at = quat_mul(quat_from_rotvec(k / n * rotvec), quat)
+            if self.motion_collides(needle[:3], needle[3:], a[:3] + k / n * dp, at, dp / n, rotvec / n):
+                return True
+        return False
 
     def _levers(self) -> np.ndarray:
         if not hasattr(self, "_lever_cache"):

@@ -19,7 +19,7 @@ from numba import njit, types
 from numba.experimental import structref
 
 from regrasp_mjx.config import is_number, require
-from regrasp_mjx.continuous import MAX_TESTS, RESOLUTION
+from regrasp_mjx.continuous import MAX_TESTS, RESOLUTION, STEP_DP, STEP_DROT
 from regrasp_mjx.continuous import SLACK as MOTION_SLACK
 from regrasp_mjx.host import MARGIN_ACCEPTED
 from regrasp_mjx.lean_geometry import conj, log_rotation, matrix, qexp, qmul, rotate, unit
@@ -368,18 +368,28 @@ def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack)
 
 
 @njit(cache=True)
-def _motion_between(placed, a, b, threshold):
-    """:func:`motion_collides` of the motion from pose ``a`` to pose ``b`` (7-vectors, quaternions
-    normalised), position linear and orientation slerped the shorter way (OMPL's
-    ``SO3StateSpace::interpolate``), around the needle ``placed``."""
+def _motion_between(placed, a, b, threshold, max_dp, max_drot):
+    """Whether the motion from pose ``a`` to pose ``b`` (7-vectors) around the needle ``placed``
+    collides, position linear and orientation slerped the shorter way (OMPL's
+    ``SO3StateSpace::interpolate``), tested as the environment steps that replay it
+    (:func:`regrasp_mjx.continuous.pieces`), each with :func:`motion_collides`."""
     geo_t, fixed_t, tool, tool_mid, stack = placed.state
+    geo, fixed = Capsules(*geo_t), Fixed(*fixed_t)
     qa = unit((a[3], a[4], a[5], a[6]))
-    qb = unit((b[3], b[4], b[5], b[6]))
-    w = log_rotation(qmul(qb, conj(qa)))
+    w = log_rotation(qmul(unit((b[3], b[4], b[5], b[6])), conj(qa)))
     dp = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
-    return motion_collides(
-        Capsules(*geo_t), Fixed(*fixed_t), (a[0], a[1], a[2]), qa, dp, w, threshold, tool, tool_mid, stack
-    )
+    size = 0.0
+    for r in range(3):
+        size = max(size, abs(dp[r]) / max_dp, abs(w[r]) / max_drot)
+    n = max(1, math.ceil(size - 1e-9))
+    for k in range(n):
+        f = k / n
+        p0 = (a[0] + f * dp[0], a[1] + f * dp[1], a[2] + f * dp[2])
+        q0 = qmul(qexp(f * w[0], f * w[1], f * w[2]), qa)
+        step_dp, step_w = (dp[0] / n, dp[1] / n, dp[2] / n), (w[0] / n, w[1] / n, w[2] / n)
+        if motion_collides(geo, fixed, p0, q0, step_dp, step_w, threshold, tool, tool_mid, stack):
+            return True
+    return False
 
 
 @njit(cache=True)
@@ -442,8 +452,10 @@ class LeanChecker:
 
     def motion_collides(self, placed: Held, a: np.ndarray, b: np.ndarray) -> bool:
         """Whether any pose of the motion from ``a`` to ``b`` (7-vectors; position linear, orientation
-        slerped) collides: :mod:`regrasp_mjx.continuous`'s test, one compiled call."""
-        return _motion_between(placed, np.asarray(a, np.float64), np.asarray(b, np.float64), self.margin)
+        slerped) collides: :mod:`regrasp_mjx.continuous`'s test of the environment steps that replay
+        it, one compiled call (:meth:`regrasp_mjx.host.HostChecker.motion_collides_between`'s verdict)."""
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        return _motion_between(placed, a, b, self.margin, STEP_DP, STEP_DROT)
 
     def motion_collides_between(self, needle: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
         """:meth:`motion_collides` around the needle at ``needle`` (7-vector; the last one's

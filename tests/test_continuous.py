@@ -12,7 +12,7 @@ from regrasp_mjx import continuous
 from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import HostChecker, HostEnv, quat_from_rotvec, quat_mul
-from regrasp_mjx.lean_collision import LeanChecker
+from regrasp_mjx.lean_collision import Capsules, Fixed, LeanChecker, _placed, motion_collides, scratch
 from regrasp_mjx.sampling import Episode
 
 # paper300 row 161 and the first action the shipped default's shielded plan took there before the
@@ -87,8 +87,18 @@ def test_engines_agree_and_a_free_step_is_clear_everywhere(paper_testset):
         host_verdict.append(
             host.motion_collides(needle[:3], needle[3:], start[:3], start[3:] / np.linalg.norm(start[3:]), dp, w)
         )
-        end = np.concatenate(_pose_at(start, dp, w, 1.0))
-        lean_verdict.append(lean.motion_collides_between(needle, start, end))
+        # a step's budget, as the lean planner's
+        geo, fixed, (tool, mid, stack) = (
+            Capsules(*lean.geo),
+            Fixed(*_placed(lean.geo, False, needle, *lean.needle)),
+            scratch(Capsules(*lean.geo)),
+        )
+        q = tuple(start[3:] / np.linalg.norm(start[3:]))
+        lean_verdict.append(
+            motion_collides(
+                Capsules(*geo), Fixed(*fixed), tuple(start[:3]), q, tuple(dp), tuple(w), 0.0, tool, mid, stack
+            )
+        )
     host_verdict, lean_verdict = np.array(host_verdict), np.array(lean_verdict)
     mask = free_start
     assert mask.sum() > 60 and 5 < jax_verdict[mask].sum() < mask.sum() - 5  # both verdicts are exercised
@@ -164,4 +174,4 @@ def test_straight_line_is_tested_whole(checker):
     result = straight_line(
         host if checker == "mujoco" else LeanChecker(), NEEDLE, START, end, PlannerConfig(checker=checker)
     )
-    assert not result.solved and "straight line collides" in result.error
+    assert not result.solved and "collision along the straight line" in result.error

@@ -120,11 +120,12 @@ def test_the_lean_checker_gives_the_host_checkers_verdicts(paper_testset, margin
     np.testing.assert_array_equal(lean_v, host_v)
 
 
-def test_the_lean_checker_checks_a_motion_as_ompl_does(paper_testset):
-    """``motion_collides`` is the end pose or any of OMPL's ``k / n`` states between (positions
-    linear, rotations slerped the shorter way): against the per-pose test of those states."""
+def test_the_lean_checker_checks_a_motion_as_ompl_interpolates_it(paper_testset):
+    """``motion_collides`` tests the whole motion OMPL interpolates (positions linear, rotations
+    slerped the shorter way): the host checker's continuous verdict, and colliding wherever one of
+    OMPL's ``k / n`` states collides."""
     episodes, _ = paper_testset
-    lean, seen = LeanChecker(), set()
+    lean, host, seen = LeanChecker(), HostChecker(), set()
     for i in range(10):
         needle, start, goal = _problem(episodes, i)
         b = goal.copy()
@@ -136,11 +137,13 @@ def test_the_lean_checker_checks_a_motion_as_ompl_does(paper_testset):
             np.r_[start[:3] + k / n * (goal[:3] - start[:3]), quat_mul(quat_from_rotvec(k / n * rotvec), start[3:])]
             for k in range(1, n + 1)
         ]
-        expected = any(lean.pose_collides(placed, *p) for p in poses)
-        assert lean.motion_collides(placed, start, b, n) == expected
-        seen.add(expected)
+        sampled = any(lean.pose_collides(placed, *p) for p in poses)
+        verdict = lean.motion_collides(placed, start, b)
+        assert verdict == host.motion_collides_between(needle, start, b)
+        assert verdict or not sampled  # a colliding state is never inside a motion called free
+        seen.add(verdict)
     assert seen == {True, False}  # motions through the needle and clear of it
-    assert not lean.motion_collides(placed, start, start, 5)  # a start that is free stays free
+    assert not lean.motion_collides(placed, start, start)  # a start that is free stays free
 
 
 @pytest.mark.parametrize("planner", ["RRTConnect", "BITstar"])

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 from pathlib import Path
 from typing import Any
@@ -38,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from regrasp_mjx import continuous
 from regrasp_mjx.atomic import atomic_write
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import quat_conj, quat_mul, quat_to_rotvec
@@ -65,7 +65,7 @@ def path_to_actions(poses: np.ndarray, max_dp: float, max_drot: float) -> np.nda
     for a, b in zip(poses[:-1], poses[1:]):
         dp = b[:3] - a[:3]
         rotvec = quat_to_rotvec(quat_mul(b[3:], quat_conj(a[3:])))
-        n = max(1, math.ceil(max(np.abs(dp).max() / max_dp, np.abs(rotvec).max() / max_drot) - 1e-9))
+        n = continuous.pieces(dp, rotvec, max_dp, max_drot)
         step = np.concatenate([dp / n / max_dp, rotvec / n / max_drot])
         actions.extend([step] * n)
     return np.clip(np.array(actions, np.float32).reshape(-1, 6), -1.0, 1.0)

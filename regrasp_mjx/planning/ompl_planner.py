@@ -275,6 +275,6 @@ def straight_line(
         if checker.collides(needle[:3], needle[3:], pose[:3], pose[3:]):
             return PlanResult(False, time.perf_counter() - t0, error=f"{name} in collision")
     if checker.motion_collides_between(needle, start, goal):
-        return PlanResult(False, time.perf_counter() - t0, error="the straight line collides")
+        return PlanResult(False, time.perf_counter() - t0, error="collision along the straight line")
     poses = np.stack([start, goal])
     return PlanResult(True, time.perf_counter() - t0, poses, translation_length_mm(poses))
