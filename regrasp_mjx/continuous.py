@@ -82,10 +82,11 @@ def max_levels(max_speed: float) -> int:
     return max(0, math.ceil(math.log2(max(max_speed, RESOLUTION) / RESOLUTION)))
 
 
-def motion_collides(dist_at, speed: jax.Array, margin: float, levels: int, pairs_at=None, few: int = 0) -> jax.Array:
+def motion_collides(dist_at, speed: jax.Array, margin: float, levels: int, few: int = 0) -> jax.Array:
     """Whether the motion collides (module docstring), in JAX: one lane's test, jit/vmap-able.
 
-    ``dist_at(s) -> [P]``: every counted pair's signed distance at the pose s of the motion;
+    ``dist_at(s, pairs=None) -> [P]``: every counted pair's signed distance at the pose s of the
+    motion (of the pair indices ``pairs`` alone where given);
     ``speed [P]``: each pair's ``v_t`` (its tool capsule's); ``levels``: a static bound on the
     halvings (:func:`max_levels` of the largest speed a motion can have). The root interval is
     tested for every lane; its halves only where it is not proved, in a ``while_loop`` (a vmapped
@@ -93,9 +94,8 @@ def motion_collides(dist_at, speed: jax.Array, margin: float, levels: int, pairs
 
     A pair proved clear over an interval is proved over each of its halves (its distance at a
     half's midpoint is at least ``m + h v`` less ``h v / 2``), so the halves need only the pairs the
-    root did not prove. With ``pairs_at(s, idx) -> [few]`` (the distances of the pairs ``idx``
-    alone) and ``few > 0``, a lane whose root left at most ``few`` pairs unproved tests only those:
-    the same verdict for a fraction of the work; the other lanes test every pair."""
+    root did not prove. With ``few > 0``, a lane whose root left at most ``few`` pairs unproved
+    tests only those: the same verdict for a fraction of the work; the other lanes test every pair."""
     speed = jnp.asarray(speed, jnp.float32)
     fastest = jnp.max(speed)
 
@@ -109,12 +109,11 @@ def motion_collides(dist_at, speed: jax.Array, margin: float, levels: int, pairs
     proved, stop = verdict(root, h0, speed)
     pending = ~proved & ~stop
     collision = ~proved & stop
-    if few > 0 and pairs_at is not None:
+    if few > 0:
         slack = root - margin - h0 * speed
         idx = jnp.argsort(slack)[:few]  # the pairs the root left unproved first
         small = jnp.sum(slack < SLACK) <= few
-        sub_speed = speed[idx]
-        collision = collision | _halves(lambda s: pairs_at(s, idx), sub_speed, verdict, levels, pending & small)
+        collision = collision | _halves(lambda s: dist_at(s, idx), speed[idx], verdict, levels, pending & small)
         return collision | _halves(dist_at, speed, verdict, levels, pending & ~small)
     return collision | _halves(dist_at, speed, verdict, levels, pending)
 

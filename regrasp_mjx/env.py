@@ -17,7 +17,6 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from brax.envs.base import Env, State
 from flax import struct
 
@@ -114,10 +113,10 @@ class RegraspEnv(Env):
         # the continuous test of a step (regrasp_mjx.continuous): each tool capsule's lever, and a
         # static bound on how often a step may be halved
         frames = self.scene.capsule_frames
-        self.levers = jnp.asarray(continuous.levers(frames.tool_ends), jnp.float32)
+        levers = continuous.levers(frames.tool_ends)
+        self.levers = jnp.asarray(levers, jnp.float32)
         self.others = len(frames.other_ends)
-        fastest = math.sqrt(3.0) * (self.max_dp + self.max_drot * float(np.max(continuous.levers(frames.tool_ends))))
-        self.levels = continuous.max_levels(fastest)
+        self.levels = continuous.max_levels(math.sqrt(3.0) * (self.max_dp + self.max_drot * float(levers.max())))
         self.distances = self.scene.distance_fn()
         self._place_others, self._gaps = self.scene.motion_distance_fn()
         # what the validity tests use: clearances less the margin (negative = colliding)
@@ -239,7 +238,7 @@ class RegraspEnv(Env):
 
         speed = jnp.repeat(jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * self.levers, self.others)
         collision = jnp.any(end < self.clearance) | continuous.motion_collides(
-            dist_at, speed, self.clearance, self.levels, dist_at, FEW_PAIRS
+            dist_at, speed, self.clearance, self.levels, FEW_PAIRS
         )
 
         es = es.replace(

@@ -82,6 +82,7 @@ class HostChecker:
         self.data = mujoco.MjData(self.model)
         self.clearance_mm = float(clearance_mm)
         self.margin = self.clearance_mm * 1e-3
+        self.levers = continuous.levers(self.scene.capsule_frames.tool_ends)  # for motion_collides
 
     def for_needle(self, radius: float | None, wire: float | None) -> HostChecker:
         """A checker of the same margin around another needle (radius and wire radius [m]; None
@@ -122,8 +123,8 @@ class HostChecker:
         proved clear, not sampled ones), as one environment step."""
         pos, quat = np.asarray(pos, float), np.asarray(quat, float)
         dp, rotvec = np.asarray(dp, float), np.asarray(rotvec, float)
-        lever = self._levers()
-        speed = np.repeat(np.linalg.norm(dp) + np.linalg.norm(rotvec) * lever, len(self.scene.pairs) // len(lever))
+        per_tool = np.linalg.norm(dp) + np.linalg.norm(rotvec) * self.levers
+        speed = np.repeat(per_tool, len(self.scene.pairs) // len(self.levers))
 
         def dist_at(s: float, reach: float) -> np.ndarray:
             at = quat_mul(quat_from_rotvec(s * rotvec), quat)
@@ -146,11 +147,6 @@ class HostChecker:
             if self.motion_collides(needle[:3], needle[3:], a[:3] + k / n * dp, at, dp / n, rotvec / n):
                 return True
         return False
-
-    def _levers(self) -> np.ndarray:
-        if not hasattr(self, "_lever_cache"):
-            self._lever_cache = continuous.levers(self.scene.capsule_frames.tool_ends)
-        return self._lever_cache
 
     def clear_problems(self, needle, start, goal) -> list[int]:
         """Rows of ``[N, 7]`` needle, start and goal poses whose start and goal both keep this

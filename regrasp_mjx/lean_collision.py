@@ -280,6 +280,14 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=
     return False
 
 
+@njit(cache=True)
+def make_scratch(tool_local):
+    """The scratch arrays a collision test writes, for tool capsules ``tool_local`` ``[T, 2, 3]``:
+    the tool's end points and midpoints, and the continuous test's stack of intervals (depth
+    first: at most one more than the halvings, far under 64)."""
+    return np.empty_like(tool_local), np.empty((tool_local.shape[0], 3)), np.zeros((64, 2), np.int64)
+
+
 # ---- what a compiled call takes: many arrays as one ----------------------------------------------
 
 
@@ -415,7 +423,7 @@ class LeanChecker:
         self.geo = tuple(geo)  # a plain tuple: numba types it in C
         self.scene_needle = (geo.radius0, self.scene.config.wire_radius_mm * 1e-3)  # radius, wire [m]
         self.needle = self.scene_needle  # the one checked around (for_needle)
-        self.scratch = scratch(geo)
+        self.scratch = make_scratch(geo.tool_local)
         self._last = None  # (needle pose, its placement) of the last collides call
 
     def for_needle(self, radius: float | None, wire: float | None) -> LeanChecker:
@@ -441,10 +449,8 @@ class LeanChecker:
     def collides(self, needle_pos, needle_quat, ee_pos, ee_quat) -> bool:
         """:meth:`regrasp_mjx.host.HostChecker.collides`: whether the pose collides. The last needle's
         placement is kept (a path's poses are checked around one needle)."""
-        needle = (*map(float, needle_pos), *map(float, needle_quat))
-        if self._last is None or self._last[0] != needle:
-            self._last = (needle, self.place(np.array(needle)))
-        return self.pose_collides(self._last[1], *map(float, ee_pos), *map(float, ee_quat))
+        placed = self._placed_at((*map(float, needle_pos), *map(float, needle_quat)))
+        return self.pose_collides(placed, *map(float, ee_pos), *map(float, ee_quat))
 
     def pose_collides(self, placed: Held, x, y, z, qw, qx, qy, qz) -> bool:
         """Whether the pose collides with the needle :meth:`place` placed."""
@@ -460,16 +466,13 @@ class LeanChecker:
     def motion_collides_between(self, needle: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
         """:meth:`motion_collides` around the needle at ``needle`` (7-vector; the last one's
         placement is kept, as :meth:`collides` keeps it)."""
-        needle = tuple(map(float, needle))
+        return self.motion_collides(self._placed_at(tuple(map(float, needle))), a, b)
+
+    def _placed_at(self, needle: tuple) -> Held:
+        """:meth:`place` of ``needle`` (a 7-tuple), kept for the next call around the same needle."""
         if self._last is None or self._last[0] != needle:
             self._last = (needle, self.place(np.array(needle)))
-        return self.motion_collides(self._last[1], a, b)
-
-
-def scratch(geo: Capsules) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The scratch arrays a collision test writes: the tool's end points and midpoints, and the
-    continuous test's stack of intervals."""
-    return np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)), np.zeros((64, 2), np.int64)
+        return self._last[1]
 
 
 def _same(a: tuple, b: tuple) -> bool:

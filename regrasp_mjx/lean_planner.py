@@ -34,7 +34,7 @@ from numba import njit
 
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.geometry import QUAT_NORM_TOLERANCE
-from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends, hold, motion_collides
+from regrasp_mjx.lean_collision import Capsules, capsules, collides, fixed_ends, hold, make_scratch, motion_collides
 from regrasp_mjx.lean_geometry import angle, canonical, goal_pose, nearest_grasp, qexp, qmul, relative, unit
 from regrasp_mjx.lean_network import member_actions, observe
 from regrasp_mjx.shield import candidate_noise, step_key
@@ -46,14 +46,7 @@ from regrasp_mjx.shield import candidate_noise, step_key
 def _step(geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, action):
     """One step of the float32 ``action``: the new pose, whether the swept motion collides, whether
     it reached the goal, and its translation [m]."""
-    max_dp, max_drot, _, clearance, tol_pos, tol_rot = (
-        consts[0],
-        consts[1],
-        consts[2],
-        consts[3],
-        consts[4],
-        consts[5],
-    )
+    max_dp, max_drot, clearance, tol_pos, tol_rot = consts[0], consts[1], consts[2], consts[3], consts[4]
     # the action clipped; the JAX path steps it in float32
     lo, hi = np.float32(-1.0), np.float32(1.0)
     dx = np.float64(min(max(action[0], lo), hi)) * max_dp
@@ -108,9 +101,9 @@ def _rollout(state, needle, start, goal, radii, outcome):
     ee_p, ee_q = _pose(start)
     goal_p, goal_q = _pose(goal)
     fixed = fixed_ends(geo, varies, needle_p, needle_q, radius, wire)
-    scratch = (np.empty_like(geo.tool_local), np.empty((geo.tool_local.shape[0], 3)), np.zeros((64, 2), np.int64))
+    scratch = make_scratch(geo.tool_local)
     gn_p, gn_q = relative(goal_p, goal_q, needle_p, needle_q)
-    valid = not collides(geo, fixed, ee_p, ee_q, scratch[0], scratch[1], consts[3])
+    valid = not collides(geo, fixed, ee_p, ee_q, scratch[0], scratch[1], consts[2])
     outcome[0] = 1.0 if valid else 0.0
     if not valid:
         outcome[2] = 1.0
@@ -265,7 +258,6 @@ class LeanPlanner:
             [
                 np.float32(env.max_dp),
                 np.float32(env.max_drot),
-                0.0,  # unused (was the sub-step count before the continuous test)
                 np.float32(env.clearance),
                 np.float32(cfg.success_pos_mm * 1e-3),
                 np.float32(math.radians(cfg.success_rot_deg)),

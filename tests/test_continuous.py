@@ -12,7 +12,7 @@ from regrasp_mjx import continuous
 from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import HostChecker, HostEnv, quat_from_rotvec, quat_mul
-from regrasp_mjx.lean_collision import Capsules, Fixed, LeanChecker, _placed, motion_collides, scratch
+from regrasp_mjx.lean_collision import Capsules, Fixed, LeanChecker, _placed, make_scratch, motion_collides
 from regrasp_mjx.sampling import Episode
 
 # paper300 row 161 and the first action the shipped default's shielded plan took there before the
@@ -91,7 +91,7 @@ def test_engines_agree_and_a_free_step_is_clear_everywhere(paper_testset):
         geo, fixed, (tool, mid, stack) = (
             Capsules(*lean.geo),
             Fixed(*_placed(lean.geo, False, needle, *lean.needle)),
-            scratch(Capsules(*lean.geo)),
+            make_scratch(Capsules(*lean.geo).tool_local),
         )
         q = tuple(start[3:] / np.linalg.norm(start[3:]))
         lean_verdict.append(
