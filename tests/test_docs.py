@@ -56,3 +56,29 @@ def test_the_readme_command_table_lists_every_cli_and_exactly_its_options():
         assert listed == options, (
             f"{module}: README lists {sorted(listed - options)} too many, {sorted(options - listed)} missing"
         )
+
+
+def test_the_readme_results_table_is_the_comparison_file():
+    """Each shipped network's success cells in the README's results table (paper300 and held-out 3000,
+    bare / shielded; general1000 where the row names it) are those of
+    experiments/results/continuous/compare.json, the comparison the table cites."""
+    import json
+
+    rows = json.loads((ROOT / "experiments" / "results" / "continuous" / "compare.json").read_text())["rows"]
+    success = {(r["policy"], r["testset"].split(" (")[0], r["rollout"]): r["success_rate"] for r in rows}
+    names = {"shipped default": "default"}
+    checked = set()
+    for line in (ROOT / "README.md").read_text().splitlines():
+        named = re.match(r'\| (?:\*\*(shipped default)|`load_policy\("(\w+)"\)`|earlier default[^`]*`(\w+)`)', line)
+        if not named:
+            continue
+        policy = names.get(named.group(1), named.group(1)) or named.group(2) or named.group(3)
+        cells = line.split("|")
+        for cell, testset in ((cells[2], "paper300"), (cells[3], "held-out 3000")):
+            bare, shielded = (float(x) for x in re.findall(r"\d\.\d{3}", cell))
+            assert (bare, shielded) == tuple(round(success[(policy, testset, r)], 3) for r in ("bare", "shielded")), line
+        for bare, shielded in re.findall(r"general1000: (\d\.\d{3}) / (\d\.\d{3})", cells[1]):
+            expect = tuple(round(success[(policy, "general1000", r)], 3) for r in ("bare", "shielded"))
+            assert (float(bare), float(shielded)) == expect, line
+        checked.add(policy)
+    assert checked == {"default", "exact", "decay", "general", "general_v1", "student_v2", "ensemble3"}
