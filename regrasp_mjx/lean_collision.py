@@ -337,8 +337,9 @@ def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack)
     """Whether the motion ``(p0 + s dp, exp(s w) q0)``, s in [0, 1] (tuples; ``q0`` unit), comes
     below ``threshold`` anywhere: :func:`regrasp_mjx.continuous.motion_collides`' verdict, each
     interval proved by one :func:`collides` at its midpoint with the thresholds raised by how far
-    the tool moves within it (``stack``: ``[64, 2]`` int64 scratch). The end pose is tested first,
-    raised by the whole motion: where it is clear by that much (most steps) one test proves all."""
+    the tool moves within it (``stack``: ``[64, 2]`` int64 scratch): the root's midpoint first,
+    which proves most steps in one test; where it does not, the end pose is tested for a collision
+    before the halves (a step into the needle usually ends in it)."""
     move, turn = (
         math.sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]),
         math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]),
@@ -347,12 +348,6 @@ def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack)
     for t in range(geo.tool_local.shape[0]):
         lever = max(lever, _norm(geo.tool_local, t, 0), _norm(geo.tool_local, t, 1))
     fastest = move + turn * lever
-    end = (p0[0] + dp[0], p0[1] + dp[1], p0[2] + dp[2])
-    end_q = qmul(qexp(w[0], w[1], w[2]), q0)
-    if not collides(geo, fixed, end, end_q, tool, tool_mid, threshold, move + MOTION_SLACK, turn):
-        return False  # implies the root interval's proof (its midpoint clear by half as much)
-    if collides(geo, fixed, end, end_q, tool, tool_mid, threshold):
-        return True
     stack[0, 0], stack[0, 1] = 0, 0
     n, tests = 1, 0
     while n > 0:
@@ -367,6 +362,10 @@ def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack)
             continue
         if h * fastest <= RESOLUTION or tests >= MAX_TESTS or n + 2 > stack.shape[0]:
             return True
+        if k == 0:  # the root not proved: the end pose first (a collision there ends the test)
+            end_q = qmul(qexp(w[0], w[1], w[2]), q0)
+            if collides(geo, fixed, (p0[0] + dp[0], p0[1] + dp[1], p0[2] + dp[2]), end_q, tool, tool_mid, threshold):
+                return True
         if collides(geo, fixed, at, at_q, tool, tool_mid, threshold):
             return True
         stack[n, 0], stack[n, 1] = k + 1, 2 * i + 1
