@@ -30,6 +30,19 @@ from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate, fus
 from regrasp_mjx.planner import mean_action, members_apply
 from regrasp_mjx.plans import checked_goals
 from regrasp_mjx.queries import TaskSpec, batch_poses
+from regrasp_mjx.robot_errors import (
+    RobotErrors,
+    average,
+    camera_view,
+    check_observe,
+    draw_arms,
+    executed,
+    first_readings,
+    kinematic_pose,
+    kinematic_view,
+    propagate,
+    readings,
+)
 from regrasp_mjx.rollout import rollout
 from regrasp_mjx.sampling import Episode
 from regrasp_mjx.shield import shield_rows
@@ -37,8 +50,12 @@ from regrasp_mjx.shield import shield_rows
 FRAMES = ("one", "each", "fused")  # open loop; closed loop on each frame; closed loop on the fused frames
 
 
-def _with_needle(state, needle: jax.Array):
-    return state.replace(pipeline_state=seen_from(state.pipeline_state, needle))
+def _with_needle(state, needle: jax.Array, ee: jax.Array | None = None):
+    """``state`` as a view shows it: the needle (and the regrasping tool) there."""
+    es = seen_from(state.pipeline_state, needle)
+    if ee is not None:
+        es = es.replace(ee_pos=ee[:, :3], ee_quat=ee[:, 3:])
+    return state.replace(pipeline_state=es)
 
 
 def _at_goal(env: RegraspEnv, state, needle: jax.Array, scale: float = 1.0) -> jax.Array:
@@ -65,6 +82,10 @@ def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array
     return shield_rows(step, lambda sub: apply(weights, sub.obs), state, t, a, nxt, need)[0]
 
 
+# the executor's keys beyond the needle frames' (0 .. horizon + 1 + warmup): the robot's errors, the tool frames
+ARMS_KEY, TOOLS_KEY = 1 << 20, (1 << 20) + 1
+
+
 def make_executor(
     env: RegraspEnv,
     apply: Callable,
@@ -73,63 +94,126 @@ def make_executor(
     shield_env: RegraspEnv | None = None,
     stop_scale: float = 1.0,
     warmup: int = 1,
+    observe: str = "camera",
+    joints: bool = False,
 ):
-    """``run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None) -> dict`` (jitted):
-    regrasping in simulation for ``[B, 7]`` true needle, start and goal poses (e_g frame; ``radii``
-    ``[B, 2]``: each needle's radius and wire radius in metres, for a task that varies needles).
-    Each step the policy acts on an estimate of the needle: with ``frames="one"`` the first frame
-    held for the whole episode (a plan made once, executed open loop), ``"each"`` that step's
-    frame, ``"fused"`` the mean of the frames so far (``warmup`` of them before the first step).
-    ``shield_env`` (default ``env``) is what the shield checks its alternatives with, against the
-    estimated needle: one with a clearance margin keeps that much away from the estimate. Returns
-    per row: ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on
-    the true needle), ``time_out`` (no stop within the horizon), ``stopped`` (the estimate said the
-    goal was reached), ``steps`` and ``poses`` ``[B, horizon + 1, 7]``. The loop is
-    :func:`regrasp_mjx.rollout.rollout` with a stopping rule (the estimate's) and the policy acting
-    on the estimated needle."""
+    """``run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None) -> dict``
+    (jitted): regrasping in simulation for ``[B, 7]`` true needle, start and goal poses (e_g frame;
+    ``radii`` ``[B, 2]``: each needle's radius and wire radius in metres, for a task that varies
+    needles; ``robot``: the :class:`~regrasp_mjx.robot_errors.RobotErrors` numbers
+    ``(calibration_mm, calibration_deg, joint_offset, tool_noise_mm)``, default none).
+
+    Each step the policy acts on a view of the needle and of its tool (``observe``, one of
+    :data:`~regrasp_mjx.robot_errors.OBSERVE`): with ``frames="one"`` the first frame held for the
+    whole episode (a plan made once, executed open loop), ``"each"`` that step's frame,
+    ``"fused"`` the mean of the frames so far (``warmup`` of them before the first step; a tool
+    the camera sees is moved between frames by its kinematics). Its action is carried out
+    relative to the arm's current pose (:func:`regrasp_mjx.robot_errors.executed`; ``joints``:
+    through the arm's inverse kinematics with its joint offsets, needed where ``joint_offset > 0``).
+    ``shield_env`` (default ``env``) is what the shield checks its alternatives with, in the view:
+    one with a clearance margin keeps that much away from the estimate. Returns per row:
+    ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on the true
+    needle), ``time_out`` (no stop within the horizon), ``stopped`` (the view said the goal was
+    reached), ``steps`` and ``poses`` ``[B, horizon + 1, 7]`` (true). The loop is
+    :func:`regrasp_mjx.rollout.rollout` with a stopping rule (the view's) and the policy acting on
+    the view."""
     if frames not in FRAMES:
         raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
+    check_observe(observe)
     horizon = env.config.horizon
     shield_env = env if shield_env is None else shield_env
-    fused = frames == "fused"
+    fused, camera = frames == "fused", observe == "camera"
+    seen0 = warmup - 1 if fused else 0
 
-    def run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None):
+    def move(state, a):  # an executed action: unclipped (the view's error may turn it off the axes)
+        return env.move(state, a[:3] * env.max_dp, a[3:] * env.max_drot)
+
+    def run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None):
         b = needle.shape[0]
+        calibration_mm, calibration_deg, joint_offset, tool_noise_mm = (0.0,) * 4 if robot is None else robot
         episode = Episode.from_poses(needle, start, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
+        ee0 = jnp.concatenate([state.pipeline_state.ee_pos, state.pipeline_state.ee_quat], -1)
+        arms = draw_arms(jax.random.fold_in(key, ARMS_KEY), ee0, calibration_mm, calibration_deg, joint_offset)
+        k_tools = jax.random.fold_in(key, TOOLS_KEY)
         biased = episode_bias(jax.random.fold_in(key, horizon + 1), needle, bias_mm)
-        total = jnp.zeros((b, 7))
-        if fused:  # frames before the first step: keys beyond the horizon's
+        q0 = first_readings(arms) if joints else None
+        exact_tools = jnp.broadcast_to(jnp.asarray(tool_noise_mm) == 0.0, (b,))
+
+        def view(frame, ee, q):
+            """Frame ``frame``'s needle and tool as the policy sees them, and where the tool's
+            kinematics say it is (what a camera-seen tool's mean is moved by between frames)."""
+            estimate = frame_estimate(jax.random.fold_in(key, frame), biased, sigma_mm)
+            if camera:
+                seen = camera_view(jax.random.fold_in(k_tools, frame), estimate, ee, tool_noise_mm)
+            else:
+                seen = kinematic_view(arms, estimate, ee, q)
+            return seen, (ee if q is None else kinematic_pose(q))
+
+        total, tool = jnp.zeros((b, 7)), ee0
+        if fused:  # frames before the first step (the tool holds still): keys beyond the horizon's
             for i in range(warmup - 1):
-                frame = frame_estimate(jax.random.fold_in(key, horizon + 2 + i), biased, sigma_mm)
-                total = fuse(total, frame, biased)
-        seen0 = warmup - 1 if fused else 0
-        # the rule's per-row data rides in state.info: the fused frames, the estimate acted on, and
-        # which rows act at this step (the shield works on those alone)
-        info = {**state.info, "needle_total": total, "needle_seen": needle, "acting": jnp.ones(b, bool)}
+                (frame_needle, frame_tool), _ = view(horizon + 2 + i, ee0, q0)
+                total = fuse(total, frame_needle, biased)
+                tool = frame_tool if i == 0 else average(tool, jnp.float32(i), frame_tool)
+        # the rule's per-row data rides in state.info: the fused frames, the view acted on, where the
+        # kinematics put the tool, its readings, and which rows act at this step (the shield works
+        # on those alone)
+        info = {
+            **state.info,
+            "needle_total": total,
+            "needle_seen": needle,
+            "ee_seen": tool,
+            "kinematics": ee0 if q0 is None else kinematic_pose(q0),
+            "acting": jnp.ones(b, bool),
+        }
+        if joints:
+            info["readings"] = q0
         state = state.replace(info=info)
 
         def stop(state, t, live):
-            """This step's frame: stop where the estimate says the goal is reached (a success
-            where the true needle agrees)."""
-            estimate = frame_estimate(jax.random.fold_in(key, 0 if frames == "one" else t), biased, sigma_mm)
-            total = fuse(state.info["needle_total"], estimate, biased)
-            seen = mean_pose(total, (t + 1 + seen0).astype(jnp.float32)) if fused else estimate
-            stopping = _at_goal(env, _with_needle(state, seen), seen, stop_scale)
+            """This step's frame: stop where the view says the goal is reached (a success
+            where the true poses agree)."""
+            es, info = state.pipeline_state, state.info
+            ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
+            q = readings(arms, ee, info["readings"]) if joints else None
+            (frame_needle, frame_tool), kin = view(0 if frames == "one" else t, ee, q)
+            total = fuse(info["needle_total"], frame_needle, biased)
+            seen = mean_pose(total, (t + 1 + seen0).astype(jnp.float32)) if fused else frame_needle
+            tool = frame_tool
+            if camera and frames != "each":  # the view so far, moved as the kinematics say
+                moved = propagate(info["ee_seen"], info["kinematics"], kin)
+                count = (t + seen0).astype(jnp.float32)
+                if fused:
+                    tool = jnp.where(count > 0, average(moved, count, frame_tool), frame_tool)
+                else:  # one frame, then the plan's own motion
+                    tool = jnp.where(t > 0, moved, frame_tool)
+                tool = jnp.where(exact_tools[:, None], frame_tool, tool)  # a camera that sees the tool exactly
+            stopping = _at_goal(env, _with_needle(state, seen, tool), seen, stop_scale)
             acting = live & ~stopping & (t < horizon)
-            info = {**state.info, "needle_total": total, "needle_seen": seen, "acting": acting}
+            info = {**info, "needle_total": total, "needle_seen": seen, "ee_seen": tool, "kinematics": kin}
+            info["acting"] = acting
+            if joints:
+                info["readings"] = q
             return state.replace(info=info), stopping, _at_goal(env, state, needle)
 
         def act(state, t):
-            """The policy (and the shield) on the estimated needle."""
-            seen = _with_needle(state, state.info["needle_seen"])
+            """The policy (and the shield) on the view, carried out on the true tool."""
+            info = state.info
+            seen = _with_needle(state, info["needle_seen"], info["ee_seen"])
             seen = seen.replace(obs=jax.vmap(env.observe)(seen.pipeline_state))
-            return choose_action(shield_env, apply, weights, seen, t, shield, state.info["acting"])
+            a = choose_action(shield_env, apply, weights, seen, t, shield, info["acting"])
+            es = state.pipeline_state
+            ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
+            a = jnp.clip(a, -1.0, 1.0)
+            done = executed(arms, ee, info["ee_seen"], a, env.max_dp, env.max_drot, info.get("readings"))
+            # a view equal to the truth moves the tool by the action exactly (as without errors)
+            return jnp.where(jnp.all(info["ee_seen"] == ee, -1, keepdims=True), a, done)
 
         def pose(state, a, nxt):
             return jnp.concatenate([nxt.pipeline_state.ee_pos, nxt.pipeline_state.ee_quat], axis=1)
 
-        out = rollout(env, act, state, max_steps=horizon, stop=stop, trace=pose)
+        out = rollout(env, act, state, max_steps=horizon, stop=stop, trace=pose, step=jax.vmap(move))
         # [B, horizon + 1, 7]: the start, the pose after each step, the last one held after the end
         trace = jnp.concatenate([start[None].astype(out.trace.dtype), out.trace], axis=0)
         held = jnp.minimum(jnp.arange(horizon + 1)[:, None], out.steps[None, :])
@@ -199,6 +283,8 @@ def _program(
     clearance_mm: float = 0.0,
     stop: float = 1.0,
     warmup: int = 1,
+    observe: str = "camera",
+    joints: bool = False,
 ):
     """The jitted executor (``kind="execute"``) or stepper of a setting, built once per network shape."""
 
@@ -207,10 +293,10 @@ def _program(
         guard = RegraspEnv(dataclasses.replace(policy.env_config, clearance_mm=clearance_mm)) if clearance_mm else env
         apply = members_apply(policy.hidden)
         if kind == "execute":
-            return make_executor(env, apply, shield, frames, guard, stop, warmup)
+            return make_executor(env, apply, shield, frames, guard, stop, warmup, observe, joints)
         return make_stepper(guard, apply, shield, stop)
 
-    return policy.program((kind, shield, frames, clearance_mm, stop, warmup), build)
+    return policy.program((kind, shield, frames, clearance_mm, stop, warmup, observe, joints), build)
 
 
 def closed_loop_step(
@@ -254,6 +340,8 @@ def execute(
     clearance_mm: float = 0.0,
     stop_tolerance: float | None = None,
     warmup_frames: int | None = None,
+    robot: RobotErrors | None = None,
+    observe: str = "camera",
     **task: Any,
 ) -> dict[str, np.ndarray]:
     """Simulates regrasping under needle-pose noise on true needle, start and goal poses ``[B, 7]``
@@ -269,10 +357,20 @@ def execute(
     defaults (None) are the policy's own (``Policy.closed_loop_defaults``: chosen for it on
     validation problems of their own seed by experiments/closed_loop_select.py; 10 frames and 0.7
     where its file names none); ``frames="one", stop_tolerance=1`` with no noise reproduces a plan
-    exactly. ``task``: the goal grasp and needle keywords (a general policy's ranges). Returns
+    exactly. ``robot``: the robot's errors (a :class:`~regrasp_mjx.robot_errors.RobotErrors`:
+    camera-to-base calibration, joint offsets, tool tracking noise; default none) and
+    ``observe``: how the policy sees its tools through them, ``"camera"`` (tools and needle from
+    the camera, the default) or ``"kinematic"`` (tools from the joint readings).
+    ``task``: the goal grasp and needle keywords (a general policy's ranges). Returns
     numpy arrays per row: ``success``, ``collision``, ``time_out``, ``stopped``, ``steps``,
     ``start_valid``, ``poses``."""
     noise = NeedleNoise() if noise is None else noise
+    robot = RobotErrors() if robot is None else robot
+    if not isinstance(noise, NeedleNoise):
+        raise ConfigError(f"noise={noise!r} is not accepted: a NeedleNoise")
+    if not isinstance(robot, RobotErrors):
+        raise ConfigError(f"robot={robot!r} is not accepted: a RobotErrors")
+    check_observe(observe)
     defaults = policy.closed_loop_defaults
     stop_tolerance = defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
     warmup_frames = defaults["warmup_frames"] if warmup_frames is None else warmup_frames
@@ -285,7 +383,13 @@ def execute(
     needle, start, goal, radii, _ = _estimate_inputs(policy, needle, "start", start, goal, TaskSpec.of(task))
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     warmup = int(warmup_frames) if frames == "fused" else 1
-    run = _program(policy, "execute", shield, frames, float(clearance_mm), float(stop_tolerance), warmup)
+    joints = robot.joint_offset > 0
+    run = _program(
+        policy, "execute", shield, frames, float(clearance_mm), float(stop_tolerance), warmup, observe, joints
+    )
     key = jax.random.PRNGKey(seed)
-    out = run(f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii))
+    errors = tuple(
+        f32(v) for v in (robot.calibration_mm, robot.calibration_deg, robot.joint_offset, robot.tool_noise_mm)
+    )
+    out = run(f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii), errors)
     return {k: np.asarray(v) for k, v in jax.device_get(out).items()}

@@ -137,7 +137,8 @@ def tables(policies: dict, args: argparse.Namespace) -> None:
     """Each policy's robustness table on its first problem set, the files rewritten after each."""
     modes = tuple(args.modes.split(","))
     wanted = args.conditions.split(",") if args.conditions else None
-    conditions = tuple(c for c in robustness.CONDITIONS if wanted is None or c.name in wanted)
+    everything = robustness.CONDITIONS + robustness.ROBOT_CONDITIONS
+    conditions = tuple(c for c in everything if wanted is None or c.name in wanted)
     meta = {"machine": machine(), "seed": args.seed, "modes": modes}
     found, lines = [], [f"Machine: {meta['machine']}; shielded; seed {args.seed}.", ""]
     for name, (folder, policy) in policies.items():
@@ -184,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         args.testset = []
     if set(args.modes.split(",")) - set(robustness.MODES):
         p.error(f"--modes {args.modes} is not accepted: comma-separated of {list(robustness.MODES)}")
-    names = [c.name for c in robustness.CONDITIONS]
+    names = [c.name for c in robustness.CONDITIONS + robustness.ROBOT_CONDITIONS]
     if args.conditions and set(args.conditions.split(",")) - set(names):
         p.error(f"--conditions {args.conditions} is not accepted: comma-separated of {names}")
     if args.merge:

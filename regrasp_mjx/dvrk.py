@@ -138,6 +138,27 @@ def _fk_batch(q, xp):
     return t @ xp.asarray(TOOLTIP_OFFSET)
 
 
+def forward_kinematics_jax(q):
+    """JAX: tool-tip poses ``[..., 4, 4]`` (base frame) of joint vectors ``q`` ``[..., 6]``
+    (:func:`forward_kinematics` in jax.numpy, for jitted simulations of the arm)."""
+    q = jnp.asarray(q)
+    return _fk_batch(q.reshape(-1, 6), jnp).reshape(q.shape[:-1] + (4, 4))
+
+
+def inverse_kinematics_jax(t, q_ref):
+    """JAX: the joints ``[6]`` that put the tool tip at ``t`` (4x4, base frame) nearest ``q_ref``
+    ``[6]``: of the closed form's candidates that reach it (:func:`inverse_kinematics`'s residual
+    test at float32's resolution), the nearest, its roll turned by whole turns to the one nearest
+    ``q_ref``'s. Limits are not applied (a simulation of where the arm goes; see
+    :func:`within_limits_jax` for the verdict). vmap for batches."""
+    cands = _ik_candidates(t[:3, 3], t[:3, :3], jnp)
+    pos, rot = _residuals(cands, t, jnp)
+    turns = jnp.round((q_ref[3] - cands[:, 3]) / (2.0 * jnp.pi))
+    cands = cands.at[:, 3].add(2.0 * jnp.pi * turns)
+    misses = jnp.where((pos < 1e-6) & (rot < 1e-4), 0.0, 1e6 + pos + rot)
+    return cands[jnp.argmin(misses + jnp.sum((cands - q_ref) ** 2, axis=1))]
+
+
 def _ik_candidates(p, rot, xp):
     """The closed form's six candidate joint vectors ``[6, 6]`` for a tool-tip position ``p`` and rotation
     ``rot`` (the roll nearest zero): one of them reaches the pose wherever the arm can.

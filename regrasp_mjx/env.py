@@ -221,11 +221,14 @@ class RegraspEnv(Env):
                 ~jnp.all(jnp.isfinite(action)),
                 "RegraspEnv.step: action has NaN or inf; accepted: finite values in [-1, 1]",
             )
-        es: EpisodeState = state.pipeline_state
         a = jnp.clip(action.astype(jnp.float32), -1.0, 1.0)
-        dp = a[:3] * self.max_dp
-        rotvec = a[3:] * self.max_drot
+        return self.move(state, a[:3] * self.max_dp, a[3:] * self.max_drot)
 
+    def move(self, state: State, dp: jax.Array, rotvec: jax.Array) -> State:
+        """:meth:`step` by a translation ``dp`` [m] and rotation vector ``rotvec`` [rad] (e_g frame)
+        as given, not clipped to the action bounds: the motion an arm carries out, which an error
+        of its view may turn off the action's axes (:mod:`regrasp_mjx.robot_errors`)."""
+        es: EpisodeState = state.pipeline_state
         end_pos = es.ee_pos + dp
         end_quat = geometry.quat_mul(geometry.quat_from_rotvec(rotvec), es.ee_quat)
         needle = (es.needle_radius, es.wire_radius) if self.varies_needle else ()

@@ -39,6 +39,14 @@ from regrasp_mjx.policy import (
     shipped_policies,
 )
 from regrasp_mjx.queries import PoseError
+from regrasp_mjx.robot_errors import (
+    MAX_CALIBRATION_DEG,
+    MAX_CALIBRATION_MM,
+    MAX_JOINT_OFFSET,
+    MAX_TOOL_NOISE_MM,
+    OBSERVE,
+    RobotErrors,
+)
 from regrasp_mjx.robustness import check_condition
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
@@ -194,13 +202,22 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             .replace("bias_mm=", "--bias-mm ")
             .replace("clearance_mm=", "--clearance-mm ")
         )
-    if args.agreement and (args.robustness or args.noise_mm or args.bias_mm or args.closed_loop):
-        p.error("--agreement is not accepted with --robustness, --noise-mm, --bias-mm or --closed-loop")
+    try:
+        args.robot = RobotErrors(args.calibration_mm, args.calibration_deg, args.joint_offset, args.tool_noise_mm)
+    except ConfigError as err:
+        p.error(str(err).replace("=", " ", 1).replace("calibration_", "--calibration-").replace("joint_", "--joint-")
+                .replace("tool_noise_", "--tool-noise-"))  # fmt: skip
+    robot = args.robot != RobotErrors()
+    if args.agreement and (args.robustness or args.noise_mm or args.bias_mm or args.closed_loop or robot):
+        p.error("--agreement is not accepted with --robustness, --noise-mm, --bias-mm, --closed-loop or a robot error")
     if args.per_frame and not args.closed_loop:
         p.error("--per-frame is not accepted without --closed-loop")
-    if args.robustness and (args.noise_mm or args.bias_mm or args.closed_loop or args.clearance_mm is not None):
+    if args.robustness and (
+        args.noise_mm or args.bias_mm or args.closed_loop or args.clearance_mm is not None or robot
+    ):
         p.error(
-            "--robustness runs its own conditions; it is not accepted with --noise-mm, --bias-mm, --clearance-mm or --closed-loop"
+            "--robustness runs its own conditions; it is not accepted with --noise-mm, --bias-mm, --clearance-mm, "
+            "--closed-loop or a robot error"
         )
 
 
@@ -248,6 +265,43 @@ def main(argv: list[str] | None = None) -> int:
         help="re-plan every step from the fused estimate (default with noise: plan once from one frame, open loop)",
     )
     p.add_argument("--per-frame", action="store_true", help="with --closed-loop: act on each frame alone, no fusing")
+    robot = p.add_argument_group(
+        "the robot's errors (each fixed per episode and independent per arm; judged on the true poses)"
+    )
+    robot.add_argument(
+        "--calibration-mm",
+        type=float,
+        default=0.0,
+        help=f"camera-to-base calibration error of each arm: a shift of this many mm in a random direction, "
+        f"in [0, {MAX_CALIBRATION_MM:g}]",
+    )
+    robot.add_argument(
+        "--calibration-deg",
+        type=float,
+        default=0.0,
+        help=f"and a rotation of this many degrees about a random axis through the arm's remote centre, "
+        f"in [0, {MAX_CALIBRATION_DEG:g}]",
+    )
+    robot.add_argument(
+        "--joint-offset",
+        type=float,
+        default=0.0,
+        help=f"each PSM joint reads off by up to this (degrees; mm for the insertion), in [0, {MAX_JOINT_OFFSET:g}]",
+    )
+    robot.add_argument(
+        "--tool-noise-mm",
+        type=float,
+        default=0.0,
+        help=f"the camera's tracking noise of each tool per frame, mm per axis (5 x as many degrees), "
+        f"in [0, {MAX_TOOL_NOISE_MM:g}]",
+    )
+    robot.add_argument(
+        "--observe",
+        choices=OBSERVE,
+        default="camera",
+        help="how the policy sees its tools: camera (tools and needle from the camera: a calibration error "
+        "cancels; the default) or kinematic (tools from the joint readings through the calibration)",
+    )
     p.add_argument(
         "--robustness",
         action="store_true",
@@ -300,9 +354,11 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
         return 0
     if args.agreement:
         return _agreement(policy, episodes, name, args)
-    if args.noise_mm or args.bias_mm or args.closed_loop:
+    if args.noise_mm or args.bias_mm or args.closed_loop or args.robot != RobotErrors():
         mode = ("per-frame" if args.per_frame else "fused") if args.closed_loop else "open"
-        condition = robustness.Condition("given", args.noise_mm, args.bias_mm, policy.env_config.clearance_mm)
+        condition = robustness.Condition(
+            "given", args.noise_mm, args.bias_mm, policy.env_config.clearance_mm, args.robot, args.observe
+        )
         r = robustness.measure(policy, episodes, condition, mode, args.seed, shield=not args.no_shield)
         r.update(policy=name, testset=args.testset)
         if args.json:
@@ -311,7 +367,8 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
             print(
                 f"{name} on {args.testset} ({r['problems_valid']} of {r['problems']} problems keep the margin; {mode}, needle noise {r['sigma_mm']:g} mm, bias "
                 f"{r['bias_mm']:g} mm, clearance margin {r['clearance_mm']:g} mm, shield {'on' if r['shield'] else 'off'}; "
-                f"judged on the true needle)\n"
+                f"calibration {r['calibration_mm']:g} mm / {r['calibration_deg']:g} deg, joint offsets {r['joint_offset']:g}, "
+                f"tool noise {r['tool_noise_mm']:g} mm, tools seen by the {r['observe']}; judged on the true poses)\n"
                 f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}"
                 f"  stopped short of the true goal {r['wrong_stop_rate']:.3f}"
             )

@@ -36,6 +36,7 @@ from regrasp_mjx.config import ConfigError, is_number, require
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.policy_file import resolve
+from regrasp_mjx.robot_errors import OBSERVE, RobotErrors, check_observe
 from regrasp_mjx.sampling import episode_needles, episode_poses
 
 # mode -> Policy.execute's keywords
@@ -52,15 +53,23 @@ MAX_CLEARANCE_MM = 1.0  # EnvConfig's range
 @dataclasses.dataclass(frozen=True)
 class Condition:
     """One row of the robustness table: frame noise ``sigma_mm``, a fixed bias ``bias_mm`` and a
-    clearance margin ``clearance_mm`` (each checked: finite, within its range)."""
+    clearance margin ``clearance_mm`` (each checked: finite, within its range); the robot's errors
+    ``robot`` (:class:`~regrasp_mjx.robot_errors.RobotErrors`) and how the policy sees its tools,
+    ``observe``; ``modes``: the only modes it is measured in (None: every one asked)."""
 
     name: str
     sigma_mm: float = 0.0
     bias_mm: float = 0.0
     clearance_mm: float = 0.0
+    robot: RobotErrors = RobotErrors()
+    observe: str = "camera"
+    modes: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         check_condition(self.sigma_mm, self.bias_mm, self.clearance_mm)
+        check_observe(self.observe)
+        if not isinstance(self.robot, RobotErrors):
+            raise ConfigError(f"robot={self.robot!r} is not accepted: a RobotErrors")
 
 
 def check_condition(sigma_mm: float, bias_mm: float, clearance_mm: float) -> None:
@@ -81,6 +90,20 @@ CONDITIONS = (
     Condition("bias 0.25 mm + sigma 0.25 mm", 0.25, 0.25),
     Condition("margin 0.1 mm", clearance_mm=0.1),
     Condition("margin 0.2 mm", clearance_mm=0.2),
+)
+# the robot's errors (issue 45): camera-to-base calibration T mm / R deg of each arm, joint offsets up to
+# 0.5 (deg, mm), needle and tool tracking noise 0.25 mm; fused closed loop, each way of seeing the tools
+CALIBRATIONS = ((0.0, 0.0), (1.0, 1.0), (3.0, 2.0), (5.0, 3.0), (10.0, 5.0))
+ROBOT_CONDITIONS = tuple(
+    Condition(
+        f"calibration {t:g} mm {r:g} deg ({observe})" if t else f"tools tracked ({observe})",
+        0.25,
+        robot=RobotErrors(t, r, 0.5 if t else 0.0, 0.25),
+        observe=observe,
+        modes=("fused",),
+    )
+    for t, r in CALIBRATIONS
+    for observe in OBSERVE
 )
 
 
@@ -105,6 +128,8 @@ def measure(
         NeedleNoise(condition.sigma_mm, condition.bias_mm),
         shield=shield,
         seed=seed,
+        robot=condition.robot,
+        observe=condition.observe,
         **MODES[mode],
         **episode_needles(episodes),
     )
@@ -116,6 +141,8 @@ def measure(
         "sigma_mm": condition.sigma_mm,
         "bias_mm": condition.bias_mm,
         "clearance_mm": condition.clearance_mm,
+        **dataclasses.asdict(condition.robot),
+        "observe": condition.observe,
         "shield": shield,
         "seed": seed,
         "problems": int(valid.size),
@@ -157,6 +184,8 @@ def table(
     rows = []
     for condition in conditions:
         for mode in modes:
+            if condition.modes is not None and mode not in condition.modes:
+                continue
             rows.append(measure(policy, episodes, condition, mode, seed))
             if log is not None:
                 r = rows[-1]
@@ -176,7 +205,7 @@ def markdown(rows: list[dict[str, Any]], modes: tuple[str, ...] | None = None) -
         for mode in modes:
             r = next((r for r in rows if r["condition"] == name and r["mode"] == mode), None)
             if r is None:
-                cells.append("not run")
+                cells.append("–")
                 continue
             coll = f" (coll. {r['collision_rate']:.3f})" if r["collision_rate"] > 0 else ""
             valid = f" [{r['problems_valid']}/{r['problems']}]" if r["problems_valid"] < r["problems"] else ""
@@ -215,11 +244,14 @@ def merge(parts: list[dict[str, Any]]) -> list[dict[str, Any]]:
             seen["wall_s"] = seen.get("wall_s", 0.0) + t.get("wall_s", 0.0)
             if t["machine"] not in seen["machine"]:
                 seen["machine"] += f"; {t['machine']}"
-    order = {c.name: i for i, c in enumerate(CONDITIONS)}
+    order = {c.name: i for i, c in enumerate(CONDITIONS + ROBOT_CONDITIONS)}
     for t in by_policy.values():
         t["rows"].sort(key=lambda r: order.get(r["condition"], len(order)))
     return list(by_policy.values())
 
+
+NOISE_NAMES = frozenset(c.name for c in CONDITIONS)
+ROBOT_NAMES = frozenset(c.name for c in ROBOT_CONDITIONS)
 
 # The docs' summary: these policies side by side (README.md, docs/results.md), their full tables in
 # experiments/RESULTS.md; each between `<!-- robustness:begin KIND -->` and `<!-- robustness:end -->`,
@@ -252,7 +284,7 @@ def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_PO
         "| condition | " + " | ".join(f"`{p}`: open / per frame (own stop) / fused" for p in policies) + " |",
     ]
     summary.append("| --- |" + " --- |" * len(policies))
-    for condition in dict.fromkeys(r["condition"] for r in chosen[0]["rows"]):
+    for condition in dict.fromkeys(r["condition"] for r in chosen[0]["rows"] if r["condition"] in NOISE_NAMES):
         cells = []
         for t in chosen:
             o, f1, fs, fu = (cell(t, condition, m) for m in DOC_MODES)
@@ -266,7 +298,37 @@ def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_PO
     for t in chosen:
         full += [f"**{t['policy']}** (hash {t['policy_hash']}); success (collision rate) [valid problems]:", ""]
         full += markdown(t["rows"], tuple(m for m in DOC_MODES if any(r["mode"] == m for r in t["rows"]))) + [""]
-    return {"summary": summary, "tables": full[:-1]}
+    return {"summary": summary, "tables": full[:-1], "robot": robot_block(tables)}
+
+
+def robot_block(tables: list[dict[str, Any]]) -> list[str]:
+    """The robot-error rows (:data:`ROBOT_CONDITIONS`, fused closed loop) of every policy that has
+    them: calibration down, policies across, each cell ``kinematic / camera`` success."""
+    measured = [t for t in tables if any(r["condition"] in ROBOT_NAMES for r in t["rows"])]
+    if not measured:
+        return ["No policy's table holds the robot-error rows yet."]
+    named = ", ".join(f"`{t['policy']}` {t['policy_hash']}" for t in measured)
+    machines = sorted({t.get("machine", "?") for t in measured})
+    lines = [
+        f"Measured: {named}; {measured[0]['problems']}; fused closed loop, shielded; needle and tool tracking noise "
+        f"0.25 mm, joint offsets up to 0.5 deg (mm) with a calibration error; {', '.join(machines)}; "
+        f"seed {measured[0].get('seed', 0)}. Each cell: success with the tools seen through their kinematics / by the camera.",
+        "",
+        "| calibration error of each arm | " + " | ".join(f"`{t['policy']}`" for t in measured) + " |",
+        "| --- |" + " ---: |" * len(measured),
+    ]
+    for t_mm, r_deg in CALIBRATIONS:
+        label = f"{t_mm:g} mm, {r_deg:g} deg" if t_mm else "none (tools tracked)"
+        cells = []
+        for t in measured:
+            got = []
+            for observe in OBSERVE:
+                name = f"calibration {t_mm:g} mm {r_deg:g} deg ({observe})" if t_mm else f"tools tracked ({observe})"
+                r = next((r for r in t["rows"] if r["condition"] == name and r["mode"] == "fused"), None)
+                got.append("–" if r is None else f"{r['success_rate']:.3f}")
+            cells.append(" / ".join(got))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def replace_block(text: str, kind: str, lines: list[str]) -> str:

@@ -64,6 +64,7 @@ def rollout(
     trace: Trace | None = None,
     compact: bool = False,
     stop: Stop | None = None,
+    step: Callable[[Any, jax.Array], Any] | None = None,
 ) -> Rollout:
     """Steps a batch of environment states ``start`` (``jax.vmap(env.reset_from)(episodes)``, or any
     states: rows already done end where they are) with ``act`` until each episode has ended or
@@ -81,10 +82,13 @@ def rollout(
     the needle estimate says the goal is reached). Before each step it may end live rows, as
     successes or not (``Rollout.stopped``); otherwise only a collision ends an episode, reaching
     the true goal does not, and the rows still live after ``max_steps`` steps time out (the rule
-    is asked once more then, at ``t = max_steps``)."""
+    is asked once more then, at ``t = max_steps``).
+
+    ``step``: what carries a batch's actions out (default ``jax.vmap(env.step)``; the closed loop
+    under robot errors moves by the motion the arm makes, :meth:`RegraspEnv.move`)."""
     max_steps = env.config.horizon if max_steps is None else max_steps
     b = start.done.shape[0]
-    step = jax.vmap(env.step)
+    step = jax.vmap(env.step) if step is None else step
     valid = start.metrics["reset_valid"] > 0
     done0 = start.done > 0
     metric = lambda name: done0 & (start.metrics[name] > 0)  # noqa: E731
