@@ -1,10 +1,13 @@
 """Chooses the closed loop's settings (warm-up frames, stop tolerance) on validation problems of
 their own seed, never on paper300: the closed loop of a policy (default: the shipped one) at frame
-noise 0.1, 0.25 and 0.5 mm (and any ``SIGMA:BIAS`` pairs of ``--noises``); the setting with the best
-mean success over them is ``Policy.execute``'s default.
+noise 0.1, 0.25 and 0.5 mm (and any ``SIGMA:BIAS`` pairs of ``--noises``; ``SIGMA:BIAS:T:R:J:TOOL``
+adds the robot's errors, :class:`~regrasp_mjx.robot_errors.RobotErrors`, seen as ``--observe`` says);
+the setting with the best mean success over them is ``Policy.execute``'s default.
 
     python experiments/closed_loop_select.py --n 1000 --seed 7000017 --out experiments/results/closed_loop
     python experiments/closed_loop_select.py --policy runs/x/policy --noises 0.1,0.25,0.5,0.25:0.25 --frames each
+    python experiments/closed_loop_select.py --policy runs/x/policy --noises 0.25:0:0:0:0:0.25,0.25:0:5:3:0.5:0.25 \
+        --observe camera --warmups 10,20 --stops 0.7,0.8
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 from regrasp_mjx.atomic import write_results
 from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.policy import load_policy
+from regrasp_mjx.robot_errors import OBSERVE, RobotErrors
 from regrasp_mjx.sampling import episode_needles, episode_poses
 from regrasp_mjx.testset import make_testset
 
@@ -26,7 +30,12 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, default=1000)
     p.add_argument("--seed", type=int, default=7000017)
-    p.add_argument("--noises", default="0.1,0.25,0.5", help="frame noise SIGMA or SIGMA:BIAS in mm, comma-separated")
+    p.add_argument(
+        "--noises",
+        default="0.1,0.25,0.5",
+        help="frame noise SIGMA, SIGMA:BIAS or SIGMA:BIAS:T:R:J:TOOL (mm, deg), comma-separated",
+    )
+    p.add_argument("--observe", default="camera", choices=OBSERVE, help="how the policy sees its tools")
     p.add_argument("--policy", default=None, help="policy folder or shipped name (default: the shipped one)")
     p.add_argument("--frames", default="fused", choices=("fused", "each"), help="fused frames, or each frame alone")
     p.add_argument("--name", default="select")
@@ -38,12 +47,23 @@ def main() -> None:
     episodes = make_testset(args.n, args.seed, policy.env_config)  # a general policy's draws its needles too
     needle, start, goal = episode_poses(episodes)
     needles = episode_needles(episodes) if policy.general else {}
-    noises = [NeedleNoise(*(float(x) for x in s.split(":"))) for s in args.noises.split(",")]
+    parsed = [[float(x) for x in s.split(":")] for s in args.noises.split(",")]
+    noises = [(NeedleNoise(*v[:2]), RobotErrors(*v[2:])) for v in parsed]
     warmups = (int(w) for w in args.warmups.split(",")) if args.frames == "fused" else (1,)
     rows = []
     for warmup, stop in itertools.product(warmups, (float(s) for s in args.stops.split(","))):
         run = lambda noise, warmup=warmup, stop=stop: policy.execute(  # noqa: E731
-            needle, start, goal, noise, frames=args.frames, warmup_frames=warmup, stop_tolerance=stop, seed=1, **needles
+            needle,
+            start,
+            goal,
+            noise[0],
+            frames=args.frames,
+            warmup_frames=warmup,
+            stop_tolerance=stop,
+            seed=1,
+            robot=noise[1],
+            observe=args.observe,
+            **needles,
         )
         success = [float(run(noise)["success"].mean()) for noise in noises]
         rows.append(
@@ -52,11 +72,14 @@ def main() -> None:
         print(json.dumps(rows[-1]), flush=True)
     best = max(rows, key=lambda r: r["mean"])
     lines = [
-        f"Closed loop ({args.frames} frames), policy {args.policy or 'shipped'}, {args.n} validation problems (seed "
+        f"Closed loop ({args.frames} frames, tools seen: {args.observe}), policy {args.policy or 'shipped'}, "
+        f"{args.n} validation problems (seed "
         f"{args.seed}); success at frame noise sigma (mm) and bias (mm).",
         "",
         "| warm-up frames | stop tolerance | "
-        + " | ".join(f"sigma {n.sigma_mm:g} bias {n.bias_mm:g}" for n in noises)
+        + " | ".join(
+            f"sigma {n.sigma_mm:g} bias {n.bias_mm:g}" + (f" {r}" if r != RobotErrors() else "") for n, r in noises
+        )
         + " | mean |",
         "| ---: | ---: |" + " ---: |" * (len(noises) + 1),
     ]
@@ -69,7 +92,17 @@ def main() -> None:
         )
     print("\n".join(lines))
     write_results(
-        args.out, args.name, lines, {"policy": args.policy, "frames": args.frames, "rows": rows, "best": best}
+        args.out,
+        args.name,
+        lines,
+        {
+            "policy": args.policy,
+            "frames": args.frames,
+            "observe": args.observe,
+            "noises": args.noises,
+            "rows": rows,
+            "best": best,
+        },
     )
 
 

@@ -26,14 +26,13 @@ import numpy as np
 from regrasp_mjx import geometry
 from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate, fuse, mean_pose, seen_from
+from regrasp_mjx.estimates import NeedleNoise, camera_view, episode_bias, frame_estimate, fuse, mean_pose, seen_from
 from regrasp_mjx.planner import mean_action, members_apply
 from regrasp_mjx.plans import checked_goals
 from regrasp_mjx.queries import TaskSpec, batch_poses
 from regrasp_mjx.robot_errors import (
     RobotErrors,
     average,
-    camera_view,
     check_observe,
     draw_arms,
     executed,

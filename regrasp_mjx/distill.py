@@ -75,7 +75,7 @@ def distill(
     def student_eval_noisy(params, normalizer, episodes):
         act = functools.partial(distiller.nets.policy, params, normalizer)
         key = jax.random.PRNGKey(VALIDATION_SEED + cfg.seed)
-        return evaluate_noisy(env, act, episodes, key, cfg.obs_noise_mm, cfg.obs_bias_mm)
+        return evaluate_noisy(env, act, episodes, key, cfg.obs_noise_mm, cfg.obs_bias_mm, cfg.obs_tool_noise_mm)
 
     teacher_eval = jax.jit(lambda episodes: evaluate_actor(env, teacher.actor_fn(), episodes))
     t0 = time.perf_counter()

@@ -80,6 +80,27 @@ def needle_estimate(k_bias: jax.Array, k_frame: jax.Array, needle: jax.Array, si
     return frame_estimate(k_frame, episode_bias(k_bias, needle, bias_mm), sigma_mm)
 
 
+IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+def camera_view(key: jax.Array, needle: jax.Array, ee: jax.Array, tool_noise_mm) -> tuple[jax.Array, jax.Array]:
+    """One camera frame of both tools (:mod:`regrasp_mjx.robot_errors`' ``camera`` view): the
+    needle estimate ``[B, 7]`` and this frame's view of the regrasping tool truly at ``ee``, each
+    tool's pose moved by :func:`frame_estimate`'s noise of ``tool_noise_mm``, both expressed in the
+    seen grasping tool's frame (so the grasping tool's noise moves the whole view, not the needle
+    relative to the regrasping jaws). Rows without tool noise get ``needle`` and ``ee`` exactly."""
+    k_g, k_r = jax.random.split(key)
+    b = needle.shape[0]
+    identity = jnp.broadcast_to(jnp.asarray(IDENTITY, needle.dtype), (b, 7))
+    grasping = frame_estimate(k_g, identity, tool_noise_mm)
+    regrasping = frame_estimate(k_r, ee, tool_noise_mm)
+    inv = geometry.inverse((grasping[:, :3], grasping[:, 3:]))
+    seen_needle = jnp.concatenate(geometry.compose(inv, (needle[:, :3], needle[:, 3:])), -1)
+    seen_ee = jnp.concatenate(geometry.compose(inv, (regrasping[:, :3], regrasping[:, 3:])), -1)
+    exact = (jnp.broadcast_to(tool_noise_mm, (b,)) == 0.0)[:, None]
+    return jnp.where(exact, needle, seen_needle), jnp.where(exact, ee, seen_ee)
+
+
 def seen_from(es, needle: jax.Array):
     """``es`` (batched :class:`~regrasp_mjx.env.EpisodeState`) as the estimate ``needle`` ``[B, 7]``
     shows it: the needle there, and the goal end-effector with it (the goal is a grasp on the
@@ -88,27 +109,48 @@ def seen_from(es, needle: jax.Array):
     return es.replace(needle_pos=needle[:, :3], needle_quat=needle[:, 3:], goal_pos=goal[0], goal_quat=goal[1])
 
 
-def noisy_observation(env: RegraspEnv, es, keys: jax.Array, sigma_mm: jax.Array, bias_mm: jax.Array) -> jax.Array:
+def noisy_observation(
+    env: RegraspEnv, es, keys: jax.Array, sigma_mm: jax.Array, bias_mm: jax.Array, tool_mm: jax.Array | None = None
+) -> jax.Array:
     """What a policy sees at batched states ``es`` when each row's needle is estimated with its own
     noise: ``keys`` ``[B, 2]`` per row (its bias key is ``keys``' first split, fixed for the
-    episode; its frame key at step ``t`` folds ``es.t`` in), ``sigma_mm`` and ``bias_mm`` ``[B]``.
-    A pure function of the state, so a rollout's act and trace see the same frame."""
+    episode; its frame key at step ``t`` folds ``es.t`` in), ``sigma_mm`` and ``bias_mm`` ``[B]``;
+    with ``tool_mm`` ``[B]``, the camera sees both tools too, each with that noise per frame
+    (:func:`camera_view`). A pure function of the state, so a rollout's act and trace see the same frame."""
     split = jax.vmap(jax.random.split)(keys)
     k_frame = jax.vmap(jax.random.fold_in)(split[:, 1], es.t)
     needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
     seen = jax.vmap(needle_estimate)(split[:, 0], k_frame, needle[:, None], sigma_mm, bias_mm)[:, 0]
-    return jax.vmap(env.observe)(seen_from(es, seen))
+    if tool_mm is None:
+        return jax.vmap(env.observe)(seen_from(es, seen))
+    ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
+    k_tools = jax.vmap(jax.random.fold_in)(k_frame, jnp.full_like(es.t, 7))
+    seen, seen_ee = jax.vmap(camera_view)(k_tools, seen[:, None], ee[:, None], tool_mm)
+    seen_es = seen_from(es, seen[:, 0]).replace(ee_pos=seen_ee[:, 0, :3], ee_quat=seen_ee[:, 0, 3:])
+    return jax.vmap(env.observe)(seen_es)
 
 
-def evaluate_noisy(env: RegraspEnv, act: Callable, episodes: Episode, key: jax.Array, noise_mm: float, bias_mm: float):
+def evaluate_noisy(
+    env: RegraspEnv,
+    act: Callable,
+    episodes: Episode,
+    key: jax.Array,
+    noise_mm: float,
+    bias_mm: float,
+    tool_mm: float = 0.0,
+):
     """A network ``act(obs) -> action`` rolled out from test-set rows, acting each step on a new
     frame of its needle estimate (no fusing, no shield: as DAgger and the learner roll out under
     noise), with sigma and bias drawn per row from U[0, ``noise_mm``] and U[0, ``bias_mm``] by
-    ``key``; judged on the true needle. Returns the :class:`~regrasp_mjx.rollout.Rollout`."""
+    ``key`` (and, with ``tool_mm`` > 0, the tools seen by the camera with noise drawn from
+    U[0, ``tool_mm``]); judged on the true needle. Returns the :class:`~regrasp_mjx.rollout.Rollout`."""
     start = jax.vmap(env.reset_from)(episodes)
     b = start.done.shape[0]
     k_rows, k_sigma, k_bias = jax.random.split(key, 3)
     keys = jax.random.split(k_rows, b)
     sigma = jax.random.uniform(k_sigma, (b,), maxval=noise_mm)
     bias = jax.random.uniform(k_bias, (b,), maxval=bias_mm)
-    return rollout(env, lambda state, t: act(noisy_observation(env, state.pipeline_state, keys, sigma, bias)), start)
+    tool = jax.random.uniform(jax.random.fold_in(key, 7), (b,), maxval=tool_mm) if tool_mm else None
+    return rollout(
+        env, lambda state, t: act(noisy_observation(env, state.pipeline_state, keys, sigma, bias, tool)), start
+    )

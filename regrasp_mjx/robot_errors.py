@@ -51,7 +51,7 @@ from flax import struct
 
 from regrasp_mjx import dvrk
 from regrasp_mjx.config import ConfigError, is_number
-from regrasp_mjx.estimates import frame_estimate
+from regrasp_mjx.estimates import camera_view  # noqa: F401  (the camera view, re-exported beside the kinematic one)
 
 OBSERVE = ("kinematic", "camera")
 # the largest errors accepted: beyond the sizes documented for the dVRK (5-10 mm hand-eye, 5 cm setup)
@@ -193,19 +193,6 @@ def kinematic_view(arms: Arms, needle: jax.Array, ee: jax.Array, q: jax.Array | 
     seen_ee = vec(g_inv @ se3(arms.believed_base) @ kin)
     seen_needle = vec(g_inv @ se3(needle))
     exact = arms.exact[:, None]
-    return jnp.where(exact, needle, seen_needle), jnp.where(exact, ee, seen_ee)
-
-
-def camera_view(key: jax.Array, needle: jax.Array, ee: jax.Array, tool_noise_mm) -> tuple[jax.Array, jax.Array]:
-    """The ``camera`` view of one frame: the camera's needle ``[B, 7]`` and its view of the
-    regrasping tool truly at ``ee``, both in its view of the grasping tool's frame."""
-    k_g, k_r = jax.random.split(key)
-    b = needle.shape[0]
-    identity = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], jnp.result_type(float)), (b, 7))
-    g_inv = se3(frame_estimate(k_g, identity, tool_noise_mm)).inverse()
-    seen_needle = vec(g_inv @ se3(needle))
-    seen_ee = vec(g_inv @ se3(frame_estimate(k_r, ee, tool_noise_mm)))
-    exact = (jnp.broadcast_to(tool_noise_mm, (b,)) == 0.0)[:, None]
     return jnp.where(exact, needle, seen_needle), jnp.where(exact, ee, seen_ee)
 
 

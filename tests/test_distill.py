@@ -111,3 +111,22 @@ def test_noisy_distillation_labels_true_states_for_noisy_observations(setup):
         DistillConfig(obs_noise_mm=-1)
     with pytest.raises(ConfigError, match=r"distill.goal_tolerance=0 is not accepted"):
         DistillConfig(goal_tolerance=0)
+
+
+def test_with_tool_noise_the_student_sees_its_tools_through_the_camera(setup):
+    """obs_tool_noise_mm > 0 (issue 45): the stored observations' tool columns (the regrasping
+    end-effector in the seen grasping tool's frame) are the camera's, not the truth's; the teacher
+    still labels the true state."""
+    teacher, env, _ = setup
+    kw = dict(hidden=(32,), iterations=1, problems=16, label_states=1600, updates=2, batch_size=32, lookahead=5)
+    distiller = Distiller(env, teacher.members_fn(), DistillConfig(**kw, obs_tool_noise_mm=0.5))
+    ds0 = distiller.init()
+    k_reset = jax.random.split(ds0.key, 5)[1]
+    start = np.asarray(jax.vmap(env.reset)(jax.random.split(k_reset, 16)).obs)
+    ds, m = distiller.iteration(ds0, True)
+    assert distiller.noisy and float(m["states_labelled"]) > 0
+    stored = np.asarray(ds.buffer.experience["obs"][0, : int(m["states_labelled"])])
+    tools = np.isclose(start[:, None, 7:14], stored[None, :, 7:14], atol=1e-6).all(-1).any(1)
+    assert not tools.any()
+    with pytest.raises(ConfigError, match=r"distill.obs_tool_noise_mm=6 is not accepted"):
+        DistillConfig(obs_tool_noise_mm=6)

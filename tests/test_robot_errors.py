@@ -13,7 +13,7 @@ import pytest
 
 from regrasp_mjx import dvrk, geometry, load_policy
 from regrasp_mjx.config import ConfigError
-from regrasp_mjx.estimates import NeedleNoise
+from regrasp_mjx.estimates import NeedleNoise, camera_view, frame_estimate
 from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.evaluate import main as evaluate_main
 from regrasp_mjx.robot_errors import (
@@ -21,7 +21,6 @@ from regrasp_mjx.robot_errors import (
     Arms,
     RobotErrors,
     average,
-    camera_view,
     draw_arms,
     executed,
     kinematic_view,
@@ -99,8 +98,6 @@ def test_the_camera_view_is_relative_to_the_seen_grasping_tool(rows):
         n, e = jnp.asarray(needle), jnp.asarray(start)
         seen_n, seen_e = camera_view(jax.random.PRNGKey(0), n, e, 0.5)
         k_g, k_r = jax.random.split(jax.random.PRNGKey(0))
-        from regrasp_mjx.estimates import frame_estimate
-
         alone = geometry.relative(*[(x[:, :3], x[:, 3:]) for x in (frame_estimate(k_r, e, 0.5), n)])
         both = geometry.relative((seen_e[:, :3], seen_e[:, 3:]), (seen_n[:, :3], seen_n[:, 3:]))
         np.testing.assert_allclose(np.asarray(both[0]), np.asarray(alone[0]), atol=1e-12)

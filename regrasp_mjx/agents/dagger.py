@@ -63,6 +63,9 @@ class DistillConfig:
         problem from U[0, obs_noise_mm], a bias of U[0, obs_bias_mm] fixed per episode), while the
         teacher labels the true state (privileged: it sees the needle exactly). With noise the
         exported iteration is the one best on validation problems under the same noise.
+      obs_tool_noise_mm: with it (> 0), the camera sees both tools too (the ``camera`` view of
+        :mod:`regrasp_mjx.robot_errors`): each frame's tool poses get noise of sigma_tool drawn per
+        problem from U[0, obs_tool_noise_mm] (ours, issue 45).
       goal_tolerance: the student learns to reach the goal within this fraction of the success
         tolerances (the teacher's lookahead and the rollouts end there; ours: below 1 it aims deeper
         into the goal, where a closed loop that stops inside 0.7 of the tolerances on a noisy
@@ -84,12 +87,14 @@ class DistillConfig:
     validation_size: int = 1000
     obs_noise_mm: float = 0.0
     obs_bias_mm: float = 0.0
+    obs_tool_noise_mm: float = 0.0
     goal_tolerance: float = 1.0
 
     def __post_init__(self) -> None:
         d = "distill."  # the field's name as --set and the TrainConfig spell it
         require_numbers(self, ("goal_tolerance",), lambda v: 0.1 <= v <= 1.0, "a fraction in [0.1, 1]", d)
-        require_numbers(self, ("obs_noise_mm", "obs_bias_mm"), lambda v: 0 <= v <= 5, "a noise level in [0, 5] mm", d)
+        noises = ("obs_noise_mm", "obs_bias_mm", "obs_tool_noise_mm")
+        require_numbers(self, noises, lambda v: 0 <= v <= 5, "a noise level in [0, 5] mm", d)
         require_integers(self, ("iterations", "seed"), 0, d)
         names = ("problems", "label_states", "updates", "batch_size", "buffer_size", "lookahead", "validation_size")
         require_integers(self, names, 1, d)
@@ -141,7 +146,7 @@ class Distiller:
         if config.iterations < 1:
             raise ConfigError(f"distill.iterations={config.iterations} is not accepted here: at least 1")
         self.env, self.members, self.config = env, members, config
-        self.noisy = config.obs_noise_mm > 0 or config.obs_bias_mm > 0
+        self.noisy = config.obs_noise_mm > 0 or config.obs_bias_mm > 0 or config.obs_tool_noise_mm > 0
         self.nets = make_networks(env.action_size, config.hidden)
         total = config.iterations * config.updates
         lr = optax.cosine_decay_schedule(config.lr, decay_steps=total, alpha=config.lr_decay_to)
@@ -188,7 +193,11 @@ class Distiller:
             rows = jax.random.split(k_rows, cfg.problems)
             sigma = jax.random.uniform(k_sigma, (cfg.problems,), maxval=cfg.obs_noise_mm)
             bias = jax.random.uniform(k_bias, (cfg.problems,), maxval=cfg.obs_bias_mm)
-            seen = lambda state: noisy_observation(env, state.pipeline_state, rows, sigma, bias)  # noqa: E731
+            tool = None
+            if cfg.obs_tool_noise_mm > 0:  # folded off again: needle-only runs keep their streams
+                k_tool = jax.random.fold_in(ds.key, 19)
+                tool = jax.random.uniform(k_tool, (cfg.problems,), maxval=cfg.obs_tool_noise_mm)
+            seen = lambda state: noisy_observation(env, state.pipeline_state, rows, sigma, bias, tool)  # noqa: E731
         else:
             seen = lambda state: state.obs  # noqa: E731
 

@@ -84,6 +84,9 @@ class TrainConfig:
         environment and iteration from U[0, obs_noise_mm], after a bias of U[0, obs_bias_mm] mm in
         a random direction, fixed per environment and iteration (its episodes). Evaluation stays
         noise-free.
+      obs_tool_noise_mm: with it (> 0) the camera sees both tools too (ours, issue 45): each
+        frame's tool poses get noise of sigma_tool drawn per environment and iteration from
+        U[0, obs_tool_noise_mm] (:func:`regrasp_mjx.estimates.camera_view`).
       critics: 1 (the paper) or 2 (ours: TD3's clipped double Q, the target takes the minimum).
       critic_layer_norm: a layer norm after each hidden layer of the critic (ours; off by default,
         see experiments/RESULTS.md, "Table I over the paper's full 500 epochs"). The exported
@@ -145,6 +148,7 @@ class TrainConfig:
     action_noise: float = 0.2
     obs_noise_mm: float = 0.0
     obs_bias_mm: float = 0.0
+    obs_tool_noise_mm: float = 0.0
     critics: int = 2
     critic_layer_norm: bool = False
     target_noise: float = 0.2
@@ -184,7 +188,8 @@ class TrainConfig:
             lambda v: v >= 0,
             "a finite number >= 0",
         )
-        require_numbers(self, ("obs_noise_mm", "obs_bias_mm"), lambda v: 0 <= v <= 5, "a noise level in [0, 5] mm")
+        noises = ("obs_noise_mm", "obs_bias_mm", "obs_tool_noise_mm")
+        require_numbers(self, noises, lambda v: 0 <= v <= 5, "a noise level in [0, 5] mm")
         require(self.shard in ("auto", "members", "envs"), "shard", self.shard, "one of 'auto', 'members', 'envs'")
         names = [s[0] for s in self.settings]
         ok = len(set(names)) == len(names) and all(isinstance(n, str) and n for n in names)

@@ -189,22 +189,29 @@ class Learner(Placement, Schedules):
         k_steps = jax.random.split(self._device_key(key))[1]
         policy = self._policy(ts)
 
-        noisy = cfg.obs_noise_mm > 0 or cfg.obs_bias_mm > 0
+        noisy = cfg.obs_noise_mm > 0 or cfg.obs_bias_mm > 0 or cfg.obs_tool_noise_mm > 0
         if noisy:  # domain randomisation: this iteration's noise level and bias per environment
             # folded off the rollout's key, so runs without noise keep their random streams
             k_sigma, k_bias_size, k_bias = jax.random.split(jax.random.fold_in(k_steps, 17), 3)
             sigma = jax.random.uniform(k_sigma, (n,), maxval=cfg.obs_noise_mm)
             bias = jax.random.uniform(k_bias_size, (n,), maxval=cfg.obs_bias_mm)
+            tool = jax.random.uniform(jax.random.fold_in(k_steps, 19), (n,), maxval=cfg.obs_tool_noise_mm)
 
         def observe(state, k):
-            """What the policy sees: the observation of a needle estimate (noise-free when off)."""
+            """What the policy sees: the observation of a needle estimate, and with tool noise the
+            camera's view of both tools (noise-free when off)."""
             if not noisy:
                 return state.obs
             es = state.pipeline_state
             needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
             biased = jax.vmap(estimates.episode_bias)(jax.random.split(k_bias, n), needle, bias)
             seen = jax.vmap(estimates.frame_estimate)(jax.random.split(k, n), biased, sigma)
-            return jax.vmap(env.observe)(estimates.seen_from(es, seen))
+            if cfg.obs_tool_noise_mm == 0:
+                return jax.vmap(env.observe)(estimates.seen_from(es, seen))
+            ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
+            seen, seen_ee = estimates.camera_view(jax.random.fold_in(k, 7), seen, ee, tool)
+            seen_es = estimates.seen_from(es, seen).replace(ee_pos=seen_ee[:, :3], ee_quat=seen_ee[:, 3:])
+            return jax.vmap(env.observe)(seen_es)
 
         def step(carry, k):
             state, outcome = carry
