@@ -28,8 +28,8 @@ from regrasp_mjx.config import ConfigError
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.estimates import NeedleNoise, camera_view, episode_bias, frame_estimate, fuse, mean_pose, seen_from
 from regrasp_mjx.planner import mean_action, members_apply
-from regrasp_mjx.plans import checked_goals
-from regrasp_mjx.queries import TaskSpec, batch_poses
+from regrasp_mjx.plans import auto_engine, checked_goals
+from regrasp_mjx.queries import PoseError, TaskSpec, batch_poses, check_poses
 from regrasp_mjx.robot_errors import (
     RobotErrors,
     average,
@@ -319,7 +319,19 @@ def closed_loop_step(
     tolerances (None: the policy's own, ``Policy.closed_loop_defaults``), as in :func:`execute`.
     ``task``: the goal grasp and needle keywords (:class:`~regrasp_mjx.queries.TaskSpec`)."""
     stop_tolerance = policy.closed_loop_defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
-    needle, ee, goal, radii, single = _estimate_inputs(policy, needle, "ee", ee, goal, TaskSpec.of(task))
+    spec = TaskSpec.of(task)
+    (needle, ee), single = batch_poses(needle=needle, ee=ee)
+    if single and not clearance_mm and 0 <= t < policy.env_config.horizon and auto_engine(1) == "lean":
+        # one query on the CPU: the lean numba step, its default goal made by the compiled code (the
+        # JAX program below stays the reference)
+        lean = policy.lean(shield)
+        grasp, radii = policy.task_ranges.resolve(1, spec)
+        goal = lean.goal(needle[0], grasp[0], radii[0, 0]) if goal is None else check_poses("goal", goal)
+        if goal.shape != (7,):
+            raise PoseError(f"goal {goal.shape} and needle (7,) poses differ in batch size")
+        at_goal, nxt, a = lean.step(needle[0], ee[0], goal, radii[0], int(t), float(stop_tolerance))
+        return a, nxt, np.bool_(at_goal)
+    needle, ee, goal, radii, single = _estimate_inputs(policy, needle, "ee", ee, goal, spec)
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     step = _program(policy, "step", shield, clearance_mm=float(clearance_mm), stop=float(stop_tolerance))
     a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii)))

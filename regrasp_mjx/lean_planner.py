@@ -83,6 +83,99 @@ def _pose(v):
 
 
 @njit(cache=True)
+def _buffers(mean, biases):
+    """What a step of the network and the shield write into, made once per query: the observation,
+    the layers' work rows, the members' own actions, the action and a candidate."""
+    width = max(mean.shape[1], biases[0].shape[0])
+    for b in biases:
+        width = max(width, b.shape[0])
+    obs = np.empty(mean.shape[1], np.float32)
+    work = np.zeros((3, width), np.float32)
+    rows = np.empty(width, np.int64)
+    own = np.empty((mean.shape[0], 6), np.float32)
+    return obs, work, rows, own, np.empty(6, np.float32), np.empty(6, np.float32)
+
+
+@njit(cache=True)
+def _decide(
+    net, geo, consts, fixed, scratch, general, noise_t, shield,
+    needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, gn_p, gn_q, radius, wire, buffers,
+):  # fmt: skip
+    """One step of the policy from the pose ``ee``: the members' mean action (into ``buffers[4]``)
+    and, with ``shield``, where it collides, the first free alternative (``noise_t``: this step's
+    perturbations); returns :func:`_step`'s outcome of the action taken."""
+    kernels, biases, layers, mean, std = net
+    obs, work, rows, own, act, cand = buffers
+    members = mean.shape[0]
+    observe(obs, general, needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, radius, wire)
+    member_actions(kernels, biases, layers, mean, std, obs, work, rows, own)
+    for j in range(6):  # the members' mean, summed in their order as the JAX path does
+        act[j] = own[0, j]
+        for m in range(1, members):
+            act[j] += own[m, j]
+        if members > 1:
+            act[j] /= np.float32(members)
+    pos, quat, collision, success, dl = _step(
+        geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, act
+    )
+    if collision and shield:
+        # the alternatives in shield_candidates' order: each member's own (an ensemble), half
+        # the action, then the action plus the step's fixed noise, clipped; the first free one
+        extra = members if members > 1 else 0
+        for c in range(extra + 1 + noise_t.shape[0]):
+            for j in range(6):
+                if c < extra:
+                    cand[j] = own[c, j]
+                elif c == extra:
+                    cand[j] = np.float32(0.5) * act[j]
+                else:
+                    cand[j] = min(max(act[j] + noise_t[c - extra - 1, j], np.float32(-1.0)), np.float32(1.0))
+            p2, q2, col2, suc2, dl2 = _step(
+                geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, cand
+            )
+            if not col2:
+                act[:] = cand
+                return p2, q2, col2, suc2, dl2
+    return pos, quat, collision, success, dl
+
+
+@njit(cache=True)
+def _closed_loop_step(state, needle, ee, goal, radii, t, stop_scale, out):
+    """One closed-loop step (:func:`regrasp_mjx.closed_loop.make_stepper` for one query) from the
+    estimates ``needle``, ``ee``, ``goal`` ``[7]`` (rounded to float32 as the JAX path takes them):
+    ``out[:7]`` the pose to command next and ``out[7:]`` the action (zero, and ``ee`` kept, where
+    the estimate is within ``stop_scale`` of the success tolerances of the goal). Returns that."""
+    (kernels, biases, layers, mean, std), geo, consts, rewards, varies, general, noise, shield = state
+    geo = Capsules(*geo)
+    radius, wire = _f32(radii[0]), _f32(radii[1])
+    needle_p, needle_q = _pose(needle)
+    ee_p, ee_q = _pose(ee)
+    goal_p, goal_q = _pose(goal)
+    gn_p, gn_q = relative(goal_p, goal_q, needle_p, needle_q)
+    p, q = relative(ee_p, ee_q, needle_p, needle_q)
+    ex, ey, ez = gn_p[0] - p[0], gn_p[1] - p[1], gn_p[2] - p[2]
+    if math.sqrt(ex * ex + ey * ey + ez * ez) <= stop_scale * consts[3] and angle(gn_q, q) <= stop_scale * consts[4]:
+        out[:3] = ee_p
+        out[3:7] = ee_q
+        out[7:] = 0.0
+        return True
+    fixed = fixed_ends(geo, varies, needle_p, needle_q, radius, wire)
+    scratch = make_scratch(geo.tool_local)
+    buffers = _buffers(mean, biases)
+    pos, quat, _, _, _ = _decide(
+        (kernels, biases, layers, mean, std), geo, consts, fixed, scratch, general, noise[t], shield,
+        needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, gn_p, gn_q, radius, wire, buffers,
+    )  # fmt: skip
+    for r in range(3):
+        out[r] = _f32(pos[r])
+    for r in range(4):
+        out[3 + r] = _f32(quat[r])
+    for j in range(6):
+        out[7 + j] = min(max(buffers[4][j], np.float32(-1.0)), np.float32(1.0))
+    return False
+
+
+@njit(cache=True)
 def _rollout(state, needle, start, goal, radii, outcome):
     """The rollout of one query (poses and radii rounded to float32 first, as the JAX path takes
     them) into ``outcome[:7]``: ``start_valid, success, collision, time_out, steps, path_length
@@ -108,49 +201,15 @@ def _rollout(state, needle, start, goal, radii, outcome):
     if not valid:
         outcome[2] = 1.0
         return poses[:1], actions[:0]
-    members = mean.shape[0]
-    width = max(mean.shape[1], biases[0].shape[0])
-    for b in biases:
-        width = max(width, b.shape[0])
-    obs = np.empty(mean.shape[1], np.float32)
-    work = np.zeros((3, width), np.float32)
-    rows = np.empty(width, np.int64)
-    own = np.empty((members, 6), np.float32)
-    act = np.empty(6, np.float32)
-    cand = np.empty(6, np.float32)
     length = 0.0
     steps = 0
+    buffers = _buffers(mean, biases)
     for t in range(horizon):
-        observe(obs, general, needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, radius, wire)
-        member_actions(kernels, biases, layers, mean, std, obs, work, rows, own)
-        for j in range(6):  # the members' mean, summed in their order as the JAX path does
-            act[j] = own[0, j]
-            for m in range(1, members):
-                act[j] += own[m, j]
-            if members > 1:
-                act[j] /= np.float32(members)
-        pos, quat, collision, success, dl = _step(
-            geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, act
-        )
-        if collision and shield:
-            # the alternatives in shield_candidates' order: each member's own (an ensemble), half
-            # the action, then the action plus the step's fixed noise, clipped; the first free one
-            extra = members if members > 1 else 0
-            for c in range(extra + 1 + noise.shape[1]):
-                for j in range(6):
-                    if c < extra:
-                        cand[j] = own[c, j]
-                    elif c == extra:
-                        cand[j] = np.float32(0.5) * act[j]
-                    else:
-                        cand[j] = min(max(act[j] + noise[t, c - extra - 1, j], np.float32(-1.0)), np.float32(1.0))
-                p2, q2, col2, suc2, dl2 = _step(
-                    geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, cand
-                )
-                if not col2:
-                    act[:] = cand
-                    pos, quat, collision, success, dl = p2, q2, col2, suc2, dl2
-                    break
+        pos, quat, collision, success, dl = _decide(
+            (kernels, biases, layers, mean, std), geo, consts, fixed, scratch, general, noise[t], shield,
+            needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, gn_p, gn_q, radius, wire, buffers,
+        )  # fmt: skip
+        act = buffers[4]
         # the state as the JAX path keeps it, in float32 (the two paths' rounding drifts apart less)
         ee_p = (_f32(pos[0]), _f32(pos[1]), _f32(pos[2]))
         ee_q = (_f32(quat[0]), _f32(quat[1]), _f32(quat[2]), _f32(quat[3]))
@@ -318,6 +377,17 @@ class LeanPlanner:
                 self.held, f64(needle, np.float64), f64(start, np.float64), goal, task, *library, QUAT_NORM_TOLERANCE
             )
         )
+
+    def step(self, needle: np.ndarray, ee: np.ndarray, goal: np.ndarray, radii: np.ndarray, t: int, stop_scale: float):
+        """One closed-loop step from checked estimates (``[7]`` each, e_g; ``radii`` ``[2]`` m) at
+        step ``t`` (< the horizon: it seeds the shield's alternatives):
+        ``(at_goal, next_ee [7], action [6])`` (:func:`_closed_loop_step`)."""
+        out = np.empty(13)
+        f64 = np.ascontiguousarray
+        at_goal = _closed_loop_step(
+            self.state, f64(needle, np.float64), f64(ee, np.float64), f64(goal, np.float64), radii, t, stop_scale, out
+        )
+        return at_goal, out[:7], out[7:]
 
 
 class LeanResult(NamedTuple):

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx import closed_loop, plans
+from regrasp_mjx import camera_loop, closed_loop, plans
 from regrasp_mjx.config import env_config_from_dict
 from regrasp_mjx.config import replace as config_replace
 from regrasp_mjx.planner import PLANNERS, make_planner, mean_action, members_apply
@@ -222,6 +222,12 @@ class Policy:
         """One closed-loop step from the current estimates: ``(action, next_ee, at_goal)``
         (:func:`regrasp_mjx.closed_loop.closed_loop_step`)."""
         return closed_loop.closed_loop_step(self, needle, ee, goal, **options)
+
+    def camera_loop(self, **options: Any):
+        """A closed loop driven by camera frames of both tools and the needle, in which a
+        camera-to-base calibration error cancels (options ``warmup_frames``, ``stop_tolerance``,
+        ``shield`` and the task keywords): :class:`regrasp_mjx.camera_loop.CameraLoop`."""
+        return camera_loop.CameraLoop(self, **options)
 
     def execute(self, needle: Any, start: Any, goal: Any = None, noise: Any = None, **options: Any) -> dict:
         """Simulates regrasping under needle-pose noise on true poses ``[B, 7]``

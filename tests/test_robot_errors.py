@@ -214,3 +214,50 @@ def test_no_robot_error_is_the_needle_only_loop_and_the_camera_ignores_calibrati
         policy.execute(needle, start, goal, noise, observe="eyes")
     with pytest.raises(ConfigError, match="robot=.* is not accepted: a RobotErrors"):
         policy.execute(needle, start, goal, noise, robot=(1.0, 1.0))
+
+
+def _camera_frames(camera, needle, ee):
+    """Camera-frame 7-vectors of the grasping tool (e_g itself), the regrasping tool and the needle."""
+    cam_inv = np.linalg.inv(camera)
+    return [_vec(cam_inv @ m) for m in (np.eye(4), _m(ee), _m(needle))]
+
+
+def test_the_camera_loop_plans_as_the_policy_wherever_the_camera_is(policy, rows):
+    """Exact camera frames, the arm moving by each commanded tool-frame motion: the loop takes the
+    policy's own plan step by step, and moving the camera (a common error of all three poses) or
+    telling it the motion its kinematics measured changes no command."""
+    needle, start, goal = rows
+    plan = policy.plan(needle, start, goal, check_grasp=False)
+    cameras = [np.eye(4), _m([0.03, -0.02, 0.1, 0.3, 0.8, -0.1, 0.5])]
+    for i in range(3):
+        runs = []
+        for camera, report in ((cameras[0], False), (cameras[1], False), (cameras[1], True)):
+            goal_in_needle = _vec(np.linalg.inv(_m(needle[i])) @ _m(goal[i]))
+            loop = policy.camera_loop(goal_in_needle=goal_in_needle, warmup_frames=1, stop_tolerance=1.0)
+            ee, motions = _m(start[i]), []
+            for _ in range(policy.env_config.horizon):
+                command = loop.update(
+                    *_camera_frames(camera, needle[i], _vec(ee)), moved=motions[-1] if report and motions else None
+                )
+                if command.at_goal:
+                    break
+                motions.append(command.motion)
+                ee = ee @ command.motion
+            runs.append((len(motions), _vec(ee)))
+        steps = int(plan.steps[i])
+        assert runs[0][0] == steps, (i, runs[0][0], steps)
+        np.testing.assert_allclose(runs[0][1][:3], plan.poses[i, steps, :3], atol=2e-6)
+        for n_steps, pose in runs[1:]:
+            assert n_steps == steps
+            np.testing.assert_allclose(pose, runs[0][1], atol=1e-6)
+
+
+def test_the_camera_loop_refuses_bad_frames(policy):
+    loop = policy.camera_loop()
+    good = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match="needle"):
+        loop.update(good, good, [0.0, 0.0, float("nan"), 1.0, 0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="one frame"):
+        loop.update(np.tile(good, (2, 1)), np.tile(good, (2, 1)), np.tile(good, (2, 1)))
+    with pytest.raises(ValueError, match="warmup_frames=0 is not accepted"):
+        policy.camera_loop(warmup_frames=0)
