@@ -5,7 +5,8 @@
 
 ``--docs`` rewrites the generated robustness blocks of README.md, docs/results.md and
 experiments/RESULTS.md (``regrasp_mjx.robustness.docs_blocks``: the default and ``exact``, each named
-by its hash) from the table file; run it whenever the table is made again (tests/test_robustness.py
+by its hash, and the robot-error rows: the default and ``exact`` in docs/, every policy in RESULTS) from
+the table file; run it whenever the table is made again (tests/test_robustness.py
 checks that they agree).
 """
 
@@ -20,9 +21,10 @@ from regrasp_mjx.atomic import write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_PAGES = {  # page -> the blocks it holds
-    ROOT / "README.md": ("summary",),
-    ROOT / "docs" / "results.md": ("summary",),
-    ROOT / "experiments" / "RESULTS.md": ("tables",),
+    ROOT / "README.md": ("summary", "robot_summary"),
+    ROOT / "docs" / "results.md": ("summary", "robot_summary"),
+    ROOT / "docs" / "inference.md": ("robot_summary",),
+    ROOT / "experiments" / "RESULTS.md": ("tables", "robot"),
 }
 
 

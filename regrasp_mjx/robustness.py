@@ -258,6 +258,7 @@ ROBOT_NAMES = frozenset(c.name for c in ROBOT_CONDITIONS)
 # written by `python experiments/robustness.py --docs` from robustness.json (a test compares them).
 DOC_POLICIES = ("default", "exact")
 DOC_MODES = ("open", "per-frame", "per-frame-stop", "fused")
+ROBOT_DOC_POLICIES = ("default", "general")  # the docs' robot-error summary: the specialist and the generalist
 
 
 def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_POLICIES) -> dict[str, list[str]]:
@@ -298,19 +299,26 @@ def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_PO
     for t in chosen:
         full += [f"**{t['policy']}** (hash {t['policy_hash']}); success (collision rate) [valid problems]:", ""]
         full += markdown(t["rows"], tuple(m for m in DOC_MODES if any(r["mode"] == m for r in t["rows"]))) + [""]
-    return {"summary": summary, "tables": full[:-1], "robot": robot_block(tables)}
+    return {
+        "summary": summary,
+        "tables": full[:-1],
+        "robot": robot_block(tables),
+        "robot_summary": robot_block([by_name[p] for p in ROBOT_DOC_POLICIES if p in by_name]),
+    }
 
 
 def robot_block(tables: list[dict[str, Any]]) -> list[str]:
-    """The robot-error rows (:data:`ROBOT_CONDITIONS`, fused closed loop) of every policy that has
-    them: calibration down, policies across, each cell ``kinematic / camera`` success."""
+    """The robot-error rows (:data:`ROBOT_CONDITIONS`, fused closed loop) of the policies of
+    ``tables`` that have them: calibration down, policies across, each cell ``kinematic / camera``
+    success."""
     measured = [t for t in tables if any(r["condition"] in ROBOT_NAMES for r in t["rows"])]
     if not measured:
         return ["No policy's table holds the robot-error rows yet."]
     named = ", ".join(f"`{t['policy']}` {t['policy_hash']}" for t in measured)
-    machines = sorted({t.get("machine", "?") for t in measured})
+    machines = sorted({t.get("machine", "?").split("; ")[-1] for t in measured})
     lines = [
-        f"Measured: {named}; {measured[0]['problems']}; fused closed loop, shielded; needle and tool tracking noise "
+        f"Measured: {named}; {' or '.join(dict.fromkeys(t['problems'] for t in measured))} (each policy its own "
+        f"test set); fused closed loop, shielded; needle and tool tracking noise "
         f"0.25 mm, joint offsets up to 0.5 deg (mm) with a calibration error; {', '.join(machines)}; "
         f"seed {measured[0].get('seed', 0)}. Each cell: success with the tools seen through their kinematics / by the camera.",
         "",

@@ -72,3 +72,26 @@ def test_stopping_uses_only_the_estimate(policy, paper_testset):
     needle, start, goal = (x[:16] for x in episode_poses(episodes))
     run = policy.execute(needle, start, goal, NeedleNoise(0.0, 1.5), frames="each", warmup_frames=1, stop_tolerance=1.0)
     assert (run["success"] <= run["stopped"]).all() and (run["stopped"] & ~run["success"]).any()
+
+
+def test_one_closed_loop_step_on_the_lean_path_is_the_jax_program(policy, paper_testset):
+    """One query on the CPU takes the lean numba step; a batch takes the JAX program: the same
+    stop verdicts, actions to float32 rounding and the same next poses, at the start, along the
+    plans, at their goals and at the horizon's last step (its shield's own perturbations), with the
+    default goal and a given one."""
+    episodes, _ = paper_testset
+    needle, start, goal = (x[:40] for x in episode_poses(episodes))
+    plan = policy.plan(needle, start, goal, check_grasp=False)
+    rows = np.arange(len(needle))
+    cases = [(start, 0, goal), (plan.poses[:, 2], 2, goal), (plan.poses[rows, plan.steps], 5, goal)]
+    cases += [(plan.poses[:, 1], 99, None)]
+    stops = 0
+    for ee, t, given in cases:
+        a, nxt, done = policy.closed_loop_step(needle, ee, given, t=t)
+        for i in rows:
+            a1, nxt1, done1 = policy.closed_loop_step(needle[i], ee[i], None if given is None else given[i], t=t)
+            assert done1 == done[i], (t, i)
+            np.testing.assert_allclose(a1, a[i], atol=1e-4, err_msg=f"t {t} row {i}")
+            np.testing.assert_allclose(nxt1, nxt[i], atol=1e-6, err_msg=f"t {t} row {i}")
+        stops += int(done.sum())
+    assert stops > 20  # the goal poses stop (most: the loop's own tolerance is the policy's, 0.8)

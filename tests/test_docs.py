@@ -76,7 +76,9 @@ def test_the_readme_results_table_is_the_comparison_file():
         cells = line.split("|")
         for cell, testset in ((cells[2], "paper300"), (cells[3], "held-out 3000")):
             bare, shielded = (float(x) for x in re.findall(r"\d\.\d{3}", cell))
-            assert (bare, shielded) == tuple(round(success[(policy, testset, r)], 3) for r in ("bare", "shielded")), line
+            assert (bare, shielded) == tuple(round(success[(policy, testset, r)], 3) for r in ("bare", "shielded")), (
+                line
+            )
         for bare, shielded in re.findall(r"general1000: (\d\.\d{3}) / (\d\.\d{3})", cells[1]):
             expect = tuple(round(success[(policy, "general1000", r)], 3) for r in ("bare", "shielded"))
             assert (float(bare), float(shielded)) == expect, line

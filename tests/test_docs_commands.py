@@ -34,6 +34,10 @@ PLACEHOLDER_VALUE = {
     "--clearance-mm": "0.1",
     "--noise-mm": "0.1",
     "--bias-mm": "0.1",
+    "--calibration-mm": "5",
+    "--calibration-deg": "3",
+    "--joint-offset": "0.5",
+    "--tool-noise-mm": "0.25",
 }
 
 

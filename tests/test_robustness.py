@@ -170,11 +170,40 @@ def test_the_docs_robustness_blocks_are_the_table_file_rendered():
     """README.md, docs/results.md and experiments/RESULTS.md hold what
     `python experiments/robustness.py --docs experiments/results/robustness/robustness.json` writes."""
     blocks = robustness.docs_blocks(json.loads(TABLE.read_text())["tables"])
-    for page, kind in (("README.md", "summary"), ("docs/results.md", "summary"), ("experiments/RESULTS.md", "tables")):
+    pages = (
+        ("README.md", "summary"),
+        ("README.md", "robot_summary"),
+        ("docs/results.md", "summary"),
+        ("docs/results.md", "robot_summary"),
+        ("docs/inference.md", "robot_summary"),
+        ("experiments/RESULTS.md", "tables"),
+        ("experiments/RESULTS.md", "robot"),
+    )
+    for page, kind in pages:
         text = (ROOT / page).read_text()
         assert robustness.replace_block(text, kind, blocks[kind]) == text, (
-            f"{page}: rerun experiments/robustness.py --docs"
+            f"{page} ({kind}): rerun experiments/robustness.py --docs"
         )
+
+
+def test_every_shipped_policy_has_the_robot_error_rows():
+    """Issue 45: each shipped policy's table holds every robot-error row (fused), both views."""
+    for t in json.loads(TABLE.read_text())["tables"]:
+        got = {r["condition"] for r in t["rows"] if r["mode"] == "fused"}
+        assert robustness.ROBOT_NAMES <= got, (t["policy"], sorted(robustness.ROBOT_NAMES - got))
+
+
+def test_the_robot_block_renders_kinematic_and_camera_per_calibration():
+    rows = [
+        {"condition": c.name, "mode": "fused", "success_rate": 0.5 if c.observe == "kinematic" else 0.75}
+        for c in robustness.ROBOT_CONDITIONS
+    ]
+    lines = robustness.robot_block([{"policy": "p", "policy_hash": "aa", "problems": "paper300", "rows": rows}])
+    assert lines[2] == "| calibration error of each arm | `p` |"
+    assert lines[4] == "| none (tools tracked) | 0.500 / 0.750 |"
+    assert lines[-1] == "| 10 mm, 5 deg | 0.500 / 0.750 |"
+    assert len(lines) == 4 + len(robustness.CALIBRATIONS)
+    assert robustness.robot_block([]) == ["No policy's table holds the robot-error rows yet."]
 
 
 def test_docs_blocks_render_hand_made_rows_and_replace_only_their_block():
