@@ -317,7 +317,9 @@ def closed_loop_step(
     shield checks the alternatives against the estimated needle, keeping ``clearance_mm`` from it
     (room for the estimate's error). ``at_goal`` holds within ``stop_tolerance`` of the success
     tolerances (None: the policy's own, ``Policy.closed_loop_defaults``), as in :func:`execute`.
-    ``task``: the goal grasp and needle keywords (:class:`~regrasp_mjx.queries.TaskSpec`)."""
+    ``task``: the goal grasp and needle keywords (:class:`~regrasp_mjx.queries.TaskSpec`). One
+    query on the CPU (no ``clearance_mm``, ``t`` within the horizon) takes the lean numba step
+    (:meth:`regrasp_mjx.lean_planner.LeanPlanner.step`), anything else the jitted JAX program."""
     stop_tolerance = policy.closed_loop_defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
     spec = TaskSpec.of(task)
     (needle, ee), single = batch_poses(needle=needle, ee=ee)

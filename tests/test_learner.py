@@ -485,3 +485,16 @@ def test_observation_noise_randomises_only_what_the_policy_sees_of_the_needle(ea
         assert (moved.min() > 1e-7) if differs else (moved.max() == 0.0)
         if differs:
             assert moved.max() < 6e-3  # at most a 1 mm bias plus a few sigma of 1 mm
+
+
+def test_tool_noise_makes_the_policy_see_its_tool_through_the_camera(easy_env, easy_demos):
+    """With obs_tool_noise_mm the stored observations' end-effector (in the seen grasping tool's
+    frame) is the camera's, within a few sigma of the truth; the needle too (seen from that frame)."""
+    learner = Learner(_tiny_config(obs_tool_noise_mm=0.5), easy_env)
+    ts = jax.tree.map(lambda x: x[0], learner.init(easy_demos[1]))
+    first = jax.vmap(easy_env.reset)(jax.random.split(jax.random.PRNGKey(3), 32))
+    _, transitions, _ = jax.jit(learner._rollout)(ts, first, jax.random.PRNGKey(4), jnp.float32(0.0))
+    seen, true = np.asarray(transitions["obs"][0]), np.asarray(first.obs)
+    for cols in (slice(7, 10), slice(0, 3)):  # the regrasping tool's and the needle's positions in e_g
+        moved = np.linalg.norm(seen[:, cols] - true[:, cols], axis=1)
+        assert moved.min() > 1e-7 and moved.max() < 6e-3

@@ -209,8 +209,9 @@ class Learner(Placement, Schedules):
             if cfg.obs_tool_noise_mm == 0:
                 return jax.vmap(env.observe)(estimates.seen_from(es, seen))
             ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
-            seen, seen_ee = estimates.camera_view(jax.random.fold_in(k, 7), seen, ee, tool)
-            seen_es = estimates.seen_from(es, seen).replace(ee_pos=seen_ee[:, :3], ee_quat=seen_ee[:, 3:])
+            keys = jax.random.split(jax.random.fold_in(k, 7), n)  # each environment its own frame and level
+            seen, seen_ee = jax.vmap(estimates.camera_view)(keys, seen[:, None], ee[:, None], tool)
+            seen_es = estimates.seen_from(es, seen[:, 0]).replace(ee_pos=seen_ee[:, 0, :3], ee_quat=seen_ee[:, 0, 3:])
             return jax.vmap(env.observe)(seen_es)
 
         def step(carry, k):
