@@ -27,14 +27,13 @@ if __name__ == "__main__":
     os.sched_setaffinity(0, {_core.parse_known_args()[0].core})
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-import json
 import time
 from datetime import date
 
 import jax
 import numpy as np
 
-from regrasp_mjx.atomic import machine, write_results
+from regrasp_mjx.atomic import dumps, machine, write_results
 from regrasp_mjx.grasps import GraspLibrary
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig
@@ -122,7 +121,7 @@ def main() -> None:
                 if r == 0:
                     outcome[m].append((ok, length))
             times[m].append(per_query)
-            print(json.dumps({"repeat": r, "method": m, "median_ms": 1e3 * float(np.median(per_query))}), flush=True)
+            print(dumps({"repeat": r, "method": m, "median_ms": 1e3 * float(np.median(per_query))}), flush=True)
     first = float(np.median(times[order[0]]))
     rows = []
     for m in order:

@@ -17,7 +17,6 @@ Compile time excluded; ``--iterations`` timed after one warm-up.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -26,7 +25,7 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.agents.ddpg_bc.learner import Learner
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import dumps, write_results
 
 
 def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int = 1, shard: str = "auto") -> dict:
@@ -100,7 +99,7 @@ def main() -> None:
             for devices in (int(d) for d in args.devices.split(",")):
                 r = bench(envs, seeds, args.updates, args.iterations, devices, args.shard)
                 rows.append(r)
-                print(json.dumps(r), flush=True)
+                print(dumps(r), flush=True)
     device = jax.devices()[0].device_kind
     lines = [
         f"Device: {device} ({jax.device_count()} visible), jax {jax.__version__}; updates per iteration "

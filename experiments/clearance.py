@@ -28,13 +28,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 
 import numpy as np
 
 from regrasp_mjx import dvrk, host
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import dumps, write_results
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses
 from regrasp_mjx.planning.ompl_planner import PlannerConfig
@@ -122,7 +121,7 @@ def main() -> None:
             "clearance": clearance_stats(clear),
         }
         data["margins"][str(m)] = entry
-        print(json.dumps({"clearance_mm": m, **entry}), flush=True)
+        print(dumps({"clearance_mm": m, **entry}), flush=True)
         c = lambda e: e["clearance"]  # noqa: E731
         rows.append(
             f"| {m:g} | {entry['substeps']} | {entry['valid']} | {entry['bare']['success_rate']:.3f} | "

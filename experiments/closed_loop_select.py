@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 
 import numpy as np
 
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import dumps, write_results
 from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.policy import load_policy
 from regrasp_mjx.robot_errors import OBSERVE, RobotErrors
@@ -69,7 +68,7 @@ def main() -> None:
         rows.append(
             {"warmup_frames": warmup, "stop_tolerance": stop, "success": success, "mean": float(np.mean(success))}
         )
-        print(json.dumps(rows[-1]), flush=True)
+        print(dumps(rows[-1]), flush=True)
     best = max(rows, key=lambda r: r["mean"])
     lines = [
         f"Closed loop ({args.frames} frames, tools seen: {args.observe}), policy {args.policy or 'shipped'}, "

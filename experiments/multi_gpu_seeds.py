@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import dumps, write_results
 
 
 def gpu_sampler(stop: threading.Event, samples: list[list[float]]) -> None:
@@ -139,7 +139,7 @@ def main() -> None:
             same = (seeds, gpus, args.set, args.label)
             data["runs"] = [r for r in data["runs"] if (r["seeds"], r["gpus"], r["set"], r.get("label", "")) != same]
             data["runs"].append(run)
-            print(json.dumps(run), flush=True)
+            print(dumps(run), flush=True)
     pairs, lines = tables(data)
     data["pairs"] = pairs
     write_results(args.out, "multi_gpu_seeds", lines, data)

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import time
 from pathlib import Path
 
-from regrasp_mjx.atomic import machine, write_csv, write_text
+from regrasp_mjx.atomic import dumps, machine, write_csv, write_text
 from regrasp_mjx.config import SceneConfig
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
@@ -53,7 +52,7 @@ def run_rows(episodes, rows, jaw_angle: float, budget: float, workers: int, seed
             **summarize_plans(list(results.values()), budget),
             "wall_s": round(time.perf_counter() - t0, 1),
         }
-        print(json.dumps(row), flush=True)
+        print(dumps(row), flush=True)
         out.append(row)
     return out
 

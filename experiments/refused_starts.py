@@ -13,7 +13,6 @@ the model's (``Scene.distance_fn`` with the problem's needle, float32 as the env
 from __future__ import annotations
 
 import argparse
-import json
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -24,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from regrasp_mjx import true_needle
-from regrasp_mjx.atomic import write_results
+from regrasp_mjx.atomic import dumps, write_results
 from regrasp_mjx.geometry import rotation_matrix
 from regrasp_mjx.policy import load_policy
 from regrasp_mjx.sampling import draw_episode
@@ -110,7 +109,7 @@ def main(argv: list[str] | None = None) -> None:
         )
     print("\n".join(lines))
     write_results(args.out, "refused_starts", lines, rows)
-    print(json.dumps({"refused_clear": int(((exact_um > 5.0) & refused).sum())}))
+    print(dumps({"refused_clear": int(((exact_um > 5.0) & refused).sum())}))
 
 
 if __name__ == "__main__":

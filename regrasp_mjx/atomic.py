@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import os
 import platform
 import tempfile
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import jax
+import numpy as np
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], Any]) -> None:
@@ -35,6 +37,8 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], Any]) -> 
 def output_file_problem(path: str | os.PathLike, suffix: str | None = None) -> str | None:
     """Why ``path`` cannot be written as a file by :func:`atomic_write` (None when it can): CLIs
     check their ``--out`` before any work, so a bad path costs no minutes of computing."""
+    if not str(path).strip():
+        return f"--out '' is not accepted: a file path ({suffix or 'any name'})"
     path = Path(path)
     if suffix is not None and path.suffix != suffix:
         return f"--out {path} is not accepted: a file path ending in {suffix}"
@@ -49,6 +53,8 @@ def output_file_problem(path: str | os.PathLike, suffix: str | None = None) -> s
 def output_folder_problem(path: str | os.PathLike) -> str | None:
     """Why ``path`` cannot be the folder a command writes its results into (None when it can):
     checked before any work, as :func:`output_file_problem` checks a file."""
+    if not str(path).strip():
+        return "--out '' is not accepted: a folder path (an empty one would write into the current folder)"
     path = Path(path)
     if path.exists() and not path.is_dir():
         return f"--out {path} is a file; accepted: a folder"
@@ -65,8 +71,28 @@ def _unwritable(candidates) -> Path | None:
     return None if parent.is_dir() and os.access(parent, os.W_OK | os.X_OK) else parent
 
 
+def strict(obj: Any) -> Any:
+    """``obj`` with every float that is not finite (NaN, infinity) as None, numpy scalars and
+    arrays as plain Python: what strict JSON (RFC 8259) can hold, a missing value as ``null``."""
+    if isinstance(obj, dict):
+        return {k: strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict(v) for v in obj]
+    if isinstance(obj, (np.ndarray, np.generic)):
+        return strict(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def dumps(obj: Any, **options: Any) -> str:
+    """``json.dumps`` of :func:`strict` ``obj``, refusing anything else non-standard: every JSON
+    this project writes or prints goes through here."""
+    return json.dumps(strict(obj), allow_nan=False, **options)
+
+
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:
-    atomic_write(path, lambda f: f.write(json.dumps(obj, indent=indent).encode()))
+    atomic_write(path, lambda f: f.write(dumps(obj, indent=indent).encode()))
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:

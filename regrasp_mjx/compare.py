@@ -38,9 +38,10 @@ import numpy as np
 
 from regrasp_mjx import robustness
 from regrasp_mjx.analysis import markdown_table
-from regrasp_mjx.atomic import machine, output_folder_problem, write_results
+from regrasp_mjx.atomic import dumps, machine, output_folder_problem, write_results
 from regrasp_mjx.config import ConfigError, parse_overrides
 from regrasp_mjx.evaluate import plan_testset
+from regrasp_mjx.host_loop import run_command
 from regrasp_mjx.policy import PolicyError, load_policy, shipped_policies
 from regrasp_mjx.queries import PoseError
 from regrasp_mjx.rollout import summarize
@@ -123,7 +124,7 @@ def outcomes(policies: dict, args: argparse.Namespace, changes: dict) -> tuple[l
                 plan = plan_testset(policy, episodes, shield)
                 row = {"policy": name, "folder": folder, "network": network, "testset": sname, "env": changes}
                 rows.append({**row, **summarize(plan, "shielded" if shield else "bare")})
-                print(json.dumps(rows[-1]), flush=True)
+                print(dumps(rows[-1]), flush=True)
                 if sname == "general1000" and policy.general and not shield:
                     per_problem[name], general = np.asarray(plan.success, bool), episodes
     where = machine()
@@ -172,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", default=None, help="file name (default: compare, or robustness)")
     args = p.parse_args(argv)
     args.name = args.name or ("robustness" if args.robustness else "compare")
-    if args.out and (problem := output_folder_problem(args.out)):  # before any work: a comparison takes minutes
+    if args.out is not None and (problem := output_folder_problem(args.out)):  # before any work: minutes
         p.error(problem)
     for item in args.heldout:
         n, _, seed = item.partition(":")
@@ -183,6 +184,11 @@ def main(argv: list[str] | None = None) -> int:
         if not args.heldout:
             p.error("--no-testset is not accepted without --heldout: no problems would be left")
         args.testset = []
+    if not args.robustness:
+        given = [o for o, v in (("--modes", args.modes != ",".join(robustness.MODES)), ("--conditions", args.conditions),
+                                ("--merge", args.merge)) if v]  # fmt: skip
+        if given:
+            p.error(f"{', '.join(given)} is not accepted without --robustness (it selects the robustness table's rows)")
     if set(args.modes.split(",")) - set(robustness.MODES):
         p.error(f"--modes {args.modes} is not accepted: comma-separated of {list(robustness.MODES)}")
     names = [c.name for c in robustness.CONDITIONS + robustness.ROBOT_CONDITIONS]
@@ -225,4 +231,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_command(main, "the files in --out hold the policies finished so far: run the same command again"))

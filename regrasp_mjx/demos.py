@@ -23,9 +23,10 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from regrasp_mjx.atomic import atomic_write, write_json
+from regrasp_mjx.atomic import atomic_write, dumps, output_folder_problem, write_json
 from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig
 from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
 from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
 from regrasp_mjx.planning.pool import PlannerPool
@@ -78,6 +79,18 @@ def _read_plan(path: Path) -> dict:
         return {"solved": bool(f["solved"]), "poses": f["poses"], "plan_time_s": float(f["plan_time_s"])}
 
 
+def _differences(old: dict, new: dict, prefix: str = "") -> list[str]:
+    """The settings that differ between two nested dicts, as ``name: there -> asked`` (at most 5)."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}: {a!r} there, {b!r} asked")
+    return out[:5]
+
+
 def build(
     n: int,
     out: str | os.PathLike,
@@ -110,9 +123,10 @@ def build(
     meta_path = out / "meta.json"
     if meta_path.exists():
         old = json.loads(meta_path.read_text())
-        if old.get("settings") != json.loads(json.dumps(settings)):
+        differ = _differences(old.get("settings") or {}, json.loads(dumps(settings)))
+        if differ:
             raise DemosError(
-                f"{out} holds plans made with other settings ({old.get('settings')}); "
+                f"{out} holds plans made with other settings ({'; '.join(differ)}); "
                 f"use another --out or the same arguments to resume"
             )
     else:
@@ -199,7 +213,7 @@ def build(
         "stats": stats,
     }
     path = save_demos(out / "demos.npz", [verified[i] for i in chosen], meta)
-    print(json.dumps({"out": str(path), "demos": len(chosen), **stats, "wall_s": meta["wall_s"]}))
+    print(dumps({"out": str(path), "demos": len(chosen), **stats, "wall_s": meta["wall_s"]}))
     return path
 
 
@@ -233,27 +247,30 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.n < 1 or args.workers < 1:
         p.error("--n and --workers must be >= 1")
+    if problem := output_folder_problem(args.out):
+        p.error(problem)
     try:
-        build(
-            args.n,
-            args.out,
-            seed=args.seed,
-            workers=args.workers,
-            planner=args.planner,
-            direction=args.direction,
-            budget_s=args.budget_s,
-            checker=args.checker,
-            timeout_s=args.timeout_s,
-            scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg),
-            task=TASKS[args.task],
-            replay_batch=args.replay_batch,
-            quiet=args.quiet,
-        )
-    except (ConfigError, DemosError, ValueError) as err:
+        with folder_lock(Path(args.out)):  # one build per folder
+            build(
+                args.n,
+                args.out,
+                seed=args.seed,
+                workers=args.workers,
+                planner=args.planner,
+                direction=args.direction,
+                budget_s=args.budget_s,
+                checker=args.checker,
+                timeout_s=args.timeout_s,
+                scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg),
+                task=TASKS[args.task],
+                replay_batch=args.replay_batch,
+                quiet=args.quiet,
+            )
+    except (ConfigError, DemosError, ValueError, FolderInUse) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_command(main, "run the same command again to resume: the plans made so far are kept"))

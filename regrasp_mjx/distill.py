@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
 import sys
 import time
 from pathlib import Path
@@ -27,12 +26,12 @@ import jax
 import jax.numpy as jnp
 
 from regrasp_mjx.agents.dagger import DistillConfig, Distiller
-from regrasp_mjx.atomic import write_json
+from regrasp_mjx.atomic import dumps, output_folder_problem, write_json
 from regrasp_mjx.config import ConfigError, parse_overrides, replace
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.estimates import evaluate_noisy
 from regrasp_mjx.evaluate import outcomes
-from regrasp_mjx.host_loop import BestOf, Phases, RunLog, eta
+from regrasp_mjx.host_loop import BestOf, FolderInUse, Phases, RunLog, eta, folder_lock, run_command
 from regrasp_mjx.policy import Policy, PolicyError, load_policy, save_policy
 from regrasp_mjx.rollout import evaluate_actor, summarize
 from regrasp_mjx.sampling import PAPER300, Episode, TestsetError, load_testset
@@ -167,6 +166,10 @@ def distill(
     return final
 
 
+# what a distillation writes into OUT: an earlier one's is refused without --overwrite
+DISTILL_OUTPUTS = ("distill_log.jsonl", "policy", "policy_last", "distill_eval.json")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m regrasp_mjx.distill", description=__doc__.splitlines()[0])
     p.add_argument("--teacher", required=True, help="policy folder of the teacher (one network or an ensemble)")
@@ -181,21 +184,36 @@ def main(argv: list[str] | None = None) -> int:
         help="train the student at this clearance margin (the teacher's shield and lookahead keep it; "
         "default: the teacher's own, usually 0)",
     )
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier distillation's outputs in OUT (default: refuse)"
+    )
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    if problem := output_folder_problem(args.out):  # the string as given: Path("") would be "."
+        p.error(problem)
+    out = Path(args.out)
+    if problem := output_folder_problem(out):
+        p.error(problem)
+    earlier = [name for name in DISTILL_OUTPUTS if (out / name).exists()]
+    if earlier and not args.overwrite:
+        p.error(
+            f"--out {out} holds an earlier distillation ({', '.join(earlier)}); accepted: another --out, or "
+            "--overwrite to replace it"
+        )
     try:
         cfg = replace(DistillConfig(), seed=args.seed, **parse_overrides(args.set))
         teacher = load_policy(args.teacher)
         if args.clearance_mm is not None:
             teacher = teacher.with_env(clearance_mm=args.clearance_mm)
         testset, _ = load_testset(args.testset)
-        final = distill(teacher, Path(args.out), cfg, testset, teacher_name=args.teacher, quiet=args.quiet)
-    except (ConfigError, PolicyError, TestsetError) as err:
+        with folder_lock(out):
+            final = distill(teacher, out, cfg, testset, teacher_name=args.teacher, quiet=args.quiet)
+    except (ConfigError, PolicyError, TestsetError, FolderInUse) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(json.dumps({"out": args.out, "test": final["test"]}))
+    print(dumps({"out": args.out, "test": final["test"]}))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_command(main, "a distillation starts anew: run the same command with --overwrite (or another --out)"))

@@ -20,7 +20,6 @@ problem (:func:`engine_agreement`).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
@@ -28,7 +27,9 @@ import jax
 import numpy as np
 
 from regrasp_mjx import robustness
+from regrasp_mjx.atomic import dumps
 from regrasp_mjx.config import ConfigError
+from regrasp_mjx.host_loop import run_command
 from regrasp_mjx.policy import (
     DEFAULT_POLICY,
     START_WARN_MM,
@@ -175,7 +176,7 @@ def _agreement(policy, episodes, name: str, args: argparse.Namespace) -> int:
         "max_pose_diff": float(r["pose_diff"].max(initial=0.0)),
     }
     if args.json:
-        print(json.dumps(out))
+        print(dumps(out))
     else:
         print(
             f"{name} on {args.testset}, shield {'on' if out['shield'] else 'off'}: each problem one at a time on the "
@@ -331,6 +332,16 @@ def main(argv: list[str] | None = None) -> int:
     except PoseError as err:  # a test set of needles or goal grasps the policy was not trained for
         print(f"error: --testset {args.testset}: {err}", file=sys.stderr)
         return 2
+    except jax.errors.JaxRuntimeError as err:
+        if "RESOURCE_EXHAUSTED" not in str(err) and "out of memory" not in str(err).lower():
+            raise
+        size = f"--batch-size {args.batch_size} " if args.batch_size else ""
+        print(
+            f"error: {size}does not fit in the memory of {jax.devices()[0].device_kind}; accepted: a smaller "
+            "--batch-size (65536 fits one H100)",
+            file=sys.stderr,
+        )
+        return 2
 
 
 def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
@@ -339,7 +350,7 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
         rows = robustness.table(policy, episodes, seed=args.seed, log=None if args.json else print)
         if args.json:
             print(
-                json.dumps(
+                dumps(
                     {
                         "policy": name,
                         "policy_hash": robustness.policy_hash(args.policy),
@@ -362,7 +373,7 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
         r = robustness.measure(policy, episodes, condition, mode, args.seed, shield=not args.no_shield)
         r.update(policy=name, testset=args.testset)
         if args.json:
-            print(json.dumps(r))
+            print(dumps(r))
         else:
             print(
                 f"{name} on {args.testset} ({r['problems_valid']} of {r['problems']} problems keep the margin; {mode}, needle noise {r['sigma_mm']:g} mm, bias "
@@ -378,7 +389,7 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
     r["clearance_mm"] = policy.env_config.clearance_mm
     r["testset"] = args.testset
     if args.json:
-        print(json.dumps(r))
+        print(dumps(r))
         return 0
     path = "-" if r["path_length_mm"] is None else f"{r['path_length_mm']:.2f} mm"
     print(
@@ -405,4 +416,4 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_command(main, "nothing was written: run the same command again"))

@@ -12,14 +12,13 @@ with jax2onnx; ``check`` runs it in ONNX Runtime against JAX on random observati
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import atomic_write, output_file_problem
+from regrasp_mjx.atomic import atomic_write, dumps, output_file_problem
 from regrasp_mjx.policy import DEFAULT_POLICY, Policy, PolicyError, load_policy, shipped_policies
 
 
@@ -76,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {"out": str(out), "bytes": out.stat().st_size}
     if not args.no_check:
         result["max_abs_diff_vs_jax"] = check(policy, out)
-    print(json.dumps(result))
+    print(dumps(result))
     return 0
 
 

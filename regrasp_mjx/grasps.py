@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import atomic_write, output_file_problem
+from regrasp_mjx.atomic import atomic_write, dumps, output_file_problem
 from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.testset import make_testset
 
@@ -55,7 +55,7 @@ class GraspLibrary:
 
     def save(self, path: str | os.PathLike) -> None:
 
-        meta = json.dumps(self.meta)
+        meta = dumps(self.meta)
         atomic_write(Path(path), lambda f: np.savez(f, needle=self.needle, grasp=self.grasp, meta=np.array(meta)))
 
     @classmethod
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> None:
     fresh = GraspLibrary.make(1000, args.seed + 1)  # how far new draws lie from the library
     d = lib.nearest(fresh.needle)[1]
     print(
-        json.dumps(
+        dumps(
             {
                 "out": args.out,
                 "n": args.n,

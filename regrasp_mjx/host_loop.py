@@ -1,7 +1,8 @@
 """What the host loops of training (:mod:`regrasp_mjx.trainer`) and distillation
 (:mod:`regrasp_mjx.distill`) share: where the wall-clock time goes (:class:`Phases`), the choice of the
 exported network by validation (:class:`BestOf`), the JSONL run log with its TensorBoard mirror
-(:class:`RunLog`) and the progress line's ETA (:func:`eta`).
+(:class:`RunLog`) and the progress line's ETA (:func:`eta`); and what every long command line shares:
+one run per output folder (:func:`folder_lock`) and Ctrl-C as one line (:func:`run_command`).
 
 One format for both: a log row per member and epoch (iteration, for distillation) holding
 ``validation`` and ``test`` summaries of :func:`regrasp_mjx.rollout.summarize`, the losses, and
@@ -11,16 +12,20 @@ the device, plans, evaluates and writes).
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import math
+import os
+import sys
 import time
 from collections import defaultdict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from regrasp_mjx.atomic import write_text
+from regrasp_mjx.atomic import dumps, write_text
 
 
 class Phases:
@@ -95,7 +100,7 @@ class RunLog:
 
     def write(self, rows: Sequence[dict[str, Any]], step_key: str = "epoch") -> None:
         with open(self.path, "a") as f:
-            f.write("".join(json.dumps(r) + "\n" for r in rows))
+            f.write("".join(dumps(r) + "\n" for r in rows))
         for writer, row in zip(self.writers, rows):
             if writer is None:
                 continue
@@ -154,3 +159,45 @@ def epoch_line(epochs: int, rows: list[dict[str, Any]], demos_received: list[int
         f"E_R {each(col('E_R'))}  E_T {each(col('E_T'))}  demos+ {each(demos_received, '{}')}  "
         f"{r0['env_steps_per_s']:,.0f} env-steps/s  {r0['updates_per_s']:,.0f} updates/s  {eta_text}"
     )
+
+
+# ---- what every long command line shares: one run per folder, and Ctrl-C without a traceback -----
+
+
+class FolderInUse(RuntimeError):
+    """Another process holds the output folder's lock."""
+
+
+@contextlib.contextmanager
+def folder_lock(out: Path):
+    """Holds ``out/.lock`` (an advisory ``flock``) while a run writes into ``out``: a second run
+    into the same folder is refused while the first lives; the kernel drops the lock when its
+    process ends, however it ends, so a killed run leaves no stale lock."""
+    out.mkdir(parents=True, exist_ok=True)
+    f = open(out / ".lock", "a+")
+    try:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise FolderInUse(
+                f"--out {out} is in use by another run ({holder}); accepted: another --out, or wait for that run to end"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()}")
+        f.flush()
+        yield
+    finally:
+        f.close()
+
+
+def run_command(main: Callable[[], int], again: str) -> int:
+    """Runs a command line's ``main``; Ctrl-C prints one line saying how to go on (``again``) and
+    exits 130, never a traceback."""
+    try:
+        return main()
+    except KeyboardInterrupt:
+        print(f"interrupted; {again}", file=sys.stderr)
+        return 130

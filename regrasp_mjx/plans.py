@@ -132,6 +132,9 @@ def plan(
     query when JAX runs on the CPU."""
     if engine not in ENGINES:
         raise ValueError(f"engine={engine!r} is not accepted; accepted: {', '.join(map(repr, ENGINES))}")
+    for name, flag in (("shield", shield), ("check_grasp", check_grasp)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise ValueError(f"{name}={flag!r} is not accepted: True or False")
     if engine != "jax":
         one = _lean_one(policy, needle, start, goal, task, check_grasp, shield)
         if one is not None:  # else a batch, the JAX engine, or input the checks below name

@@ -142,6 +142,11 @@ def resolve(path: str | os.PathLike | None) -> Path:
     is no existing path, else ``path`` (a folder, or a file in it)."""
     if path is None:
         return DEFAULT_POLICY
+    if not isinstance(path, (str, os.PathLike)):
+        raise PolicyError(
+            f"policy {path!r} is not accepted: a folder path, its policy.json or policy.npz, or a shipped name "
+            f"({', '.join(shipped_policies())})"
+        )
     if isinstance(path, str) and path in shipped_policies() and not Path(path).exists():
         return SHIPPED / path
     path = Path(path)

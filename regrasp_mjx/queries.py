@@ -36,8 +36,10 @@ def check_poses(name: str, poses: Any) -> np.ndarray:
         norm = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5] + x[6] * x[6])
         if all(map(math.isfinite, x)) and abs(norm - 1.0) <= QUAT_NORM_TOLERANCE:
             return np.array(x[:3] + [v / norm for v in x[3:]])
-    if arr.ndim == 0 or arr.shape[-1] != 7:
-        raise PoseError(f"{name} has shape {arr.shape}; accepted: (..., 7) = [x, y, z, qw, qx, qy, qz] in metres")
+    if arr.ndim not in (1, 2) or arr.shape[-1] != 7:
+        raise PoseError(f"{name} has shape {arr.shape}; accepted: (7,) or (B, 7) = [x, y, z, qw, qx, qy, qz] in metres")
+    if arr.shape[0] == 0:
+        raise PoseError(f"{name} has shape {arr.shape}: an empty batch; accepted: at least one pose")
     if not np.all(np.isfinite(arr)):
         raise PoseError(f"{name} has NaN or inf; accepted: finite values")
     return np.concatenate([arr[..., :3], unit_quaternions(name, arr[..., 3:], PoseError)], axis=-1)

@@ -22,7 +22,7 @@ import numpy as np
 from flax import struct
 
 from regrasp_mjx import geometry
-from regrasp_mjx.atomic import atomic_write
+from regrasp_mjx.atomic import atomic_write, dumps
 from regrasp_mjx.config import SceneConfig, TaskConfig
 
 # The paper300 test set (SPEC seed 2021), shipped inside the package so that an installed copy finds it
@@ -259,7 +259,7 @@ def save_testset(path: str | os.PathLike, episodes: Episode, meta: dict[str, Any
     path = Path(path)
     arrays = {name: np.asarray(getattr(episodes, name), dtype=np.float64) for name in FIELD_SHAPES}
     meta = {"format": TESTSET_FORMAT, "version": TESTSET_VERSION, "n": len(episodes), "fields": FIELD_DOCS, **meta}
-    atomic_write(path, lambda f: np.savez_compressed(f, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays))
+    atomic_write(path, lambda f: np.savez_compressed(f, meta=np.array(dumps(meta, sort_keys=True)), **arrays))
     return path
 
 

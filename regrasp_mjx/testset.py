@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
 import sys
 import time
 from importlib import metadata
@@ -18,7 +17,7 @@ from importlib import metadata
 import jax
 import numpy as np
 
-from regrasp_mjx.atomic import output_file_problem
+from regrasp_mjx.atomic import dumps, output_file_problem
 from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.sampling import Episode, load_testset, sample_episode, save_testset
 from regrasp_mjx.scene import load_scene
@@ -103,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     load_testset(path)  # read back: what we wrote must pass our own validation
     gap = np.linalg.norm(episodes.goal_pos - episodes.start_pos, axis=-1) * 1e3
     print(
-        json.dumps(
+        dumps(
             {
                 "out": str(path),
                 "n": args.n,

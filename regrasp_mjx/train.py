@@ -17,7 +17,7 @@ policy is exported (``OUT/policy/policy.npz`` + ``policy.json``) and evaluated o
 from __future__ import annotations
 
 import argparse
-import json
+import contextlib
 import os
 import shutil
 import sys
@@ -29,10 +29,12 @@ import jax
 
 from regrasp_mjx import distributed, gpu_memory
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, grow_with_devices, make_config
-from regrasp_mjx.atomic import output_folder_problem
+from regrasp_mjx.atomic import dumps, output_folder_problem
 from regrasp_mjx.config import TASKS, ConfigError, parse_overrides
+from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.planning.episodes import DemosError
-from regrasp_mjx.sampling import TestsetError
+from regrasp_mjx.queries import PoseError, TaskRanges, TaskSpec
+from regrasp_mjx.sampling import TestsetError, episode_needles, load_testset
 from regrasp_mjx.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run
 
 __all__ = ["DEFAULT_TESTSET", "VALIDATION_SEED", "Run", "main"]
@@ -67,9 +69,11 @@ def check_out(out: Path, resume: bool, overwrite: bool) -> str | None:
         return problem
     if resume and overwrite:
         return "--resume and --overwrite are not accepted together: continue the run or clear it"
-    if resume and not (out / "checkpoint" / "meta.json").is_file():
-        return f"--resume: {out / 'checkpoint'} holds no checkpoint; accepted: a run folder with one (drop --resume to start anew)"
     earlier = run_outputs(out)
+    if resume and not earlier:
+        return (
+            f"--resume: {out} holds no run to continue; accepted: an earlier run's folder (drop --resume to start anew)"
+        )
     if earlier and not resume and not overwrite:
         names = ", ".join(e.name for e in earlier[:5]) + (", ..." if len(earlier) > 5 else "")
         return (
@@ -159,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    if problem := output_folder_problem(args.out):  # the string as given: Path("") would be "."
+        p.error(problem)
     out = Path(args.out)
     problem = check_out(out, args.resume, args.overwrite)
     if problem:
@@ -176,22 +182,27 @@ def main(argv: list[str] | None = None) -> int:
         if args.task is not None:
             overrides["env.task"] = TASKS[args.task]
         cfg = make_config(args.preset, args.exploration, args.learner, **overrides)
+        if problem := _before_the_work(cfg, args.testset):
+            p.error(problem)
         gpu_memory.configure(gpu_memory.parse_setting(args.gpu_memory))  # before JAX starts a GPU client
         if args.distributed or args.coordinator:
             distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         if args.grow_batch:
             cfg = grow_with_devices(cfg, cfg.devices or len(jax.devices()))
-        if args.overwrite and distributed.is_main():
-            for entry in run_outputs(out):
-                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
-        out.mkdir(parents=True, exist_ok=True)
-        if jax.default_backend() == "cpu" and args.preset != "smoke":
-            warnings.warn("training on the CPU: no GPU is visible to JAX; this preset expects one", stacklevel=1)
-        cache = Path(os.environ.get("REGRASP_JAX_CACHE", Path.home() / ".cache" / "regrasp_mjx" / "jax"))
-        jax.config.update("jax_compilation_cache_dir", str(cache))
-        run = Run(cfg, out, Path(args.demos) if args.demos else None, Path(args.testset), args.quiet)
-        final = run.train(resume=args.resume)
-    except (ConfigError, DemosError, TestsetError) as err:
+        with contextlib.ExitStack() as held:
+            if distributed.is_main():  # one run per folder: held from before an --overwrite clears it
+                held.enter_context(folder_lock(out))
+            if args.overwrite and distributed.is_main():
+                for entry in run_outputs(out):
+                    shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+            out.mkdir(parents=True, exist_ok=True)
+            if jax.default_backend() == "cpu" and args.preset != "smoke":
+                warnings.warn("training on the CPU: no GPU is visible to JAX; this preset expects one", stacklevel=1)
+            cache = Path(os.environ.get("REGRASP_JAX_CACHE", Path.home() / ".cache" / "regrasp_mjx" / "jax"))
+            jax.config.update("jax_compilation_cache_dir", str(cache))
+            run = Run(cfg, out, Path(args.demos) if args.demos else None, Path(args.testset), args.quiet)
+            final = run.train(resume=args.resume)
+    except (ConfigError, DemosError, TestsetError, FolderInUse) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except jax.errors.JaxRuntimeError as err:
@@ -209,11 +220,39 @@ def main(argv: list[str] | None = None) -> int:
     if not distributed.is_main():
         return 0  # process 0 reports
     if "settings" in final:
-        print(json.dumps({"out": str(out), "settings": {k: summary(g) for k, g in final["settings"].items()}}))
+        print(dumps({"out": str(out), "settings": {k: summary(g) for k, g in final["settings"].items()}}))
     else:
-        print(json.dumps({"out": str(out), **summary(final)}))
+        print(dumps({"out": str(out), **summary(final)}))
     return 0
 
 
+def _before_the_work(cfg, testset: str) -> str | None:
+    """What would only fail after minutes of demonstrations and training: a test set of another
+    task than the run's, or fewer demonstration transitions than one batch could ever hold."""
+    try:
+        episodes, _ = load_testset(testset)
+        TaskRanges.of(cfg.env).values(len(episodes.needle_pos), TaskSpec.of(episode_needles(episodes)))
+    except TestsetError as err:
+        return f"--testset {testset}: {err}"
+    except PoseError as err:
+        return (
+            f"--testset {testset} holds problems of another task than this run trains ({err}); accepted: "
+            "paper300 for the paper task, general1000 for --task general"
+        )
+    most = cfg.num_demos * cfg.env.horizon  # every demonstration as long as an episode can be
+    if cfg.demo_batch > most:
+        return (
+            f"batch_size={cfg.batch_size} needs {cfg.demo_batch} demonstration transitions a batch, more than "
+            f"{cfg.num_demos} demonstrations can hold ({most}); accepted: a smaller batch_size or demo_fraction, "
+            "or more num_demos"
+        )
+    return None
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(
+        run_command(
+            main,
+            "run the same command with --resume to continue from the last checkpoint (or its demonstrations)",
+        )
+    )

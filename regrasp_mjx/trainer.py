@@ -159,6 +159,11 @@ class Run:
             self.out / "log.jsonl",
             [tensorboard_writer(self.member_dir(m) / "tb") if main else None for m in range(seeds)],
         )
+        if resume and not (self.ckpt / "meta.json").is_file():  # stopped before its first checkpoint
+            self.log("no checkpoint yet: starting at epoch 0 (the demonstrations built so far are kept)")
+            resume = False
+            if main:
+                log.drop_after("epoch", -1)
         if resume:
             ts, meta = checkpoint.load(self.ckpt, ts, cfg)
             ts = learner.place(ts)

@@ -27,9 +27,8 @@ def workdir(tmp_path):
 CASES = [
     (["--out", "{w}/afile"], "is a file; accepted: a folder"),
     (["--out", "{w}/afile/sub"], "is not a writable folder"),
-    (["--out", "{w}/new", "--resume"], "holds no checkpoint; accepted: a run folder with one"),
+    (["--out", "{w}/new", "--resume"], "holds no run to continue; accepted: an earlier run's folder"),
     (["--out", "{w}/done"], "holds an earlier run (log.jsonl, seed0); accepted: --resume to continue it, --overwrite"),
-    (["--out", "{w}/done", "--resume"], "holds no checkpoint"),
     (["--out", "{w}/x", "--resume", "--overwrite"], "--resume and --overwrite are not accepted together"),
     (["--out", "{w}/x", "--preset", "huge"], "argument --preset: invalid choice: 'huge'"),
     (["--out", "{w}/x", "--set", "num_envs=0"], "num_envs=0 is not accepted: an integer >= 1"),

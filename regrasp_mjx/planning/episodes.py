@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx import continuous
-from regrasp_mjx.atomic import atomic_write
+from regrasp_mjx.atomic import atomic_write, dumps
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import quat_conj, quat_mul, quat_to_rotvec
 from regrasp_mjx.rollout import Rollout, rollout
@@ -179,7 +179,7 @@ def save_demos(path: str | os.PathLike, episodes: list[dict[str, Any]], meta: di
         "steps": int(cat["length"].sum()),
         **meta,
     }
-    atomic_write(path, lambda f: np.savez_compressed(f, meta=np.array(json.dumps(meta, sort_keys=True)), **cat))
+    atomic_write(path, lambda f: np.savez_compressed(f, meta=np.array(dumps(meta, sort_keys=True)), **cat))
     return path
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from regrasp_mjx import distributed
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.learner import TrainingState
-from regrasp_mjx.atomic import atomic_write, write_json
+from regrasp_mjx.atomic import atomic_write, dumps, write_json
 from regrasp_mjx.config import ConfigError
 
 # Learner fields added after checkpoints were first written; each default reproduces what those
@@ -35,7 +35,7 @@ META = "meta_json"  # the metadata's key in state.npz (checkpoints before it hav
 
 def config_json(cfg: TrainConfig) -> dict[str, Any]:
     """``cfg`` as the JSON a checkpoint and an exported policy store (tuples become lists)."""
-    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+    return json.loads(dumps(dataclasses.asdict(cfg)))
 
 
 def with_added_defaults(saved: dict[str, Any]) -> dict[str, Any]:
@@ -63,7 +63,7 @@ def _host_arrays(ts: TrainingState, meta: dict[str, Any]) -> dict[str, np.ndarra
     # there; from a GPU the host arrays are fresh already (32 seeds' buffers are ~6 GB: no second copy)
     copy = jax.default_backend() == "cpu"
     arrays = {f"leaf_{i:05d}": np.array(x, copy=True) if copy else np.asarray(x) for i, x in enumerate(leaves)}
-    arrays[META] = np.array(json.dumps(meta))
+    arrays[META] = np.array(dumps(meta))
     return arrays
 
 
