@@ -1,9 +1,11 @@
 """regrasp_mjx: learned rapid motion planning for bimanual suture-needle regrasping in MuJoCo MJX.
 
-Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no path),
+Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no path; its
+``plan``, ``plan_from_camera``, ``closed_loop_step``, ``camera_loop`` and ``execute``),
 :class:`regrasp_mjx.env.RegraspEnv`, :func:`regrasp_mjx.geometry.grasp_pose`,
 :func:`regrasp_mjx.scene.load_scene`, :func:`regrasp_mjx.sampling.load_testset`, and the CLIs
-``python -m regrasp_mjx.{train,evaluate,demos,testset,grasps,export_onnx}``.
+``python -m regrasp_mjx.{train,evaluate,compare,distill,sweep,demos,testset,grasps,export_onnx}``
+(the README's command table).
 """
 
 import contextlib as _contextlib
