@@ -91,12 +91,24 @@ class Plan:
             return f"Plan(success={bool(self.success)}, steps={int(self.steps)}, path_length_mm={float(self.path_length_mm):.2f})"
         return f"Plan({ok.size} queries: success {ok.mean():.3f}, collision {np.mean(self.collision):.3f})"
 
-    def trajectory(self, frame: str = "eg") -> np.ndarray:
-        """The valid poses of a single plan (``steps + 1`` rows), in ``eg`` or ``camera`` frame."""
+    def trajectory(self, frame: str = "eg", query: int | None = None) -> np.ndarray:
+        """The valid poses of one plan (``steps + 1`` rows), in ``eg`` or ``camera`` frame: this
+        plan's, or of a batch's ``query``-th."""
+        if frame not in ("eg", "camera"):
+            raise ValueError(f"frame={frame!r} is not accepted: 'eg' or 'camera'")
         poses = self.poses if frame == "eg" else self.poses_camera
-        if poses is None or poses.ndim != 2:
-            raise ValueError(f"trajectory() takes one plan with {frame} poses; index a batch first")
-        return poses[: int(self.steps) + 1]
+        if poses is None:
+            raise ValueError("this plan has no camera-frame poses: plan_from_camera makes them")
+        if poses.ndim == 2:
+            if query not in (None, 0):
+                raise ValueError(f"query={query!r} is not accepted: this Plan holds one query")
+            return poses[: int(self.steps) + 1]
+        if query is None or not (isinstance(query, (int, np.integer)) and 0 <= query < len(poses)):
+            raise ValueError(
+                f"query={query!r} is not accepted: this Plan holds {len(poses)} queries; trajectory(query=i) "
+                f"gives query i's (0 <= i < {len(poses)})"
+            )
+        return poses[query][: int(self.steps[query]) + 1]
 
 
 def plan(

@@ -92,6 +92,10 @@ def test_command_lines_refuse_bad_input_before_any_work(tmp_path, capsys, monkey
         (lambda p: p.plan(_pose(), _pose(), shield="no"), ValueError, r"shield='no' is not accepted: True or False"),
         (lambda p: p.plan(_pose(), _pose(), check_grasp=1), ValueError, r"check_grasp=1 is not accepted"),
         (lambda p: load_policy(123), PolicyError, r"policy 123 is not accepted: a folder path"),
+        (lambda p: _batch_plan(p).trajectory(), ValueError, r"holds 2 queries; trajectory\(query=i\) gives"),
+        (lambda p: _batch_plan(p).trajectory(query=2), ValueError, r"query=2 is not accepted"),
+        (lambda p: _batch_plan(p).trajectory("world", 0), ValueError, r"frame='world' is not accepted"),
+        (lambda p: _batch_plan(p).trajectory("camera", 0), ValueError, r"no camera-frame poses"),
         (lambda p: p.closed_loop_step(np.zeros((0, 7)), np.zeros((0, 7))), PoseError, r"empty batch"),
         (lambda p: p.camera_loop().update(_pose(), _pose(), np.zeros(6)), PoseError, r"needle has shape \(6,\)"),
     ],
@@ -99,6 +103,15 @@ def test_command_lines_refuse_bad_input_before_any_work(tmp_path, capsys, monkey
 def test_the_api_refuses_bad_poses_and_flags_with_one_exception(call, error, match):
     with pytest.raises(error, match=match):
         call(load_policy())
+
+
+def _batch_plan(policy):
+    plan = policy.plan(np.tile(_NEEDLE, (2, 1)), np.tile(_pose(), (2, 1)), check_grasp=False)
+    assert plan.trajectory(query=1).shape == (int(plan.steps[1]) + 1, 7)  # a batch's query is served
+    return plan
+
+
+_NEEDLE = np.array([0.0, -0.0054, 0.0, 1.0, 0.0, 0.0, 0.0])
 
 
 def _pose():
