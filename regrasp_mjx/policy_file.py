@@ -191,6 +191,9 @@ def read_policy(path: str | os.PathLike | None = None) -> tuple[dict[str, Any], 
     missing = sorted((set(contract.get("arrays", [])) | {"normalizer/mean", "normalizer/std"}) - set(arrays))
     if missing:
         raise PolicyError(f"{npz} lacks arrays {missing}")
+    broken = sorted(k for k, v in arrays.items() if v.dtype.kind == "f" and not np.all(np.isfinite(v)))
+    if broken:  # a diverged or damaged network would plan (and fail) without a word
+        raise PolicyError(f"{npz}: arrays {broken} hold NaN or inf; accepted: finite weights")
     expected = make_networks(6, hidden).actor.init(jax.random.PRNGKey(0), jnp.zeros((1, width)))
     params = {}
     for k, v in traverse_util.flatten_dict(expected).items():

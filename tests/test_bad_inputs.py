@@ -189,3 +189,24 @@ def test_json_written_or_printed_is_strict(capsys):
     assert evaluate.main(["--noise-mm", "0.1", "--clearance-mm", "1.0", "--json", "--testset", "paper300"]) == 0
     r = _strict(capsys.readouterr().out)
     assert r["problems_valid"] == 0 and r["success_rate"] is None
+
+
+def test_a_policy_with_nan_weights_is_refused(tmp_path):
+    """A diverged or damaged network (NaN in its weights) no longer loads and plans silently."""
+    from regrasp_mjx.policy_file import resolve
+
+    folder = tmp_path / "p"
+    folder.mkdir()
+    shipped = resolve("default")
+    (folder / "policy.json").write_text((shipped / "policy.json").read_text())
+    with np.load(shipped / "policy.npz") as f:
+        arrays = {k: f[k] for k in f.files}
+    name = next(k for k in arrays if k.startswith("actor/") and k.endswith("kernel"))
+    arrays[name] = arrays[name].copy()
+    arrays[name].flat[0] = np.nan
+    np.savez(folder / "policy.npz", **arrays)
+    with pytest.raises(PolicyError, match=r"hold NaN or inf; accepted: finite weights"):
+        load_policy(folder)
+    arrays[name].flat[0] = 0.0
+    np.savez(folder / "policy.npz", **arrays)
+    assert load_policy(folder).hidden == load_policy().hidden  # the same file with finite weights loads
