@@ -51,7 +51,6 @@ from flax import struct
 
 from regrasp_mjx import dvrk
 from regrasp_mjx.config import ConfigError, is_number
-from regrasp_mjx.estimates import camera_view  # noqa: F401  (the camera view, re-exported beside the kinematic one)
 
 OBSERVE = ("kinematic", "camera")
 # the largest errors accepted: beyond the sizes documented for the dVRK (5-10 mm hand-eye, 5 cm setup)
@@ -85,11 +84,6 @@ class RobotErrors:
             if not (is_number(v) and 0.0 <= v <= hi):
                 raise ConfigError(f"{name}={v!r} is not accepted: a finite number of {unit} in [0, {hi:g}]")
 
-    @property
-    def arms_exact(self) -> bool:
-        """No calibration or joint error (tool noise may remain)."""
-        return self.calibration_mm == 0.0 and self.calibration_deg == 0.0 and self.joint_offset == 0.0
-
 
 def check_observe(observe: str) -> str:
     if observe not in OBSERVE:
@@ -108,8 +102,9 @@ def vec(t: jaxlie.SE3) -> jax.Array:
     return jnp.concatenate([t.translation(), t.rotation().wxyz], axis=-1)
 
 
-def _matrix_pose(m: jax.Array) -> jaxlie.SE3:
-    return jaxlie.SE3.from_matrix(m)
+def _fk(q: jax.Array) -> jaxlie.SE3:
+    """The tool-tip poses (base frame) of joints ``q`` ``[..., 6]``."""
+    return jaxlie.SE3.from_matrix(dvrk.forward_kinematics_jax(q))
 
 
 def _unit(key: jax.Array, shape: tuple) -> jax.Array:
@@ -152,10 +147,10 @@ def draw_arms(key: jax.Array, start: jax.Array, calibration_mm, calibration_deg,
     unit = jnp.asarray(JOINT_UNIT, jnp.result_type(float))
     offsets_g = jax.random.uniform(k_go, (b, 6), minval=-1.0, maxval=1.0) * joint[:, None] * unit
     offsets_r = jax.random.uniform(k_ro, (b, 6), minval=-1.0, maxval=1.0) * joint[:, None] * unit
-    neutral = _matrix_pose(jnp.asarray(dvrk.forward_kinematics(NEUTRAL), jnp.result_type(float)))
+    neutral = jaxlie.SE3.from_matrix(jnp.asarray(dvrk.forward_kinematics(NEUTRAL), jnp.result_type(float)))
     # the grasping arm reads NEUTRAL - o where its tool (the identity) is FK(NEUTRAL)
     base_g = neutral.inverse()
-    seen_g = _matrix_pose(dvrk.forward_kinematics_jax(jnp.asarray(NEUTRAL, jnp.result_type(float)) - offsets_g))
+    seen_g = _fk(jnp.asarray(NEUTRAL, jnp.result_type(float)) - offsets_g)
     grasping = base_g @ _error_transform(k_g, b, shift, angle) @ seen_g
     base_r = se3(start) @ neutral.inverse()
     believed_r = base_r @ _error_transform(k_r, b, shift, angle)
@@ -165,7 +160,7 @@ def draw_arms(key: jax.Array, start: jax.Array, calibration_mm, calibration_deg,
 
 def kinematic_pose(q: jax.Array) -> jax.Array:
     """The tool poses ``[B, 7]`` (base frame) of joint readings ``q`` ``[B, 6]``."""
-    return vec(_matrix_pose(dvrk.forward_kinematics_jax(q)))
+    return vec(_fk(q))
 
 
 def first_readings(arms: Arms) -> jax.Array:
@@ -188,7 +183,7 @@ def kinematic_view(arms: Arms, needle: jax.Array, ee: jax.Array, q: jax.Array | 
     if q is None:
         kin = se3(arms.base).inverse() @ se3(ee)
     else:
-        kin = _matrix_pose(dvrk.forward_kinematics_jax(q))
+        kin = _fk(q)
     g_inv = se3(arms.grasping_view).inverse()
     seen_ee = vec(g_inv @ se3(arms.believed_base) @ kin)
     seen_needle = vec(g_inv @ se3(needle))
@@ -229,9 +224,9 @@ def executed(
         jaxlie.SO3.exp(rotvec) @ jaxlie.SO3(seen_ee[:, 3:]), seen_ee[:, :3] + dp
     )
     motion = se3(seen_ee).inverse() @ target  # D, in the tool's frame
-    commanded = (_matrix_pose(dvrk.forward_kinematics_jax(q)) @ motion).as_matrix()
+    commanded = (_fk(q) @ motion).as_matrix()
     q_next = jax.vmap(dvrk.inverse_kinematics_jax)(commanded, q)
-    reached = se3(arms.base) @ _matrix_pose(dvrk.forward_kinematics_jax(q_next + arms.offsets))
+    reached = se3(arms.base) @ _fk(q_next + arms.offsets)
     moved = reached.translation() - ee[:, :3]
     turned = (reached.rotation() @ jaxlie.SO3(ee[:, 3:]).inverse()).log()
     return jnp.concatenate([moved / max_dp, turned / max_drot], -1)
