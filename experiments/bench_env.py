@@ -22,6 +22,7 @@ import mujoco
 import numpy as np
 from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
+from regrasp_mjx import continuous
 from regrasp_mjx.atomic import machine, write_json, write_text
 from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.env import RegraspEnv
@@ -53,7 +54,9 @@ def make_rollout(env: RegraspEnv, batch: int, steps: int):
     return rollout
 
 
-def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: int) -> dict:
+def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: int, share: float | None = None) -> dict:
+    share = continuous.PENDING_SHARE if share is None else share
+    continuous.PENDING_SHARE = share  # read when the step is traced
     env = RegraspEnv(config)
     rollout = make_rollout(env, batch, steps)
     t0 = time.perf_counter()
@@ -71,7 +74,7 @@ def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: in
         "steps": steps,
         "rollouts": rollouts,
         "check_actions": config.check_actions,
-        "halvings_bound": env.levels,
+        "pending_share": share,
         "compile_s": round(compile_s, 2),
         "wall_s": round(wall, 4),
         "env_steps_per_s": batch * steps * rollouts / wall,
@@ -124,6 +127,12 @@ def main() -> None:
         action="store_true",
         help="also time the largest batch with check_actions=True (the NaN check)",
     )
+    p.add_argument(
+        "--pending-shares",
+        default=None,
+        help="comma-separated shares of a batch whose pending lanes the continuous test gathers a round "
+        f"(regrasp_mjx.continuous.PENDING_SHARE, default {continuous.PENDING_SHARE:g}; 1 = none gathered)",
+    )
     p.add_argument("--out", default=None, help="folder for bench_env.json and bench_env.md")
     args = p.parse_args()
 
@@ -136,16 +145,17 @@ def main() -> None:
     print(f"CPU MuJoCo, 1 thread, kinematics+collision only: {raw['env_steps_per_s']:,.0f} env-steps/s", flush=True)
     rows = []
     sizes = [int(b) for b in args.batch_sizes.split(",")]
-    runs = [(b, config) for b in sizes]
+    shares = [float(x) for x in args.pending_shares.split(",")] if args.pending_shares else [None]
+    runs = [(b, config, share) for b in sizes for share in shares]
     if args.also_checked:
-        runs.append((sizes[-1], EnvConfig(check_actions=True)))
-    for batch, cfg in runs:
-        r = bench_mjx(cfg, batch, args.steps, args.rollouts, args.seed)
+        runs.append((sizes[-1], EnvConfig(check_actions=True), shares[0]))
+    for batch, cfg, share in runs:
+        r = bench_mjx(cfg, batch, args.steps, args.rollouts, args.seed, share)
         r["ratio_vs_cpu"] = r["env_steps_per_s"] / cpu["env_steps_per_s"]
         r["ratio_vs_cpu_raw"] = r["env_steps_per_s"] / raw["env_steps_per_s"]
         rows.append(r)
         print(
-            f"MJX {r['backend']} batch {batch:>6} check_actions={cfg.check_actions!s:5}: "
+            f"MJX {r['backend']} batch {batch:>6} share {r['pending_share']:<7g} check_actions={cfg.check_actions!s:5}: "
             f"{r['env_steps_per_s']:>14,.0f} env-steps/s  x{r['ratio_vs_cpu']:,.0f} vs CPU MDP step, "
             f"x{r['ratio_vs_cpu_raw']:,.0f} vs CPU C calls only "
             f"(compile {r['compile_s']} s)",
@@ -161,13 +171,13 @@ def main() -> None:
         lines = [
             f"Machine: {where}",
             "",
-            "| backend | batch | NaN check | env-steps/s | x CPU MDP step | x CPU C calls only | compile s |",
-            "| --- | ---: | --- | ---: | ---: | ---: | ---: |",
-            f"| CPU MuJoCo, 1 thread, MDP step (HostEnv) | 1 | no | {cpu['env_steps_per_s']:,.0f} | 1 | - | - |",
-            f"| CPU MuJoCo, 1 thread, kinematics+collision only | 1 | no | {raw['env_steps_per_s']:,.0f} | - | 1 | - |",
+            "| backend | batch | pending share | NaN check | env-steps/s | x CPU MDP step | x CPU C calls only | compile s |",
+            "| --- | ---: | ---: | --- | ---: | ---: | ---: | ---: |",
+            f"| CPU MuJoCo, 1 thread, MDP step (HostEnv) | 1 | - | no | {cpu['env_steps_per_s']:,.0f} | 1 | - | - |",
+            f"| CPU MuJoCo, 1 thread, kinematics+collision only | 1 | - | no | {raw['env_steps_per_s']:,.0f} | - | 1 | - |",
         ]
         lines += [
-            f"| MJX {r['backend']} | {r['batch']} | {'yes' if r['check_actions'] else 'no'} | "
+            f"| MJX {r['backend']} | {r['batch']} | {r['pending_share']:g} | {'yes' if r['check_actions'] else 'no'} | "
             f"{r['env_steps_per_s']:,.0f} | {r['ratio_vs_cpu']:,.0f} | {r['ratio_vs_cpu_raw']:,.0f} | {r['compile_s']} |"
             for r in rows
         ]

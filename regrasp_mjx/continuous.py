@@ -54,6 +54,16 @@ SLACK = 1e-9
 # It bounds the batched test's work: a vmapped while loop runs as long as its slowest lane.
 MAX_TESTS = 32
 
+# the share of a vmapped batch whose halves are tested in one round (:func:`_pending_lanes`): the
+# lanes the root interval leaves pending are gathered into rounds of this many, so that a batch pays
+# for its grazing lanes alone; more pending lanes take more rounds (the same verdicts)
+PENDING_SHARE = 1 / 16
+
+# whether a vmapped batch's walk unrolls its first steps (:func:`_halves`); None: where a loop
+# iteration's test waits for an accelerator (not on a CPU, which loops as long as it needs)
+UNROLLED: bool | None = None
+
+
 # a planner's motion between two states (OMPL's edges, the straight line) is tested as the
 # environment steps that replay it (regrasp_mjx.planning.episodes.path_to_actions): cut into the
 # fewest equal pieces within the default action bounds, each piece a step with a step's budget, so
@@ -75,72 +85,112 @@ def levers(tool_ends: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.asarray(tool_ends, np.float64), axis=-1).max(axis=-1)
 
 
-def max_levels(max_speed: float) -> int:
-    """The most halvings a motion whose tool points move at most ``max_speed`` [m per unit s] can
-    take before no point moves more than :data:`RESOLUTION` within half an interval (a static bound
-    for the JAX stack)."""
-    return max(0, math.ceil(math.log2(max(max_speed, RESOLUTION) / RESOLUTION)))
-
-
-def motion_collides(dist_at, speed: jax.Array, margin: float, levels: int, few: int = 0) -> jax.Array:
+def motion_collides(dist_fn, motion, speed: jax.Array, margin: float, share: float | None = None) -> jax.Array:
     """Whether the motion collides (module docstring), in JAX: one lane's test, jit/vmap-able.
 
-    ``dist_at(s, pairs=None) -> [P]``: every counted pair's signed distance at the pose s of the
-    motion (of the pair indices ``pairs`` alone where given);
-    ``speed [P]``: each pair's ``v_t`` (its tool capsule's); ``levels``: a static bound on the
-    halvings (:func:`max_levels` of the largest speed a motion can have). The root interval is
-    tested for every lane; its halves only where it is not proved, in a ``while_loop`` (a vmapped
-    batch runs as many iterations as its slowest lane needs).
+    ``dist_fn(motion, s) -> [P]``: every counted pair's signed distance at the pose s of the motion
+    ``motion`` (a pytree of arrays: the lane's poses and placed capsules); ``speed [P]``: each pair's
+    ``v_t`` (its tool capsule's). The root interval is tested for every lane; its halves only where
+    it is not proved, walked depth first (:func:`_halves`).
 
-    A pair proved clear over an interval is proved over each of its halves (its distance at a
-    half's midpoint is at least ``m + h v`` less ``h v / 2``), so the halves need only the pairs the
-    root did not prove. With ``few > 0``, a lane whose root left at most ``few`` pairs unproved
-    tests only those: the same verdict for a fraction of the work; the other lanes test every pair."""
+    Vmapped, the halves run on the lanes the root left pending alone, gathered ``share`` of the
+    batch at a time (:func:`_pending_lanes`): a vmapped loop runs as many iterations as its slowest
+    lane, and every lane would pay for the few that graze the wire (``share`` None:
+    :data:`PENDING_SHARE`, read when traced). The verdicts are those of the lane-by-lane test."""
+    share = PENDING_SHARE if share is None else share
     speed = jnp.asarray(speed, jnp.float32)
     fastest = jnp.max(speed)
-
-    def verdict(d, h, v):
-        proved = jnp.all(d - margin >= h * v + SLACK)
-        stop = jnp.any(d < margin) | (h * fastest <= RESOLUTION)
-        return proved, stop
-
     h0 = jnp.float32(0.5)
-    root = dist_at(h0)
-    proved, stop = verdict(root, h0, speed)
-    pending = ~proved & ~stop
-    collision = ~proved & stop
-    if few > 0:
-        slack = root - margin - h0 * speed
-        idx = jnp.argsort(slack)[:few]  # the pairs the root left unproved first
-        small = jnp.sum(slack < SLACK) <= few
-        collision = collision | _halves(lambda s: dist_at(s, idx), speed[idx], verdict, levels, pending & small)
-        return collision | _halves(dist_at, speed, verdict, levels, pending & ~small)
-    return collision | _halves(dist_at, speed, verdict, levels, pending)
+    proved, stop = _verdict(dist_fn(motion, h0), h0, speed, fastest, margin)
+    halves = _halves_fn(dist_fn, margin, share)
+    return (~proved & stop) | halves(motion, speed, fastest, ~proved & ~stop)
 
 
-def _halves(dist_at, speed, verdict, levels: int, pending: jax.Array) -> jax.Array:
-    """Whether the root's halves, tested depth first where ``pending``, fail to be proved."""
-    size = levels + 2  # depth-first: each halving adds at most one pending interval
-    stack = jnp.zeros((size, 2), jnp.int32).at[0].set(jnp.array([1, 1])).at[1].set(jnp.array([1, 0]))
-    rows = jnp.arange(size)[:, None]
+def _verdict(d, h, v, fastest, margin):
+    """An interval of half-width h whose midpoint has distances d: proved clear, or to stop at."""
+    proved = jnp.all(d - margin >= h * v + SLACK)
+    stop = jnp.any(d < margin) | (h * fastest <= RESOLUTION)
+    return proved, stop
 
-    def body(c):
-        stack, n, tests, collision, _ = c
-        top = n - 1
-        k, i = stack[top, 0], stack[top, 1]
-        h = jnp.ldexp(jnp.float32(1.0), -(k + 1))
-        proved, stop = verdict(dist_at((2 * i + 1).astype(jnp.float32) * h), h, speed)
-        tests = tests + 1
-        split = ~proved & ~stop
-        # proved: pop it; split: its right half in its place and its left half on top
-        halves = jnp.where(rows == top, jnp.stack([k + 1, 2 * i + 1]), jnp.stack([k + 1, 2 * i]))
-        stack = jnp.where(split & ((rows == top) | (rows == n)), halves, stack)
-        n = jnp.where(proved, n - 1, jnp.where(split, n + 1, n))
-        collision = collision | (~proved & stop) | (split & (tests >= MAX_TESTS))
-        return stack, n, tests, collision, ~collision & (n > 0)
 
-    init = (stack, jnp.int32(2), jnp.int32(1), jnp.bool_(False), pending)
-    return jax.lax.while_loop(lambda c: c[4], body, init)[3]
+def _halves_fn(dist_fn, margin: float, share: float):
+    """``halves(motion, speed, fastest, pending)``: whether the root's halves, tested depth first
+    where ``pending``, fail to be proved; vmapped, on the pending lanes alone."""
+
+    def lane(batched: bool):
+        def one(motion, speed, fastest, pending):
+            return _halves(lambda s: dist_fn(motion, s), speed, fastest, margin, pending, batched)
+
+        return one
+
+    halves = jax.custom_batching.custom_vmap(lane(batched=False))
+
+    @halves.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        grow = lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))  # noqa: E731
+        args = tuple(jax.tree.map(grow, a, b) for a, b in zip(args, in_batched))
+        unrolled = lane(batched=jax.default_backend() != "cpu" if UNROLLED is None else UNROLLED)
+        return _pending_lanes(jax.vmap(unrolled), args, axis_size, share), True
+
+    return halves
+
+
+def _pending_lanes(batched, args, size: int, share: float) -> jax.Array:
+    """``batched(*args)`` (its last argument the lanes' ``pending``, its result False where not
+    pending) computed on the pending lanes alone, ``ceil(share size)`` lanes a round, as many rounds
+    as there are pending lanes to fill (none where none is)."""
+    pending = args[-1]
+    lanes = max(1, min(size, math.ceil(share * size)))
+    if lanes == size:
+        return batched(*args)
+    rounds = -(-size // lanes)
+    count = jnp.sum(pending)
+    # the pending lanes' indices first, then `size` (out of range: gathers clip, scatters drop)
+    order = jnp.nonzero(pending, size=rounds * lanes, fill_value=size)[0].reshape(rounds, lanes)
+
+    def body(carry):
+        k, out = carry
+        rows = order[k]
+        sub = jax.tree.map(lambda x: jnp.take(x, rows, axis=0, mode="clip"), args)
+        result = batched(*sub[:-1], sub[-1] & (rows < size))
+        return k + 1, out.at[rows].set(result, mode="drop")
+
+    init = (jnp.int32(0), jnp.zeros(size, jnp.bool_))
+    return jax.lax.while_loop(lambda c: c[0] * lanes < count, body, init)[1]
+
+
+def _halves(dist_at, speed, fastest, margin: float, pending: jax.Array, batched: bool = False) -> jax.Array:
+    """Whether the root's halves, tested depth first where ``pending``, fail to be proved: the walk
+    of :func:`motion_collides_host` without its stack (:func:`_advance`), an interval a step.
+    ``batched``: the first ``MAX_TESTS - 1`` steps unrolled, with no loop test between them (on a
+    GPU a loop iteration's test waits for the device; a lane done early idles), the rest (after the
+    budget, only proved intervals, at most one a level) in a loop."""
+
+    def step(c):
+        h = jnp.ldexp(jnp.float32(1.0), -(c[0] + 1))
+        proved, stop = _verdict(dist_at((2 * c[1] + 1).astype(jnp.float32) * h), h, speed, fastest, margin)
+        return _advance(c, c[4], proved, stop)
+
+    init = (jnp.int32(1), jnp.int32(0), jnp.int32(1), jnp.bool_(False), pending)
+    if batched:
+        init = jax.lax.fori_loop(0, MAX_TESTS - 1, lambda _, c: step(c), init, unroll=True)
+    return jax.lax.while_loop(lambda c: c[4], step, init)[3]
+
+
+def _advance(c, go, proved, stop):
+    """One step of the walk ``c = (k, i, tests, collision, active)`` where ``go``, at interval
+    ``(k, i)`` whose test gave ``proved`` and ``stop``. In a depth-first, left-first walk of dyadic
+    intervals the one after a proved ``(k, i)`` follows from it alone: climb the levels of i's
+    trailing ones (right halves, done) and step right; a split goes to its left half."""
+    k, i, tests, collision, active = c
+    tests = tests + go
+    split = go & ~proved & ~stop
+    collision = collision | (go & ~proved & stop) | (split & (tests >= MAX_TESTS))
+    up = jax.lax.population_count(i ^ (i + 1)) - 1  # i's trailing ones
+    k_next = jnp.where(split, k + 1, k - up)
+    i_next = jnp.where(split, 2 * i, (i >> up) + 1)
+    finished = collision | (go & proved & (k_next == 0))  # k_next 0: the root's right half was done
+    return jnp.where(go, k_next, k), jnp.where(go, i_next, i), tests, collision, active & ~finished
 
 
 def motion_collides_host(dist_at, speed: np.ndarray, margin: float) -> bool:

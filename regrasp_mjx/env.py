@@ -26,9 +26,6 @@ from regrasp_mjx.sampling import Episode, sample_episode
 from regrasp_mjx.scene import Scene, load_scene
 
 ACTION_SIZE = 6
-# the pairs a step's continuous test follows past its root interval, where the root left no more
-# unproved (a jaw straddling the wire leaves about a dozen); steps that leave more test every pair
-FEW_PAIRS = 32
 
 
 @struct.dataclass
@@ -110,13 +107,11 @@ class RegraspEnv(Env):
         self.clearance = config.clearance_mm * 1e-3
         self.varies_needle = config.task.varies_needle
         self.general = config.task.general
-        # the continuous test of a step (regrasp_mjx.continuous): each tool capsule's lever, and a
-        # static bound on how often a step may be halved
+        # the continuous test of a step (regrasp_mjx.continuous): each tool capsule's lever
         frames = self.scene.capsule_frames
         levers = continuous.levers(frames.tool_ends)
         self.levers = jnp.asarray(levers, jnp.float32)
         self.others = len(frames.other_ends)
-        self.levels = continuous.max_levels(math.sqrt(3.0) * (self.max_dp + self.max_drot * float(levers.max())))
         self.distances = self.scene.distance_fn()
         self._place_others, self._gaps = self.scene.motion_distance_fn()
         # what the validity tests use: clearances less the margin (negative = colliding)
@@ -235,13 +230,10 @@ class RegraspEnv(Env):
         placed = self._place_others(es.needle_pos, es.needle_quat, *needle)  # once for the step's poses
         end = self._gaps(placed, end_pos, end_quat)
 
-        def dist_at(s, pairs=None):
-            quat = geometry.quat_mul(geometry.quat_from_rotvec(s * rotvec), es.ee_quat)
-            return self._gaps(placed, es.ee_pos + s * dp, quat, pairs)
-
         speed = jnp.repeat(jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * self.levers, self.others)
+        motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec)
         collision = jnp.any(end < self.clearance) | continuous.motion_collides(
-            dist_at, speed, self.clearance, self.levels, FEW_PAIRS
+            self._gaps_along, motion, speed, self.clearance
         )
 
         es = es.replace(
@@ -274,6 +266,12 @@ class RegraspEnv(Env):
             metrics=metrics,
             info=info,
         )
+
+    def _gaps_along(self, motion, s) -> jax.Array:
+        """The counted pairs' signed distances at the pose s of a step's motion (:meth:`move`)."""
+        placed, pos, quat, dp, rotvec = motion
+        at = geometry.quat_mul(geometry.quat_from_rotvec(s * rotvec), quat)
+        return self._gaps(placed, pos + s * dp, at)
 
     # ---- reward terms and observation ---------------------------------------------------------
     def _goal_error(self, es: EpisodeState) -> tuple[jax.Array, jax.Array]:

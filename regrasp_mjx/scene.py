@@ -207,8 +207,8 @@ class Scene:
     def motion_distance_fn(self) -> tuple[Callable, Callable]:
         """:meth:`distance_fn` cut in two for the many poses of one motion (the continuous test):
         ``others(needle_pos, needle_quat[, radius, wire]) -> (ends [1, O, 2, 3], radii [O])``, the
-        counted capsules placed once, and ``gaps(others, ee_pos, ee_quat[, pairs]) -> [npairs]``, the
-        signed distances for one end-effector pose (of the pair indices ``pairs`` alone if given); the bodies posed from their quaternions directly (the
+        counted capsules placed once, and ``gaps(others, ee_pos, ee_quat) -> [npairs]``, the
+        signed distances for one end-effector pose; the bodies posed from their quaternions directly (the
         same frames ``mjx.kinematics`` computes, without its per-call work)."""
         f = self.capsule_frames
         tool_ends = jnp.asarray(f.tool_ends, jnp.float32)
@@ -230,17 +230,10 @@ class Scene:
             radii = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
             return ends, radii
 
-        n_others = len(f.other_ends)
-
-        def gaps(placed, ee_pos, ee_quat, pairs=None):
-            """Every pair's signed distance, or those of the pair indices ``pairs`` alone."""
+        def gaps(placed, ee_pos, ee_quat):
+            """Every pair's signed distance."""
             ends, radii = placed
-            tool = place(tool_ends, ee_pos, ee_quat)
-            if pairs is not None:
-                t, o = pairs // n_others, pairs % n_others
-                a, b = tool[t], ends[0, o]
-                return segment_distance(a[:, 0], a[:, 1], b[:, 0], b[:, 1]) - tool_radii[t, 0] - radii[o]
-            tool = tool[:, None]
+            tool = place(tool_ends, ee_pos, ee_quat)[:, None]
             gap = segment_distance(tool[..., 0, :], tool[..., 1, :], ends[..., 0, :], ends[..., 1, :])
             return (gap - tool_radii - radii).reshape(-1)
 

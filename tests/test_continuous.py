@@ -150,17 +150,53 @@ def _episode_row(needle, start):
 
 
 def test_the_test_budget_and_resolution_by_hand():
-    # a motion of 1.74 mm per unit s halves until 1 um: 2^11 = 2048 > 1740 -> 11 halvings
-    assert continuous.max_levels(1.74e-3) == 11
-    assert continuous.max_levels(0.0) == 0
     # a pair at a constant 10 um from a 1 mm/s motion needs ~50 tests and is refused by the budget;
     # at 0.2 mm it is proved by the root; the same in JAX and on the host
     for gap, expect in ((10e-6, True), (0.2e-3, False), (-1e-6, True)):
         dist = lambda s, reach=None, gap=gap: np.array([gap, 1.0])  # noqa: E731
         speed = np.array([1e-3, 1e-3])
         assert continuous.motion_collides_host(dist, speed, 0.0) == expect
-        jdist = lambda s, pairs=None, gap=gap: jnp.array([gap, 1.0], jnp.float32)  # noqa: E731
-        assert bool(continuous.motion_collides(jdist, jnp.asarray(speed), 0.0, 12)) == expect
+        jdist = lambda motion, s: jnp.array([motion, 1.0], jnp.float32)  # noqa: E731
+        assert bool(continuous.motion_collides(jdist, jnp.float32(gap), jnp.asarray(speed), 0.0)) == expect
+
+
+@pytest.mark.parametrize("unrolled", [False, True])
+def test_a_vmapped_batch_tests_its_pending_lanes_alone_with_the_same_verdicts(unrolled, monkeypatch):
+    # synthetic motions: 4 pairs, d(s) = a + b s + c s^2 (|b| + 2|c| <= speed: the bound holds);
+    # 26 of 64 lanes need halvings, 18 collide. The host's walk (a stack, float64), lane by lane in
+    # JAX (the stackless walk), vmapped whole, vmapped in rounds of 1/8 of the batch (the pending
+    # lanes gathered), and under two vmaps (seeds x lanes), the walk looped and unrolled (as on a
+    # GPU): the same verdicts
+    monkeypatch.setattr(continuous, "UNROLLED", unrolled)
+    rng = np.random.default_rng(3)
+    n, p = 64, 4
+    a = rng.uniform(2e-4, 3e-3, (n, p)).astype(np.float32)
+    b = rng.uniform(-1e-3, 1e-3, (n, p)).astype(np.float32)
+    c = rng.uniform(-5e-4, 5e-4, (n, p)).astype(np.float32)
+    speed = np.abs(b) + 2 * np.abs(c) + 1e-6
+
+    def dist(motion, s):
+        a, b, c = motion
+        return a + b * s + c * s * s
+
+    def verdict(share):
+        return lambda a, b, c, v: continuous.motion_collides(dist, (a, b, c), v, 1e-5, share=share)
+
+    host = [
+        continuous.motion_collides_host(lambda s, reach, i=i: dist((a[i], b[i], c[i]), s), speed[i], 1e-5)
+        for i in range(n)
+    ]
+    assert 5 < sum(host) < n - 5  # the draw has both verdicts
+    lanes = [bool(verdict(1.0)(a[i], b[i], c[i], speed[i])) for i in range(n)]
+    whole = jax.jit(jax.vmap(verdict(1.0)))(a, b, c, speed)
+    rounds = jax.jit(jax.vmap(verdict(1 / 8)))(a, b, c, speed)
+    nested = jax.jit(jax.vmap(jax.vmap(verdict(1 / 4))))(*(x.reshape(4, 16, p) for x in (a, b, c, speed)))
+    assert lanes == host
+    np.testing.assert_array_equal(np.asarray(whole), host)
+    np.testing.assert_array_equal(np.asarray(rounds), host)
+    np.testing.assert_array_equal(np.asarray(nested).reshape(-1), host)
+    # a batch of which no lane is pending takes no round
+    assert not np.asarray(jax.vmap(verdict(1 / 8))(a + 1.0, b, c, speed)).any()
 
 
 @pytest.mark.parametrize("checker", ["mujoco", "lean"])

@@ -84,3 +84,25 @@ def test_the_readme_results_table_is_the_comparison_file():
             assert (float(bare), float(shielded)) == expect, line
         checked.add(policy)
     assert checked == {"default", "exact", "decay", "general", "general_v1", "student_v2", "ensemble3"}
+
+
+def test_the_environment_speed_in_the_docs_is_the_benchmark_file():
+    """docs/results.md's and docs/environment.md's env-steps/s are those of the benchmark file they
+    cite (experiments/results/continuous/bench_env_pending_h100.json, and the before-run beside it)."""
+    import json
+
+    folder = ROOT / "experiments" / "results" / "continuous"
+
+    def millions(name):
+        rows = json.loads((folder / name).read_text())["mjx"]
+        return {r["batch"]: f"{r['env_steps_per_s'] / 1e6:.1f} M" for r in rows}
+
+    now, before = millions("bench_env_pending_h100.json"), millions("bench_env_before_rerun_h100.json")
+    results = (ROOT / "docs" / "results.md").read_text()
+    assert f"{now[32768]} env-steps/s at a batch of\n32,768 and {now[8192]} at 8,192" in results
+    assert f"({before[32768]} and {before[8192]} before the continuous test" in results
+    environment = " ".join((ROOT / "docs" / "environment.md").read_text().split())
+    assert (
+        f"the same verdicts): {now[32768]} env-steps/s at 32,768 on one H100, against {before[32768][:2]} M"
+        in environment
+    )
