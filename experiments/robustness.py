@@ -3,7 +3,7 @@
     python -m regrasp_mjx.compare --robustness --out experiments/results/robustness    # the table
     python experiments/robustness.py --docs experiments/results/robustness/robustness.json
 
-``--docs`` rewrites the generated robustness blocks of README.md, docs/results.md and
+``--docs`` rewrites the generated robustness blocks of docs/results.md, docs/inference.md and
 experiments/RESULTS.md (``regrasp_mjx.robustness.docs_blocks``: the default and ``exact``, each named
 by its hash, and the robot-error rows: the default and ``exact`` in docs/, every policy in RESULTS) from
 the table file; run it whenever the table is made again (tests/test_robustness.py
@@ -21,7 +21,6 @@ from regrasp_mjx.atomic import write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_PAGES = {  # page -> the blocks it holds
-    ROOT / "README.md": ("summary", "robot_summary"),
     ROOT / "docs" / "results.md": ("summary", "robot_summary"),
     ROOT / "docs" / "inference.md": ("robot_summary",),
     ROOT / "experiments" / "RESULTS.md": ("tables", "robot"),

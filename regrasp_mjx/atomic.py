@@ -47,6 +47,8 @@ def output_file_problem(path: str | os.PathLike, suffix: str | None = None) -> s
     parent = _unwritable(path.parents)
     if parent is not None:
         return f"--out {path}: {parent} is not a writable folder; accepted: a file path in a folder this user can write"
+    if not path.parent.is_dir():  # a typo in a folder name should not leave a new folder behind
+        return f"--out {path}: the folder {path.parent} does not exist; accepted: a file path in an existing folder"
     return None
 
 

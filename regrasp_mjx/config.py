@@ -2,7 +2,7 @@
 
 Field names carry their unit (``_mm``, ``_deg``; grasp coordinates are radians and say so) because
 these are the numbers a user types; the code converts to metres and radians once, when an
-environment is built. Defaults are SPEC's; the README lists which of them are our choices.
+environment is built. Defaults are SPEC's; docs/choices.md lists which of them are our choices.
 """
 
 from __future__ import annotations

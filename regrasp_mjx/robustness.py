@@ -253,7 +253,7 @@ def merge(parts: list[dict[str, Any]]) -> list[dict[str, Any]]:
 NOISE_NAMES = frozenset(c.name for c in CONDITIONS)
 ROBOT_NAMES = frozenset(c.name for c in ROBOT_CONDITIONS)
 
-# The docs' summary: these policies side by side (README.md, docs/results.md), their full tables in
+# The docs' summary: these policies side by side (docs/results.md), their full tables in
 # experiments/RESULTS.md; each between `<!-- robustness:begin KIND -->` and `<!-- robustness:end -->`,
 # written by `python experiments/robustness.py --docs` from robustness.json (a test compares them).
 DOC_POLICIES = ("default", "exact")

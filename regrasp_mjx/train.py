@@ -29,6 +29,7 @@ import jax
 
 from regrasp_mjx import distributed, gpu_memory
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, grow_with_devices, make_config
+from regrasp_mjx.agents.ddpg_bc.placement import Placement
 from regrasp_mjx.atomic import dumps, output_folder_problem
 from regrasp_mjx.config import TASKS, ConfigError, parse_overrides
 from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
@@ -189,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         if args.grow_batch:
             cfg = grow_with_devices(cfg, cfg.devices or len(jax.devices()))
+        Placement.check_devices(cfg)  # before the demonstrations: --devices more than JAX sees is refused
         with contextlib.ExitStack() as held:
             if distributed.is_main():  # one run per folder: held from before an --overwrite clears it
                 held.enter_context(folder_lock(out))

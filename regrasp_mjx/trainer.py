@@ -155,22 +155,21 @@ class Run:
             "best_epoch": best.step,
             "rng": np.random.default_rng(cfg.seed).bit_generator.state,
         }
-        log = RunLog(
-            self.out / "log.jsonl",
-            [tensorboard_writer(self.member_dir(m) / "tb") if main else None for m in range(seeds)],
-        )
-        if resume and not (self.ckpt / "meta.json").is_file():  # stopped before its first checkpoint
+        restart = resume and not (self.ckpt / "meta.json").is_file()  # stopped before its first checkpoint
+        if restart:
             self.log("no checkpoint yet: starting at epoch 0 (the demonstrations built so far are kept)")
             resume = False
-            if main:
-                log.drop_after("epoch", -1)
-        if resume:
+        if resume:  # a checkpoint of other settings is refused here, before the run writes anything
             ts, meta = checkpoint.load(self.ckpt, ts, cfg)
             ts = learner.place(ts)
             best = BestOf(meta["best_val"], meta["best_epoch"])
             self.log(f"resumed from {self.ckpt} at epoch {meta['epoch']}")
-            if main:
-                log.drop_after("epoch", meta["epoch"])  # epochs after the checkpoint run again
+        log = RunLog(
+            self.out / "log.jsonl",
+            [tensorboard_writer(self.member_dir(m) / "tb") if main else None for m in range(seeds)],
+        )
+        if main and (restart or resume):  # epochs after the checkpoint (all, without one) run again
+            log.drop_after("epoch", meta["epoch"] if resume else -1)
         # one id per run, kept across resumes (a checkpoint from before run ids gets one now)
         meta.setdefault("run_id", uuid.uuid4().hex[:12])
         rng = np.random.default_rng()

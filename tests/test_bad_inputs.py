@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from regrasp_mjx import compare, demos, distill, evaluate, load_policy, train
+from regrasp_mjx import compare, demos, distill, evaluate, export_onnx, grasps, load_policy, testset, train
 from regrasp_mjx.atomic import dumps
 from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.policy_file import PolicyError
@@ -74,6 +74,14 @@ def _cli_cases(tmp: Path):
         (compare.main, ["--modes", "open"], r"--modes is not accepted without --robustness"),
         (compare.main, ["--conditions", "exact"], r"--conditions is not accepted without --robustness"),
         (compare.main, ["--robustness", "--out", ""], r"--out '' is not accepted"),
+        (
+            train.main,
+            ["--preset", "smoke", "--out", str(tmp / "r"), "--devices", "64"],
+            r"devices=64 is not accepted: JAX sees \d+ cpu device\(s\)",
+        ),
+        (export_onnx.main, ["--out", str(tmp / "nowhere" / "a.onnx")], r"the folder .*nowhere does not exist"),
+        (testset.main, ["--n", "2", "--out", str(tmp / "nowhere" / "t.npz")], r"the folder .*nowhere does not exist"),
+        (grasps.main, ["--n", "2", "--out", str(tmp / "nowhere" / "g.npz")], r"the folder .*nowhere does not exist"),
     ]
 
 

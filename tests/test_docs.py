@@ -58,17 +58,24 @@ def test_the_readme_command_table_lists_every_cli_and_exactly_its_options():
         )
 
 
-def test_the_readme_results_table_is_the_comparison_file():
-    """Each shipped network's success cells in the README's results table (paper300 and held-out 3000,
-    bare / shielded; general1000 where the row names it) are those of
-    experiments/results/continuous/compare.json, the comparison the table cites."""
+def test_the_shipped_networks_table_is_the_comparison_file():
+    """Each shipped network's success cells in docs/results.md's table of the shipped networks
+    (paper300 and held-out 3000, bare / shielded; general1000 where the row names it) are those of
+    experiments/results/continuous/compare.json, the comparison the table cites; the default's
+    planning time is the benchmark file's it cites."""
     import json
 
     rows = json.loads((ROOT / "experiments" / "results" / "continuous" / "compare.json").read_text())["rows"]
     success = {(r["policy"], r["testset"].split(" (")[0], r["rollout"]): r["success_rate"] for r in rows}
+    bench = json.loads(
+        (ROOT / "experiments" / "results" / "continuous" / "bench_plan_after_pending_dev.json").read_text()
+    )
+    lean = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, lean path"))
     names = {"shipped default": "default"}
     checked = set()
-    for line in (ROOT / "README.md").read_text().splitlines():
+    text = (ROOT / "docs" / "results.md").read_text()
+    section = text[text.index("## The shipped networks") : text.index("## How we got there")]
+    for line in section.splitlines():
         named = re.match(r'\| (?:\*\*(shipped default)|`load_policy\("(\w+)"\)`|earlier default[^`]*`(\w+)`)', line)
         if not named:
             continue
@@ -82,8 +89,24 @@ def test_the_readme_results_table_is_the_comparison_file():
         for bare, shielded in re.findall(r"general1000: (\d\.\d{3}) / (\d\.\d{3})", cells[1]):
             expect = tuple(round(success[(policy, "general1000", r)], 3) for r in ("bare", "shielded"))
             assert (float(bare), float(shielded)) == expect, line
+        if policy == "default":
+            assert cells[4].strip().startswith(f"**{lean['median_ms']:.3f}**"), line
         checked.add(policy)
     assert checked == {"default", "exact", "decay", "general", "general_v1", "student_v2", "ensemble3"}
+
+
+def test_the_readme_is_short_and_its_results_table_is_generated():
+    """README.md: at most 180 lines; its results table is what experiments/readme_table.py makes from
+    the result files (rerun it when one changes), at most 6 rows, no cell over 60 characters."""
+    import runpy
+
+    script = runpy.run_path(str(ROOT / "experiments" / "readme_table.py"))
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 180
+    assert script["replace"](text, script["table_lines"]()) == text, "rerun python experiments/readme_table.py"
+    rows = [line for line in script["table_lines"]() if line.startswith("| ") and "---" not in line][1:]
+    assert len(rows) <= 6
+    assert all(len(cell.strip()) <= 60 for row in rows for cell in row.split("|")), rows
 
 
 def test_the_environment_speed_in_the_docs_is_the_benchmark_file():

@@ -429,9 +429,15 @@ def test_resume_continues_exactly(tmp_path, easy_demos):
     assert (tmp_path / "split" / "policy" / "policy.npz").read_bytes() == (
         tmp_path / "split" / f"seed{best['seed']}" / "policy" / "policy.npz"
     ).read_bytes()
-    # A checkpoint from other settings is refused.
+    # A checkpoint from other settings is refused, and the refused resume writes nothing into the run
     with pytest.raises(ConfigError, match="other settings"):
         checkpoint.load(tmp_path / "split" / "checkpoint", None, dataclasses.replace(cfg, epochs=2, batch_size=64))
+    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "split").rglob("*")}
+    with pytest.raises(ConfigError, match="other settings"):
+        Run(
+            dataclasses.replace(cfg, epochs=2, batch_size=64), tmp_path / "split", tmp_path / "demos", testset, True
+        ).train(resume=True)
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "split").rglob("*")} == before
 
 
 # ---- exported policies ----------------------------------------------------------------------------

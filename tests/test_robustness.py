@@ -157,22 +157,20 @@ def test_evaluate_runs_a_noisy_condition_by_test_set_name(capsys):
 
 def test_the_robustness_table_measured_the_shipped_policies():
     """A shipped policy whose file changed after its table was made fails here: rerun
-    `python -m regrasp_mjx.compare --robustness --out experiments/results/robustness` (and the README's table)."""
+    `python -m regrasp_mjx.compare --robustness --out experiments/results/robustness` (and the docs' tables)."""
     recorded = {t["policy"]: t["policy_hash"] for t in json.loads(TABLE.read_text())["tables"]}
     assert set(recorded) == set(shipped_policies())
     for name, digest in recorded.items():
         assert robustness.policy_hash(name) == digest, name
-    readme = (ROOT / "README.md").read_text()
-    assert f"hash {robustness.policy_hash('default')}" in readme  # the README's table names the default it measured
+    results = (ROOT / "docs" / "results.md").read_text()
+    assert f"hash {robustness.policy_hash('default')}" in results  # the docs' table names the default it measured
 
 
 def test_the_docs_robustness_blocks_are_the_table_file_rendered():
-    """README.md, docs/results.md and experiments/RESULTS.md hold what
+    """docs/results.md, docs/inference.md and experiments/RESULTS.md hold what
     `python experiments/robustness.py --docs experiments/results/robustness/robustness.json` writes."""
     blocks = robustness.docs_blocks(json.loads(TABLE.read_text())["tables"])
     pages = (
-        ("README.md", "summary"),
-        ("README.md", "robot_summary"),
         ("docs/results.md", "summary"),
         ("docs/results.md", "robot_summary"),
         ("docs/inference.md", "robot_summary"),

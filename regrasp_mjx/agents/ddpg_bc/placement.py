@@ -31,7 +31,7 @@ class Placement:
     """The mesh and the placement of a learner's state (``Learner`` mixes this in)."""
 
     def _init_placement(self, config: TrainConfig) -> None:
-        n, self.shard = self._check_devices(config)
+        n, self.shard = self.check_devices(config)
         # ``devices``: the data-parallel split (1 when whole members are placed per device)
         self.devices = n if self.shard == "envs" else 1
         self.member_devices = n if self.shard == "members" else 1
@@ -40,8 +40,9 @@ class Placement:
         self.local_envs = config.num_envs // self.devices
 
     @staticmethod
-    def _check_devices(cfg: TrainConfig) -> tuple[int, str]:
-        """``(devices, shard)``: the device count in use and how the work is split over them."""
+    def check_devices(cfg: TrainConfig) -> tuple[int, str]:
+        """``(devices, shard)``: the device count in use and how the work is split over them; a
+        :class:`ConfigError` where the config asks for devices JAX does not see or cannot split."""
         available = jax.devices()  # every process's devices in a distributed run
         n = cfg.devices or len(available)
         if jax.process_count() > 1 and n != len(available):
