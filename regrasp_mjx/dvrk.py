@@ -111,6 +111,7 @@ def as_matrix(pose) -> np.ndarray:
 IK_POSITION_TOLERANCE = 1e-6  # m
 IK_ROTATION_TOLERANCE = 1e-5  # rad
 JAX_LIMIT_SLACK = 1e-6  # rad or m past a limit that the float32 check still accepts
+ROLL_SLACK = 1e-9  # rad: a roll this far past its limit (rounding along a trajectory) is put on the limit
 
 
 def _dh_batch(alpha: float, a: float, theta, d, xp):
@@ -223,9 +224,11 @@ def inverse_kinematics(pose, q_ref=None) -> IKResult:
     verdict: out-of-limit joints are reported, never clipped, and so is a pose the arm's geometry
     cannot realise (its residual then stays above :data:`IK_POSITION_TOLERANCE` /
     :data:`IK_ROTATION_TOLERANCE`, and ``reachable`` is false). Over the whole insertion range,
-    both sides of the pitch axis crossing the RCM. ``q_ref`` picks, of the roll angles ``q4 + 2 pi
-    k`` (the roll range spans 520 degrees), the one within the limits nearest its roll (default 0),
-    so a trajectory solved pose by pose stays continuous.
+    both sides of the pitch axis crossing the RCM. Of the roll angles ``q4 + 2 pi k`` (the roll
+    range spans 520 degrees): with ``q_ref``, the one nearest its roll, so that a trajectory solved
+    pose by pose never jumps a turn (out of the limits it is reported, not swapped for the turn
+    within them: the arm cannot unwind a turn between two poses; one within :data:`ROLL_SLACK` of a
+    limit is put on it); without, the one within the limits nearest 0.
 
     Raises:
       ValueError: a malformed pose, or one whose wrist-link direction is undefined (the yaw axis
@@ -246,8 +249,11 @@ def inverse_kinematics(pose, q_ref=None) -> IKResult:
     q = cands[order[0]].copy()
     ref = 0.0 if q_ref is None else float(np.asarray(q_ref, np.float64)[3])
     rolls = q[3] + 2.0 * math.pi * (round((ref - q[3]) / (2.0 * math.pi)) + np.array([0, -1, 1]))
-    ok = (rolls >= Q_MIN[3]) & (rolls <= Q_MAX[3])
-    q[3] = rolls[np.argmax(ok)] if ok.any() else rolls[0]  # the nearest within the limits
+    if q_ref is None:  # the nearest zero within the limits (every roll in [-pi, pi] is)
+        ok = (rolls >= Q_MIN[3]) & (rolls <= Q_MAX[3])
+        q[3] = rolls[np.argmax(ok)] if ok.any() else rolls[0]
+    else:  # the nearest the reference, a rounding past a limit put back on it
+        q[3] = rolls[0] if abs(rolls[0]) > Q_MAX[3] + ROLL_SLACK else float(np.clip(rolls[0], Q_MIN[3], Q_MAX[3]))
     position_error, rotation_error = (float(v[0]) for v in _residuals(q[None], t, np))
     out = (q < Q_MIN - 1e-12) | (q > Q_MAX + 1e-12)
     realised = position_error < IK_POSITION_TOLERANCE and rotation_error < IK_ROTATION_TOLERANCE
@@ -299,13 +305,29 @@ class JointTrajectory:
 def joint_trajectory(base, poses, q_ref=None) -> JointTrajectory:
     """Joints of the PSM whose base (RCM) frame is ``base`` (7-vector or 4x4, in the frame of
     ``poses``) for tool-tip poses ``[T, 7]`` (e.g. ``Plan.trajectory("camera")`` with ``base`` in
-    the camera frame); each pose's roll is taken nearest the previous pose's (the first: ``q_ref``)."""
+    the camera frame). Continuous: each pose's roll is the one nearest the previous pose's, never a
+    turn away (:func:`inverse_kinematics`). The first pose's roll is the one nearest ``q_ref``'s;
+    without ``q_ref``, of its turns within the limits (one or two: the range spans 520 degrees) the
+    one that keeps the most poses within them, then the one nearest 0."""
     base_inv = np.linalg.inv(as_matrix(base))
     poses = np.asarray(poses, np.float64).reshape(-1, 7)
-    results, ref = [], q_ref
-    for pose in poses:
-        results.append(inverse_kinematics(base_inv @ pose_matrix(pose), ref))
-        ref = results[-1].q
+    targets = [base_inv @ pose_matrix(pose) for pose in poses]
+
+    def walk(first):
+        results = [first]
+        for t in targets[1:]:
+            results.append(inverse_kinematics(t, results[-1].q))
+        return results
+
+    first = inverse_kinematics(targets[0], q_ref)
+    results = walk(first)
+    if q_ref is None:  # the other turn of the first roll, where it is within the limits too
+        other = first.q.copy()
+        other[3] -= math.copysign(2.0 * math.pi, other[3])
+        if Q_MIN[3] <= other[3] <= Q_MAX[3]:
+            alternative = walk(inverse_kinematics(targets[0], other))
+            if sum(r.reachable for r in alternative) > sum(r.reachable for r in results):
+                results = alternative
     return JointTrajectory(
         np.stack([r.q for r in results]),
         np.array([r.reachable for r in results]),

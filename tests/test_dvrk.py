@@ -82,6 +82,38 @@ def test_roll_follows_the_reference_and_trajectories_stay_continuous():
     assert np.all(np.abs(np.diff(traj.q, axis=0)).max(0) < 0.02)
 
 
+def test_a_roll_walk_to_its_limit_never_jumps_a_turn():
+    """Issue 48: a trajectory whose roll walks towards +-260 degrees keeps each roll nearest the
+    previous one (never a 360-degree jump, which the arm cannot make between two poses); the first
+    pose takes the turn that keeps the walk within the limits; a walk longer than the 520-degree
+    range is reported out of limits where it leaves them, still continuous."""
+    from scipy.spatial.transform import Rotation
+
+    def poses(rolls):
+        out = []
+        for roll in rolls:
+            t = dvrk.forward_kinematics(np.array([0.1, 0.1, 0.12, roll, 0.2, 0.1]))
+            out.append(np.r_[t[:3, 3], Rotation.from_matrix(t[:3, :3]).as_quat()[[3, 0, 1, 2]]])
+        return np.array(out)
+
+    up = np.radians(np.arange(170.0, 300.0, 5.0))  # 170 -> 295 degrees: past +260 from the nearest-0 turn
+    traj = dvrk.joint_trajectory(np.eye(4), poses(up))
+    assert np.abs(np.diff(traj.q[:, 3])).max() < np.radians(6.0)  # continuous: 5 degrees a pose
+    assert traj.all_reachable  # walked as -190 -> -65 degrees
+    np.testing.assert_allclose(traj.q[:, 3], up - 2 * math.pi, atol=1e-9)
+    # the same walk from a reference at +170: it keeps that turn and leaves the limit at 265 degrees
+    traj = dvrk.joint_trajectory(np.eye(4), poses(up), q_ref=np.array([0, 0, 0, up[0], 0, 0]))
+    assert np.abs(np.diff(traj.q[:, 3])).max() < np.radians(6.0)
+    np.testing.assert_allclose(traj.q[:, 3], up, atol=1e-9)
+    beyond = np.degrees(up) > 260.0 + 1e-6
+    np.testing.assert_array_equal(traj.reachable, ~beyond)
+    assert all(v == ("outer_roll",) for v, b in zip(traj.violations, beyond) if b)
+    # a roll a rounding past its limit is put on it, not sent a turn away
+    at_limit = dvrk.forward_kinematics(np.array([0.1, 0.1, 0.12, dvrk.Q_MAX[3], 0.2, 0.1]))
+    r = dvrk.inverse_kinematics(at_limit, q_ref=np.array([0, 0, 0, dvrk.Q_MAX[3] + 1e-10, 0, 0]))
+    assert r.reachable and abs(r.q[3] - dvrk.Q_MAX[3]) < 1e-9
+
+
 def _quat(m):
     """wxyz of a rotation matrix (for the JAX check's inputs)."""
     from scipy.spatial.transform import Rotation
