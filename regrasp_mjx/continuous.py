@@ -59,9 +59,10 @@ MAX_TESTS = 32
 # for its grazing lanes alone; more pending lanes take more rounds (the same verdicts)
 PENDING_SHARE = 1 / 16
 
-# whether a vmapped batch's walk unrolls its first steps (:func:`_halves`); None: where a loop
-# iteration's test waits for an accelerator (not on a CPU, which loops as long as it needs)
+# whether a vmapped batch's walk takes WALK_CHUNK steps a loop iteration (:func:`_halves`); None:
+# where a loop iteration's test waits for an accelerator (not on a CPU, which loops step by step)
 UNROLLED: bool | None = None
+WALK_CHUNK = 8
 
 
 # a planner's motion between two states (OMPL's edges, the straight line) is tested as the
@@ -162,19 +163,21 @@ def _pending_lanes(batched, args, size: int, share: float) -> jax.Array:
 def _halves(dist_at, speed, fastest, margin: float, pending: jax.Array, batched: bool = False) -> jax.Array:
     """Whether the root's halves, tested depth first where ``pending``, fail to be proved: the walk
     of :func:`motion_collides_host` without its stack (:func:`_advance`), an interval a step.
-    ``batched``: the first ``MAX_TESTS - 1`` steps unrolled, with no loop test between them (on a
-    GPU a loop iteration's test waits for the device; a lane done early idles), the rest (after the
-    budget, only proved intervals, at most one a level) in a loop."""
+    ``batched``: :data:`WALK_CHUNK` steps a loop iteration, unrolled (on a GPU each iteration's test
+    waits for the device; a lane done within a chunk idles to its end)."""
 
     def step(c):
         h = jnp.ldexp(jnp.float32(1.0), -(c[0] + 1))
         proved, stop = _verdict(dist_at((2 * c[1] + 1).astype(jnp.float32) * h), h, speed, fastest, margin)
         return _advance(c, c[4], proved, stop)
 
+    def chunk(c):
+        for _ in range(WALK_CHUNK if batched else 1):
+            c = step(c)
+        return c
+
     init = (jnp.int32(1), jnp.int32(0), jnp.int32(1), jnp.bool_(False), pending)
-    if batched:
-        init = jax.lax.fori_loop(0, MAX_TESTS - 1, lambda _, c: step(c), init, unroll=True)
-    return jax.lax.while_loop(lambda c: c[4], step, init)[3]
+    return jax.lax.while_loop(lambda c: c[4], chunk, init)[3]
 
 
 def _advance(c, go, proved, stop):

@@ -114,6 +114,20 @@ def test_a_roll_walk_to_its_limit_never_jumps_a_turn():
     assert r.reachable and abs(r.q[3] - dvrk.Q_MAX[3]) < 1e-9
 
 
+def test_ik_is_exact_at_the_crossing():
+    """Issue 48: with the insertion exactly at the pitch-point/RCM crossing (15.6 mm), and within a
+    micrometre of it, every in-limit joint vector's pose is reachable (the straight wrist alone put
+    the outer pitch out of its limits for about 30 % of them), its residual below the tolerance."""
+    rng = np.random.default_rng(48)
+    for offset in (0.0, 1e-9, 5e-7):
+        for _ in range(200):
+            q = rng.uniform(dvrk.Q_MIN, dvrk.Q_MAX)
+            q[2] = -dvrk.PITCH_FROM_RCM + offset
+            r = dvrk.inverse_kinematics(dvrk.forward_kinematics(q))
+            assert r.reachable, (q, r)
+            assert r.position_error < (1e-12 if offset == 0.0 else dvrk.IK_POSITION_TOLERANCE)
+
+
 def _quat(m):
     """wxyz of a rotation matrix (for the JAX check's inputs)."""
     from scipy.spatial.transform import Rotation
