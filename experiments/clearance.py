@@ -32,7 +32,7 @@ import os
 
 import numpy as np
 
-from regrasp_mjx import dvrk, host
+from regrasp_mjx import dvrk, host, psm_joints
 from regrasp_mjx.atomic import dumps, write_results
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses
@@ -73,8 +73,8 @@ def reachability(plan, start: np.ndarray) -> dict:
     return {
         "grasping_arm_reachable": grasp.reachable,
         "grasping_arm_q": grasp.q.round(4).tolist(),
-        "start": dvrk.reachability(plan, lambda i: dvrk.base_behind(start[i])),
-        "fixed": dvrk.reachability(plan, fixed),
+        "start": psm_joints.reachability(plan, lambda i: dvrk.base_behind(start[i])),
+        "fixed": psm_joints.reachability(plan, fixed),
     }
 
 

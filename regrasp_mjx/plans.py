@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx import dvrk, geometry, host
+from regrasp_mjx import dvrk, geometry, host, psm_joints
 from regrasp_mjx.grasps import GraspLibrary
 from regrasp_mjx.planner import PlanArrays, goal_pose_in_needle
 from regrasp_mjx.queries import (
@@ -68,7 +68,7 @@ class Plan:
       nearest_grasp_distance: distance of the needle pose to the nearest of the valid-grasp library
         (``regrasp_mjx.grasps``; mm + deg / 5), when checked.
       joints: with ``plan_from_camera(..., psm=...)``, the regrasping PSM's
-        :class:`~regrasp_mjx.dvrk.JointTrajectory` of the valid poses (a list of them for a batch).
+        :class:`~regrasp_mjx.psm_joints.JointTrajectory` of the valid poses (a list of them for a batch).
       grasping_joints: likewise the grasping PSM's :class:`~regrasp_mjx.dvrk.IKResult` at its pose.
     """
 
@@ -312,7 +312,7 @@ def plan_from_camera(
 def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
     steps = np.atleast_1d(plan.steps)
     cam = plan.poses_camera[None] if single else plan.poses_camera
-    joints = [dvrk.joint_trajectory(psm["regrasping_base"], cam[i][: steps[i] + 1]) for i in range(len(cam))]
+    joints = [psm_joints.joint_trajectory(psm["regrasping_base"], cam[i][: steps[i] + 1]) for i in range(len(cam))]
     grasping = None
     if psm.get("grasping_base") is not None:
         base_inv = np.linalg.inv(dvrk.as_matrix(psm["grasping_base"]))

@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from regrasp_mjx import dvrk
+from regrasp_mjx import dvrk, psm_joints
 
 
 def test_forward_kinematics_by_hand():
@@ -76,7 +76,7 @@ def test_roll_follows_the_reference_and_trajectories_stay_continuous():
     assert abs(dvrk.inverse_kinematics(pose).q[3] - (3.5 - 2 * math.pi)) < 1e-9  # nearest zero
     base = dvrk.base_behind(np.r_[0.01, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
     poses = np.array([[0.01, 0.0, 0.001 * k, 1.0, 0.0, 0.0, 0.0] for k in range(5)])
-    traj = dvrk.joint_trajectory(base, poses)
+    traj = psm_joints.joint_trajectory(base, poses)
     assert traj.all_reachable
     np.testing.assert_allclose(traj.q[0], [0, 0, 0.12 - dvrk.PITCH_FROM_RCM, 0, 0, 0], atol=1e-9)  # neutral
     assert np.all(np.abs(np.diff(traj.q, axis=0)).max(0) < 0.02)
@@ -97,12 +97,12 @@ def test_a_roll_walk_to_its_limit_never_jumps_a_turn():
         return np.array(out)
 
     up = np.radians(np.arange(170.0, 300.0, 5.0))  # 170 -> 295 degrees: past +260 from the nearest-0 turn
-    traj = dvrk.joint_trajectory(np.eye(4), poses(up))
+    traj = psm_joints.joint_trajectory(np.eye(4), poses(up))
     assert np.abs(np.diff(traj.q[:, 3])).max() < np.radians(6.0)  # continuous: 5 degrees a pose
     assert traj.all_reachable  # walked as -190 -> -65 degrees
     np.testing.assert_allclose(traj.q[:, 3], up - 2 * math.pi, atol=1e-9)
     # the same walk from a reference at +170: it keeps that turn and leaves the limit at 265 degrees
-    traj = dvrk.joint_trajectory(np.eye(4), poses(up), q_ref=np.array([0, 0, 0, up[0], 0, 0]))
+    traj = psm_joints.joint_trajectory(np.eye(4), poses(up), q_ref=np.array([0, 0, 0, up[0], 0, 0]))
     assert np.abs(np.diff(traj.q[:, 3])).max() < np.radians(6.0)
     np.testing.assert_allclose(traj.q[:, 3], up, atol=1e-9)
     beyond = np.degrees(up) > 260.0 + 1e-6
@@ -218,10 +218,10 @@ def test_reachability_counts_the_successful_plans_and_the_joints_that_leave_thei
     far = dvrk.forward_kinematics(np.array([0.0, 0.0, 0.12, 0.0, 1.5, 0.0]))  # wrist pitch 86 degrees
     poses = np.array([[as_pose(near), as_pose(near)], [as_pose(near), as_pose(far)], [as_pose(far)] * 2])
     plan = SimpleNamespace(success=np.array([True, True, False]), steps=np.array([1, 1, 1]), poses=poses)
-    r = dvrk.reachability(plan, base)
+    r = psm_joints.reachability(plan, base)
     assert r["plans"] == 2 and r["all_reachable_share"] == 0.5  # the failed plan is not counted
     assert r["out_of_limit_poses_by_joint"] == {"outer_wrist_pitch": 1}
     # median of |dq| per plan: 0 and 1.5 rad of wrist pitch
     assert r["joint_path_median"]["wrist_pitch_deg"] == pytest.approx(np.degrees(0.75), abs=1e-4)
     assert r["joint_path_median"]["insertion_mm"] == pytest.approx(0.0, abs=1e-6)
-    assert dvrk.reachability(plan, lambda i: base) == r  # a base per plan
+    assert psm_joints.reachability(plan, lambda i: base) == r  # a base per plan
