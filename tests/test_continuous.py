@@ -12,7 +12,8 @@ from regrasp_mjx import continuous
 from regrasp_mjx.config import EnvConfig
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host import HostChecker, HostEnv, quat_from_rotvec, quat_mul
-from regrasp_mjx.lean_collision import Capsules, Fixed, LeanChecker, _placed, make_scratch, motion_collides
+from regrasp_mjx.lean_checker import LeanChecker, _placed
+from regrasp_mjx.lean_collision import Capsules, Fixed, make_scratch, motion_collides
 from regrasp_mjx.sampling import Episode
 
 # paper300 row 161 and the first action the shipped default's shielded plan took there before the

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
-from regrasp_mjx.lean_collision import LeanChecker
+from regrasp_mjx.lean_checker import LeanChecker
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, path_to_actions, replay_paths
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
 from regrasp_mjx.planning.pool import PlannerPool

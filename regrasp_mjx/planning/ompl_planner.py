@@ -22,7 +22,8 @@ import numpy as np
 from regrasp_mjx.config import require, require_numbers
 from regrasp_mjx.geometry import unit_quaternions
 from regrasp_mjx.host import HostChecker
-from regrasp_mjx.lean_collision import Held, LeanChecker
+from regrasp_mjx.lean_checker import LeanChecker
+from regrasp_mjx.lean_collision import Held
 
 PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar", "RRTConnect")
 DIRECTIONS = ("forward", "reverse")
@@ -48,7 +49,7 @@ class PlannerConfig:
         SE(3) distance.
       checker: ``mujoco`` (:class:`~regrasp_mjx.host.HostChecker`: CPU MuJoCo's collision of the
         counted capsule pairs, a Python call per checked state) or ``lean``
-        (:class:`~regrasp_mjx.lean_collision.LeanChecker`: the same pairs and verdicts from the
+        (:class:`~regrasp_mjx.lean_checker.LeanChecker`: the same pairs and verdicts from the
         lean planner's compiled test, a whole motion's states in one call). Same verdicts (tested),
         so the same plans for the same seed; ``lean`` is faster.
     """
