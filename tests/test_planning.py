@@ -19,6 +19,7 @@ from regrasp_mjx.lean_checker import LeanChecker
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, path_to_actions, replay_paths
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
 from regrasp_mjx.planning.pool import PlannerPool
+from tests.fresh_planner import plan_fresh
 from tests.pool_faults import faulty_plan
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -151,15 +152,15 @@ def test_a_planner_with_the_lean_checker_plans_the_same_paths(paper_testset, pla
     """The same seed and the same verdicts: RRT-Connect (shortcut too) and BIT* return the very
     paths they return over CPU MuJoCo."""
     episodes, _ = paper_testset
+    problems = [_problem(episodes, i) for i in range(4)]
+    assert isinstance(OmplPlanner(PlannerConfig(checker="lean")).checker, LeanChecker)
     for simplify in (0.0, 0.2) if planner == "RRTConnect" else (0.0,):
         paths = {}
-        for checker in ("mujoco", "lean"):
+        for checker in ("mujoco", "lean"):  # each in a fresh process: OMPL seeds once per process
             cfg = PlannerConfig(
                 planner=planner, direction="forward", budget_s=5.0, simplify_s=simplify, checker=checker
             )
-            one = OmplPlanner(cfg, seed=3)
-            assert isinstance(one.checker, LeanChecker) == (checker == "lean")
-            paths[checker] = [one.plan(*_problem(episodes, i)).poses for i in range(4)]
+            paths[checker] = plan_fresh(cfg, 3, problems)
         for a, b in zip(paths["mujoco"], paths["lean"]):
             np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
 
