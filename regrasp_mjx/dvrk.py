@@ -114,7 +114,7 @@ JAX_LIMIT_SLACK = 1e-6  # rad or m past a limit that the float32 check still acc
 # the pitch point this close to the RCM [m]: the closed form also tries CROSSING_FAMILY's members of
 # the singular family there (inverse_kinematics; the shaft turned about the pitch axis by each angle)
 CROSSING = 1e-6
-CROSSING_FAMILY = tuple(np.radians(np.arange(-90.0, 90.5, 1.0)))
+CROSSING_FAMILY = tuple(float(a) for a in np.radians(np.arange(-90.0, 90.5, 1.0)) if a != 0.0)
 ROLL_SLACK = 1e-9  # rad: a roll this far past its limit (rounding along a trajectory) is put on the limit
 
 
@@ -164,7 +164,7 @@ def inverse_kinematics_jax(t, q_ref):
     return cands[jnp.argmin(misses + jnp.sum((cands - q_ref) ** 2, axis=1))]
 
 
-def _ik_candidates(p, rot, xp, family=None):
+def _ik_candidates(p, rot, xp, family=()):
     """The closed form's six candidate joint vectors ``[6, 6]`` for a tool-tip position ``p`` and rotation
     ``rot`` (the roll nearest zero): one of them reaches the pose wherever the arm can.
 
@@ -177,7 +177,7 @@ def _ik_candidates(p, rot, xp, family=None):
     gives the outer joints, and the wrist angles follow from the remaining rotation; two more cover
     the pitch point at the RCM itself; forward kinematics tells which choices reach the pose.
 
-    ``family``: angles (rad) of more members of the singular family at the RCM, the shaft turned
+    ``family``: angles (rad, not 0) of more members of the singular family at the RCM, the shaft turned
     from the straight wrist by each about the pitch axis (in the plane of the wrist link and the
     yaw axis), the wrist pitch turning back by as much: at the crossing, the straight wrist may put
     the outer joints out of their limits where another member does not."""
@@ -192,13 +192,11 @@ def _ik_candidates(p, rot, xp, family=None):
     # the pitch axis at the RCM (a singularity: the shaft may turn about the pitch axis while the
     # wrist pitch turns back): the straight-wrist member of that family, the shaft along the link
     along = p / xp.maximum(xp.linalg.norm(p), 1e-12)
-    shafts += [(side * along, -PITCH_FROM_RCM + 0.0 * p[0]) for side in (1.0, -1.0)]
-    if family is not None:
-        across = x - xp.dot(x, along) * along
-        across = across / xp.maximum(xp.linalg.norm(across), 1e-12)
-        for phi in family:
-            turned = math.cos(phi) * along + math.sin(phi) * across
-            shafts += [(side * turned, -PITCH_FROM_RCM + 0.0 * p[0]) for side in (1.0, -1.0)]
+    across = x - xp.dot(x, along) * along
+    across = across / xp.maximum(xp.linalg.norm(across), 1e-12)
+    for phi in (0.0, *family):  # 0: the straight wrist
+        turned = math.cos(phi) * along + math.sin(phi) * across
+        shafts += [(side * turned, -PITCH_FROM_RCM + 0.0 * p[0]) for side in (1.0, -1.0)]
     qs = []
     for shaft, q3 in shafts:
         # z3 = (sin q1 cos q2, -sin q2, -cos q1 cos q2) for this DH (cos q2 > 0 within the pitch limits)
@@ -255,7 +253,7 @@ def inverse_kinematics(pose, q_ref=None) -> IKResult:
         raise ValueError("pose has its yaw axis through the remote centre of motion: the wrist is undefined")
     # the pitch point within a micrometre of the RCM: the singular family's members too
     crossing = abs(np.linalg.norm(p) - WRIST_LINK) < CROSSING and abs(p.dot(x)) < CROSSING
-    cands = _ik_candidates(p, t[:3, :3], np, CROSSING_FAMILY if crossing else None)
+    cands = _ik_candidates(p, t[:3, :3], np, CROSSING_FAMILY if crossing else ())
     pos, rot = _residuals(cands, t, np)
     roll = cands[:, 3:4] + 2.0 * math.pi * np.array([0.0, -1.0, 1.0])  # some turn of the roll may fit
     outside = (cands < Q_MIN - 1e-12) | (cands > Q_MAX + 1e-12)
