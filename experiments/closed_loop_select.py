@@ -13,15 +13,11 @@ the setting with the best mean success over them is ``Policy.execute``'s default
 from __future__ import annotations
 
 import argparse
-import itertools
-
-import numpy as np
 
 from regrasp_mjx.atomic import dumps, write_results
-from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.policy import load_policy
-from regrasp_mjx.robot_errors import OBSERVE, RobotErrors
-from regrasp_mjx.sampling import episode_needles, episode_poses
+from regrasp_mjx.robot_errors import OBSERVE
+from regrasp_mjx.selection import closed_loop_markdown, closed_loop_settings, parse_noises
 from regrasp_mjx.testset import make_testset
 
 
@@ -44,51 +40,24 @@ def main() -> None:
     args = p.parse_args()
     policy = load_policy(args.policy)
     episodes = make_testset(args.n, args.seed, policy.env_config)  # a general policy's draws its needles too
-    needle, start, goal = episode_poses(episodes)
-    needles = episode_needles(episodes) if policy.general else {}
-    parsed = [[float(x) for x in s.split(":")] for s in args.noises.split(",")]
-    noises = [(NeedleNoise(*v[:2]), RobotErrors(*v[2:])) for v in parsed]
-    warmups = (int(w) for w in args.warmups.split(",")) if args.frames == "fused" else (1,)
-    rows = []
-    for warmup, stop in itertools.product(warmups, (float(s) for s in args.stops.split(","))):
-        run = lambda noise, warmup=warmup, stop=stop: policy.execute(  # noqa: E731
-            needle,
-            start,
-            goal,
-            noise[0],
-            frames=args.frames,
-            warmup_frames=warmup,
-            stop_tolerance=stop,
-            seed=1,
-            robot=noise[1],
-            observe=args.observe,
-            **needles,
-        )
-        success = [float(run(noise)["success"].mean()) for noise in noises]
-        rows.append(
-            {"warmup_frames": warmup, "stop_tolerance": stop, "success": success, "mean": float(np.mean(success))}
-        )
-        print(dumps(rows[-1]), flush=True)
-    best = max(rows, key=lambda r: r["mean"])
+    noises = parse_noises(args.noises)
+    rows, best = closed_loop_settings(
+        policy,
+        episodes,
+        noises,
+        [int(w) for w in args.warmups.split(",")],
+        [float(s) for s in args.stops.split(",")],
+        frames=args.frames,
+        observe=args.observe,
+        log=lambda row: print(dumps(row), flush=True),
+    )
     lines = [
         f"Closed loop ({args.frames} frames, tools seen: {args.observe}), policy {args.policy or 'shipped'}, "
         f"{args.n} validation problems (seed "
         f"{args.seed}); success at frame noise sigma (mm) and bias (mm).",
         "",
-        "| warm-up frames | stop tolerance | "
-        + " | ".join(
-            f"sigma {n.sigma_mm:g} bias {n.bias_mm:g}" + (f" {r}" if r != RobotErrors() else "") for n, r in noises
-        )
-        + " | mean |",
-        "| ---: | ---: |" + " ---: |" * (len(noises) + 1),
+        *closed_loop_markdown(rows, best, noises),
     ]
-    for r in rows:
-        mark = "**" if r is best else ""
-        lines.append(
-            f"| {r['warmup_frames']} | {r['stop_tolerance']:g} | "
-            + " | ".join(f"{v:.3f}" for v in r["success"])
-            + f" | {mark}{r['mean']:.3f}{mark} |"
-        )
     print("\n".join(lines))
     write_results(
         args.out,

@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from regrasp_mjx.atomic import atomic_write, dumps, output_folder_problem, write_json
-from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig
+from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig, parse_overrides, replace
 from regrasp_mjx.env import RegraspEnv
 from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
@@ -106,12 +106,14 @@ def build(
     task: TaskConfig = TaskConfig(),
     replay_batch: int = 256,
     quiet: bool = False,
+    env: EnvConfig | None = None,
 ) -> Path:
     """Plans ``n`` demonstrations into ``out`` (resumed when it holds plans of the same settings):
     problems of ``task`` from ``seed``, ``planner`` in ``direction`` with ``budget_s`` each on
     ``workers`` processes over ``checker`` (:class:`~regrasp_mjx.planning.ompl_planner.PlannerConfig`),
-    each path replayed in the environment of ``scene`` and ``task``; returns ``out/demos.npz``."""
-    config = EnvConfig(scene=scene, task=task)
+    each path replayed in the environment of ``scene`` and ``task`` (or the whole ``env`` where given);
+    returns ``out/demos.npz``."""
+    config = env if env is not None else EnvConfig(scene=scene, task=task)
     planner_cfg = PlannerConfig(planner=planner, direction=direction, budget_s=budget_s, checker=checker)
     out = Path(out)
     plans = out / "plans"
@@ -242,6 +244,14 @@ def main(argv: list[str] | None = None) -> int:
         help="problem distribution: paper (the paper's goal grasp and needle) or general (any goal grasp in "
         "range, needles of 4-12 mm radius)",
     )
+    p.add_argument(
+        "--env",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an EnvConfig field for the problems and the replay, e.g. scene.needle_radius_mm=4.0 (repeatable; "
+        "a run trained on these demonstrations must use the same scene and task)",
+    )
     p.add_argument("--replay-batch", type=int, default=256)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
@@ -250,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     if problem := output_folder_problem(args.out):
         p.error(problem)
     try:
+        base = EnvConfig(scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg), task=TASKS[args.task])
+        env = replace(base, **parse_overrides(args.env))
         with folder_lock(Path(args.out)):  # one build per folder
             build(
                 args.n,
@@ -261,10 +273,9 @@ def main(argv: list[str] | None = None) -> int:
                 budget_s=args.budget_s,
                 checker=args.checker,
                 timeout_s=args.timeout_s,
-                scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg),
-                task=TASKS[args.task],
                 replay_batch=args.replay_batch,
                 quiet=args.quiet,
+                env=env,
             )
     except (ConfigError, DemosError, ValueError, FolderInUse) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -26,13 +26,8 @@ import argparse
 import ast
 import itertools
 import json
-import os
 import re
-import shutil
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +37,8 @@ from regrasp_mjx import analysis
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.atomic import write_figure, write_json, write_text
 from regrasp_mjx.config import ConfigError, parse_overrides
-from regrasp_mjx.train import run_outputs
+from regrasp_mjx.jobs import Job, gpu_slots, run_jobs
+from regrasp_mjx.train import restart_args
 
 FORMAT = "regrasp_mjx.sweep"
 
@@ -96,11 +92,9 @@ def train_args(args: argparse.Namespace, point: dict[str, Any], out: Path) -> li
 
 
 def command(folder: Path, argv: list[str]) -> list[str]:
-    """The process that trains one point: resuming from its checkpoint when it has one."""
-    state = status(folder)
-    # a point that never reached a checkpoint starts anew: its partial outputs are cleared
-    again = ["--resume"] if state == "resume" else (["--overwrite"] if run_outputs(folder) else [])
-    return [sys.executable, "-m", "regrasp_mjx.train", *argv, *again]
+    """The process that trains one point: resuming from its checkpoint when it has one (a point that
+    never reached a checkpoint starts anew, its partial outputs cleared)."""
+    return [sys.executable, "-m", "regrasp_mjx.train", *argv, *restart_args(folder)]
 
 
 def status(folder: Path) -> str:
@@ -110,26 +104,6 @@ def status(folder: Path) -> str:
     if (folder / "checkpoint" / "meta.json").is_file():
         return "resume"
     return "new"
-
-
-def gpu_slots(requested: str | None) -> list[str | None]:
-    """GPU indices to run on, one run each at a time; ``[None]`` (one run at a time, no pinning)
-    when the machine shows no NVIDIA GPU. Asked of ``nvidia-smi``, not JAX: this process must not
-    take GPU memory from its runs."""
-    if requested:
-        return [g.strip() for g in requested.split(",") if g.strip()]
-    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-    if visible is not None:
-        return [g.strip() for g in visible.split(",") if g.strip()] or [None]
-    smi = shutil.which("nvidia-smi")
-    if smi is None:
-        return [None]
-    try:
-        lines = subprocess.run([smi, "-L"], capture_output=True, text=True, timeout=30).stdout.splitlines()
-    except (OSError, subprocess.SubprocessError):
-        return [None]
-    gpus = [str(i) for i, line in enumerate(lines) if line.startswith("GPU ")]
-    return gpus or [None]
 
 
 def check_manifest(out: Path, manifest: dict[str, Any]) -> None:
@@ -144,56 +118,18 @@ def check_manifest(out: Path, manifest: dict[str, Any]) -> None:
 
 
 def run_all(out: Path, names: list[str], argvs: list[list[str]], slots: list[str | None], log) -> dict[str, int]:
-    """Runs the points not done yet, one per slot at a time; returns each started point's exit code."""
-    todo = [(n, a) for n, a in zip(names, argvs) if status(out / n) != "done"]
-    log(f"{len(names)} points, {len(names) - len(todo)} done already, {len(todo)} to run on {len(slots)} slot(s)")
-    running: dict[str | None, tuple[str, subprocess.Popen, Any, float]] = {}
-    codes: dict[str, int] = {}
-    t0, finished = time.perf_counter(), 0
-
-    def stop(signum, frame):  # a killed sweep stops its runs; they resume from their checkpoints
-        for _, proc, _, _ in running.values():
-            proc.terminate()
-        raise SystemExit(128 + signum)
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        while todo or running:
-            for slot in slots:
-                if slot not in running and todo:
-                    name, argv = todo.pop(0)
-                    folder = out / name
-                    folder.mkdir(parents=True, exist_ok=True)
-                    resume = status(folder) == "resume"
-                    env = dict(os.environ)
-                    if slot is not None:
-                        env["CUDA_VISIBLE_DEVICES"] = slot
-                    stdout = open(folder / "sweep_stdout.txt", "a")  # noqa: SIM115 - closed when the run ends
-                    proc = subprocess.Popen(command(folder, argv), stdout=stdout, stderr=subprocess.STDOUT, env=env)
-                    running[slot] = (name, proc, stdout, time.perf_counter())
-                    where = f"GPU {slot}" if slot is not None else "this machine"
-                    log(f"started {name} on {where}{' (resumed)' if resume else ''}")
-            time.sleep(1.0)
-            for slot, (name, proc, stdout, started) in list(running.items()):
-                if proc.poll() is None:
-                    continue
-                stdout.close()
-                del running[slot]
-                codes[name] = proc.returncode
-                finished += 1
-                left = len(todo) + len(running)
-                rate = (time.perf_counter() - t0) / finished
-                eta = rate * left / max(1, len(slots))
-                verdict = (
-                    "done" if proc.returncode == 0 else f"FAILED (exit {proc.returncode}; see its sweep_stdout.txt)"
-                )
-                log(
-                    f"{name} {verdict} after {time.perf_counter() - started:.0f} s; "
-                    f"{finished} of {finished + left} finished, ETA {eta / 60:.1f} min"
-                )
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    return codes
+    """Runs the points not done yet, one per GPU at a time; returns each started point's exit code."""
+    jobs = [
+        Job(
+            name,
+            "points",
+            lambda folder=out / name, argv=argv: command(folder, argv)[1:],
+            out / name / "final_eval.json",
+            out / name / "sweep_stdout.txt",
+        )
+        for name, argv in zip(names, argvs)
+    ]
+    return {name: r["exit"] for name, r in run_jobs(jobs, slots, log).items()}
 
 
 def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tuple[list[str], list[dict]]:

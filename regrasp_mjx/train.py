@@ -62,6 +62,14 @@ def run_outputs(out: Path) -> list[Path]:
     return found
 
 
+def restart_args(out: Path) -> list[str]:
+    """What starting this folder's run again needs: ``--resume`` where a checkpoint is, ``--overwrite``
+    where an earlier run left outputs without one (it never got that far), else nothing."""
+    if (out / "checkpoint" / "meta.json").is_file():
+        return ["--resume"]
+    return ["--overwrite"] if run_outputs(out) else []
+
+
 def check_out(out: Path, resume: bool, overwrite: bool) -> str | None:
     """Why ``out`` cannot take this run (None when it can); checked before any work."""
     if out.exists() and not out.is_dir():

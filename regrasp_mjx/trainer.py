@@ -33,7 +33,7 @@ from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.distill import distill
 from regrasp_mjx.evaluate import outcomes
 from regrasp_mjx.host_loop import BestOf, Phases, RunLog, epoch_line, eta, mm, tensorboard_writer
-from regrasp_mjx.planning.episodes import DemosError, load_demos
+from regrasp_mjx.planning.episodes import DemosError, check_made_for, load_demos
 from regrasp_mjx.policy import load_policy, save_policy
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import PAPER300, load_testset
@@ -81,7 +81,7 @@ class Run:
 
     def _load_or_build_demos(self, demos_dir: Path | None):
         if demos_dir is not None:
-            return load_demos(demos_dir)
+            return check_made_for(load_demos(demos_dir), self.cfg.env, demos_dir)
         path = self.out / "demos"
         if not (path / "demos.npz").exists() and distributed.is_main():
             self.log(f"building {self.cfg.num_demos} demonstrations in {path} (BIT* reverse) ...")
@@ -97,11 +97,7 @@ class Run:
                 quiet=self.quiet,
             )
         distributed.sync("demos")  # the others wait for process 0's set
-        demos = load_demos(path)
-        env_meta = demos.meta.get("settings", {}).get("env", {})
-        if env_meta and env_meta.get("scene") != dataclasses.asdict(self.cfg.env.scene):
-            raise DemosError(f"{path} was made for scene {env_meta.get('scene')}, this run uses {self.cfg.env.scene}")
-        return demos
+        return check_made_for(load_demos(path), self.cfg.env, path)
 
     # ---- the loop ----------------------------------------------------------------------------
     def member_dir(self, m: int) -> Path:

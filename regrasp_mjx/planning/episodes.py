@@ -217,3 +217,20 @@ def load_demos(path: str | os.PathLike) -> Demos:
     ):
         raise DemosError(f"{path}: lengths do not add up to the {s} steps, or values are not finite")
     return Demos(**data, meta=meta)
+
+
+def check_made_for(demos: Demos, env_config: Any, path: str | os.PathLike) -> Demos:
+    """``demos``, refused (:class:`DemosError`) where its file names another scene or task than
+    ``env_config``'s (a set that names none, made before they were recorded, is taken as it is)."""
+    made = demos.meta.get("settings", {}).get("env", {})
+    for part in ("scene", "task"):
+        ours = json.loads(dumps(dataclasses.asdict(getattr(env_config, part))))
+        theirs = made.get(part) or {}
+        differ = sorted(k for k in theirs if k in ours and theirs[k] != ours[k])
+        if differ:
+            raise DemosError(
+                f"{path} was made for another {part} ({', '.join(f'{k}={theirs[k]}' for k in differ)}; this run: "
+                f"{', '.join(f'{k}={ours[k]}' for k in differ)}); accepted: demonstrations of this run's {part} "
+                f"(python -m regrasp_mjx.demos --env {part}.KEY=VALUE), or none (the run builds its own)"
+            )
+    return demos

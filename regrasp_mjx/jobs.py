@@ -1,0 +1,216 @@
+"""Command-line jobs scheduled over the local GPUs: what ``sweep`` and ``recipe`` run.
+
+A job is one process (``python -m regrasp_mjx.train ...``) with the jobs it needs, the share of one
+GPU's memory it takes and the file that says it has finished. :func:`run_jobs` starts every job
+whose needs have finished on the least-loaded GPU where its share still fits (several side by side
+on one GPU where memory allows, ``XLA_PYTHON_CLIENT_MEM_FRACTION`` set to the share), one at a time
+on a machine without a GPU, and never starts a job whose need failed. A job whose finish file exists
+is skipped, and so is one whose dependents have all finished, so a killed schedule started again
+runs only what is left; each job resumes its own work
+as its command does (its arguments are made when it starts, ``Job.argv``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+HEARTBEAT_S = 60.0  # how often the running jobs' last log lines are shown
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """One process. ``argv`` makes its ``python -m ...`` arguments when it starts (so a restart
+    can add ``--resume``); ``finished`` exists once it has finished; ``needs`` names jobs that must
+    finish first; ``share`` is the fraction of one GPU's memory it may take; ``stage`` groups jobs
+    for the progress lines; its output goes to ``log``."""
+
+    name: str
+    stage: str
+    argv: Callable[[], list[str]]
+    finished: Path
+    log: Path
+    share: float = 1.0
+    needs: tuple[str, ...] = ()
+
+    def done(self) -> bool:
+        return self.finished.is_file()
+
+
+def gpu_slots(requested: str | None) -> list[str | None]:
+    """GPU indices to run on; ``[None]`` (one job at a time, no pinning) when the machine shows no
+    NVIDIA GPU. Asked of ``nvidia-smi``, not JAX: this process must not take GPU memory from its
+    jobs."""
+    if requested:
+        return [g.strip() for g in requested.split(",") if g.strip()]
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [g.strip() for g in visible.split(",") if g.strip()] or [None]
+    smi = shutil.which("nvidia-smi")
+    if smi is None:
+        return [None]
+    try:
+        lines = subprocess.run([smi, "-L"], capture_output=True, text=True, timeout=30).stdout.splitlines()
+    except (OSError, subprocess.SubprocessError):
+        return [None]
+    gpus = [str(i) for i, line in enumerate(lines) if line.startswith("GPU ")]
+    return gpus or [None]
+
+
+def last_line(path: Path, size: int = 4096) -> str:
+    """The last non-empty line of a log (progress bars write ``\\r``-separated updates)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - size))
+            tail = f.read().decode(errors="replace")
+    except OSError:
+        return ""
+    parts = [p.strip() for p in tail.replace("\r", "\n").splitlines() if p.strip()]
+    return parts[-1][:160] if parts else ""
+
+
+@dataclasses.dataclass
+class _Running:
+    job: Job
+    slot: str | None
+    proc: subprocess.Popen
+    stdout: object
+    started: float
+
+
+def run_jobs(
+    jobs: list[Job], slots: list[str | None], log: Callable[[str], None], heartbeat_s: float = HEARTBEAT_S
+) -> dict[str, dict]:
+    """Runs the jobs not finished yet (see the module's docstring); returns, per job this call
+    started, ``{"exit": code, "wall_s": seconds, "stage": stage}`` (exit None: not started because
+    a job it needs failed). A SIGTERM or Ctrl-C stops the running jobs; they resume when started again."""
+    by_name = {j.name: j for j in jobs}
+    for j in jobs:
+        unknown = [n for n in j.needs if n not in by_name]
+        if unknown:
+            raise ValueError(f"job {j.name} needs unknown jobs {unknown}")
+    todo = _needed(jobs)
+    finished = {j.name for j in jobs if j not in todo}  # done, or no longer needed by anything
+    spared = sum(1 for j in jobs if j not in todo and not j.done())
+    log(
+        f"{len(jobs)} jobs: {len(finished) - spared} finished already, "
+        + (f"{spared} no longer needed (what needs them has finished), " if spared else "")
+        + f"{len(todo)} to run on {_where(slots)}"
+    )
+    gpu = slots != [None]
+    load = {s: 0.0 for s in slots}
+    running: list[_Running] = []
+    failed: set[str] = set()
+    out: dict[str, dict] = {}
+    stage_left = {s: sum(1 for j in todo if j.stage == s) for s in dict.fromkeys(j.stage for j in todo)}
+    stage_t0: dict[str, float] = {}
+    t0 = last_beat = time.perf_counter()
+
+    def stop(signum, frame):  # the jobs resume from their own checkpoints when started again
+        for r in running:
+            r.proc.terminate()
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        while todo or running:
+            for job in list(todo):
+                if any(n in failed for n in job.needs):
+                    todo.remove(job)
+                    failed.add(job.name)
+                    out[job.name] = {"exit": None, "wall_s": 0.0, "stage": job.stage}
+                    log(f"{job.name} not started: a job it needs failed")
+                    continue
+                if not all(n in finished for n in job.needs):
+                    continue
+                slot = _place(job, load, gpu, busy=bool(running))
+                if slot is False:
+                    continue
+                todo.remove(job)
+                running.append(_start(job, slot, gpu))
+                load[slot] += job.share if gpu else 1.0
+                stage_t0.setdefault(job.stage, time.perf_counter())
+                where = f"GPU {slot}, {job.share:.0%} of its memory" if gpu else "this machine"
+                log(f"started {job.name} on {where}")
+            time.sleep(0.5)
+            now = time.perf_counter()
+            if running and now - last_beat >= heartbeat_s:
+                last_beat = now
+                for r in running:
+                    log(f"  {r.job.name} ({(now - r.started) / 60:.1f} min): {last_line(r.job.log) or '...'}")
+            for r in [r for r in running if r.proc.poll() is not None]:
+                running.remove(r)
+                r.stdout.close()
+                load[r.slot] -= r.job.share if gpu else 1.0
+                wall = now - r.started
+                code = r.proc.returncode
+                out[r.job.name] = {"exit": code, "wall_s": wall, "stage": r.job.stage}
+                if code == 0 and r.job.done():
+                    finished.add(r.job.name)
+                    verdict = "finished"
+                else:
+                    failed.add(r.job.name)
+                    why = f"exit {code}" if code != 0 else f"exit 0 without {r.job.finished.name}"
+                    verdict = f"FAILED ({why}; its output: {r.job.log})"
+                left = len(todo) + len(running)
+                log(
+                    f"{r.job.name} {verdict} after {wall:.0f} s; {len(out)} done, {left} left, {(now - t0) / 60:.1f} min in"
+                )
+                stage_left[r.job.stage] -= 1
+                if stage_left[r.job.stage] == 0:
+                    log(f"stage {r.job.stage}: {now - stage_t0[r.job.stage]:.0f} s")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    return out
+
+
+def _needed(jobs: list[Job]) -> list[Job]:
+    """The unfinished jobs that something still needs: every unfinished job that no other job needs
+    (an end of the schedule), and the unfinished needs of a needed job (a job whose every dependent
+    has finished, e.g. demonstrations deleted after training, is not run again)."""
+    dependents = {j.name: [d for d in jobs if j.name in d.needs] for j in jobs}
+    memo: dict[str, bool] = {}
+
+    def needed(j: Job) -> bool:
+        if j.name not in memo:
+            deps = dependents[j.name]
+            memo[j.name] = not j.done() and (not deps or any(needed(d) for d in deps))
+        return memo[j.name]
+
+    return [j for j in jobs if needed(j)]
+
+
+def _where(slots: list[str | None]) -> str:
+    return "this machine (no GPU: one job at a time)" if slots == [None] else f"GPU(s) {', '.join(slots)}"
+
+
+def _place(job: Job, load: dict, gpu: bool, busy: bool):
+    """The least-loaded GPU where the job's share fits, else False; a job larger than a whole GPU
+    runs alone on an idle one."""
+    if not gpu:
+        return None if not busy else False
+    slot = min(load, key=load.get)
+    if load[slot] + job.share <= 1.0 + 1e-9 or load[slot] == 0.0:
+        return slot
+    return False
+
+
+def _start(job: Job, slot: str | None, gpu: bool) -> _Running:
+    env = dict(os.environ)
+    if gpu:
+        env["CUDA_VISIBLE_DEVICES"] = slot
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{min(job.share, 0.95):.3f}"
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    stdout = open(job.log, "a")  # noqa: SIM115 - closed when the job ends
+    stdout.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started\n")
+    stdout.flush()
+    argv = [sys.executable, *job.argv()]
+    proc = subprocess.Popen(argv, stdout=stdout, stderr=subprocess.STDOUT, env=env)
+    return _Running(job, slot, proc, stdout, time.perf_counter())

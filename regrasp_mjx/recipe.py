@@ -1,0 +1,354 @@
+"""``python -m regrasp_mjx.recipe NAME --out DIR``: a shipped policy's whole recipe, one command.
+
+    python -m regrasp_mjx.recipe default --out runs/default                 # the shipped default
+    python -m regrasp_mjx.recipe default --out runs/r4 --set env.scene.needle_radius_mm=4.0
+    python -m regrasp_mjx.recipe general --out runs/general --gpus 0,1
+    python -m regrasp_mjx.recipe --list                                      # the recipes, as data
+
+Every stage of the recipe (:mod:`regrasp_mjx.recipes`: demonstrations, teachers, students, the
+choice on validation problems of their own seed, the closed loop's settings, the exported policy's
+robustness table) is a job, a command of this package run as its own process; the jobs run over
+every local GPU (side by side on one where their memory shares fit, :mod:`regrasp_mjx.jobs`), one at
+a time without a GPU. A finished job is skipped and an unfinished one resumes (a teacher run from
+its checkpoint, the demonstrations from the plans made so far, a student or a table anew), so a
+killed recipe started again with the same arguments goes on; other arguments in the same folder are
+refused. Writes ``DIR/policy`` (the chosen network, its closed-loop settings, and the recipe, its
+``--set`` overrides and the commit in ``policy.json``), ``DIR/selection.md``/``.json``,
+``DIR/robustness.md``/``.json``, ``DIR/recipe.json`` (the arguments and each job's wall time) and
+each job's output in ``DIR/logs/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from regrasp_mjx import recipes
+from regrasp_mjx.agents.ddpg_bc.config import make_config
+from regrasp_mjx.atomic import dumps, output_folder_problem, write_json, write_results
+from regrasp_mjx.config import TASKS, ConfigError, parse_overrides
+from regrasp_mjx.distill import DISTILL_OUTPUTS
+from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.jobs import Job, gpu_slots, run_jobs
+from regrasp_mjx.policy import load_policy
+from regrasp_mjx.recipes import RECIPES, Recipe
+from regrasp_mjx.selection import closed_loop_markdown, closed_loop_settings, parse_noises, score
+from regrasp_mjx.testset import make_testset
+from regrasp_mjx.train import restart_args
+
+FORMAT = "regrasp_mjx.recipe"
+STAGES = ("demos", "teachers", "students", "selection", "choose", "report")  # the jobs' stages, in order
+
+
+def _value(v: Any) -> str:
+    return v if isinstance(v, str) else repr(v)
+
+
+def _sets(pairs) -> list[str]:
+    return [x for k, v in pairs for x in ("--set", f"{k}={_value(v)}")]
+
+
+class Plan:
+    """One recipe's jobs in ``out`` with the user's ``--set`` ``items``."""
+
+    def __init__(self, recipe: Recipe, out: Path, items: list[str], workers: int):
+        self.recipe, self.out, self.items, self.workers = recipe, out, items, workers
+        self.routed = recipes.check(recipe, parse_overrides(items))
+        self.teacher_cfg = recipe.teacher_config(self.routed["teachers"])
+
+    # ---- where things are ------------------------------------------------------------------
+    def teacher_policy(self, seed: int) -> Path:
+        folder = self.out / "teachers"
+        return folder / "policy" if self.recipe.teachers.seeds == 1 else folder / f"seed{seed}" / "policy"
+
+    def candidates(self) -> dict[str, tuple[Path, str]]:
+        """name -> (policy folder, the job that makes it)."""
+        seeds = range(self.recipe.teachers.seeds)
+        if self.recipe.students is None:
+            return {f"teacher_s{s}": (self.teacher_policy(s), "teachers") for s in seeds}
+        return {
+            f"{v}_s{s}": (self.out / "students" / v / f"s{s}" / "policy", f"students/{v}/s{s}")
+            for v, _ in self.recipe.students.variants
+            for s in seeds
+        }
+
+    # ---- the jobs --------------------------------------------------------------------------
+    def jobs(self) -> list[Job]:
+        out, r, cfg = self.out, self.recipe, self.teacher_cfg
+        logs = out / "logs"
+        job = lambda name, stage, argv, finished, share, needs=(): Job(  # noqa: E731
+            name, stage, argv, finished, logs / (name.replace("/", "_") + ".txt"), share, needs
+        )
+        demos = out / "demos"
+        env_items = [(k.removeprefix("env."), v) for k, v in self.routed["teachers"].items() if k.startswith("env.")]
+        task = next((n for n, t in TASKS.items() if t == make_config(r.teachers.preset).env.task), "paper")
+        demos_argv = ["-m", "regrasp_mjx.demos", "--n", str(cfg.num_demos), "--seed", "0", "--task", task]
+        demos_argv += ["--workers", str(self.workers), "--budget-s", str(cfg.planner_budget_s), "--out", str(demos)]
+        demos_argv += [x for k, v in env_items for x in ("--env", f"{k}={_value(v)}")]
+        jobs = [job("demos", "demos", lambda: demos_argv, demos / "demos.npz", 0.3)]
+
+        teachers = out / "teachers"
+        train_argv = ["-m", "regrasp_mjx.train", "--preset", r.teachers.preset, "--seeds", str(r.teachers.seeds)]
+        train_argv += ["--demos", str(demos), "--testset", r.testset, "--out", str(teachers)]
+        train_argv += _sets(r.teachers.settings) + _sets(self.routed["teachers"].items())
+        jobs.append(
+            job(
+                "teachers",
+                "teachers",
+                lambda: train_argv + restart_args(teachers),
+                teachers / "final_eval.json",
+                r.teachers.share,
+                ("demos",),
+            )
+        )
+        if r.students is not None:
+            for variant, settings in r.students.variants:
+                for s in range(r.teachers.seeds):
+                    folder = out / "students" / variant / f"s{s}"
+                    argv = ["-m", "regrasp_mjx.distill", "--teacher", str(self.teacher_policy(s)), "--out", str(folder)]
+                    argv += ["--seed", str(s), "--testset", r.testset]
+                    argv += _sets(r.students.settings) + _sets(settings) + _sets(self.routed["students"].items())
+                    again = lambda folder=folder: (  # noqa: E731 - an unfinished student starts anew
+                        ["--overwrite"] if any((folder / n).exists() for n in DISTILL_OUTPUTS) else []
+                    )
+                    jobs.append(
+                        job(
+                            f"students/{variant}/s{s}",
+                            "students",
+                            lambda argv=argv, again=again: argv + again(),
+                            folder / "distill_eval.json",
+                            r.students.share,
+                            ("teachers",),
+                        )
+                    )
+        sel = r.selection
+        modes = ",".join(dict.fromkeys(m for m, _ in sel.rule))
+        conditions = ",".join(dict.fromkeys(c for _, c in sel.rule))
+        for name, (folder, maker) in self.candidates().items():
+            argv = ["-m", "regrasp_mjx.compare", "--robustness", "--policy", f"{name}={folder}"]
+            argv += ["--heldout", f"{sel.n}:{sel.seed}", "--no-testset", "--modes", modes, "--conditions", conditions]
+            argv += ["--out", str(out / "select"), "--name", name]
+            jobs.append(
+                job(
+                    f"select/{name}",
+                    "selection",
+                    lambda argv=argv: argv,
+                    out / "select" / f"{name}.json",
+                    sel.share,
+                    (maker,),
+                )
+            )
+        choose = ["-m", "regrasp_mjx.recipe", r.name, "--out", str(out), "--step", "choose", *self._user_sets()]
+        needs = tuple(f"select/{n}" for n in self.candidates())
+        jobs.append(job("choose", "choose", lambda: choose, out / "selection.json", sel.share, needs))
+        report = ["-m", "regrasp_mjx.compare", "--robustness", "--policy", f"{r.name}={out / 'policy'}"]
+        if r.report.heldout:
+            report += ["--heldout", "{}:{}".format(*r.report.heldout), "--no-testset"]
+        if r.report.modes:
+            report += ["--modes", ",".join(r.report.modes)]
+        if r.report.conditions:
+            report += ["--conditions", ",".join(r.report.conditions)]
+        report += ["--out", str(out), "--name", "robustness"]
+        jobs.append(job("report", "report", lambda: report, out / "robustness.json", r.report.share, ("choose",)))
+        return jobs
+
+    def _user_sets(self) -> list[str]:
+        return [x for item in self.items for x in ("--set", item)]
+
+    # ---- the choice (run as the job ``choose``) ---------------------------------------------
+    def choose(self, log) -> None:
+        """Scores the candidates, tunes the winner's closed loop, exports ``out/policy``."""
+        sel = self.recipe.selection
+        scores = {}
+        for name in self.candidates():
+            table = json.loads((self.out / "select" / f"{name}.json").read_text())["tables"][0]
+            scores[name] = score(table["rows"], sel.rule)
+        winner = max(scores, key=scores.get)  # the first of equals, in the recipe's order
+        folder = self.candidates()[winner][0]
+        log(f"candidates: {', '.join(f'{n} {v:.4f}' for n, v in scores.items())}; chosen: {winner}")
+        policy = load_policy(folder)
+        noises = parse_noises(sel.loop_noises)
+        episodes = make_testset(sel.loop_n, sel.loop_seed, policy.env_config)
+        rows, best = closed_loop_settings(
+            policy, episodes, noises, sel.loop_warmups, sel.loop_stops, log=lambda row: log(dumps(row))
+        )
+        chosen_on = (
+            f"fused closed loop at noise {sel.loop_noises} on {sel.loop_n} validation problems (seed {sel.loop_seed}), "
+            f"recipe {self.recipe.name}"
+        )
+        provenance = {
+            "name": self.recipe.name,
+            "overrides": self.items,
+            "commit": commit(),
+            "recipe": dataclasses.asdict(self.recipe),
+            "candidate": winner,
+            "scores": scores,
+            "score_rule": [list(x) for x in sel.rule],
+        }
+        export(folder, self.out / "policy", best, chosen_on, provenance)
+        lines = [
+            f"Recipe {self.recipe.name}, overrides {self.items or 'none'}; candidates on {sel.n} validation problems "
+            f"(seed {sel.seed}), score = mean success over {', '.join(f'{m} {c}' for m, c in sel.rule)}.",
+            "",
+            "| candidate | score |",
+            "| --- | ---: |",
+            *(f"| {'**' + n + '**' if n == winner else n} | {v:.4f} |" for n, v in scores.items()),
+            "",
+            f"Closed loop of {winner} on {sel.loop_n} other validation problems (seed {sel.loop_seed}):",
+            "",
+            *closed_loop_markdown(rows, best, noises),
+        ]
+        write_results(
+            self.out, "selection", lines, {"scores": scores, "chosen": winner, "closed_loop": rows, "best": best}
+        )
+        log("\n".join(lines))
+
+
+def export(source: Path, dest: Path, loop: dict[str, Any], chosen_on: str, provenance: dict[str, Any]) -> None:
+    """Copies the policy in ``source`` to ``dest`` (whole or not at all) with its closed-loop
+    settings and the recipe's provenance in ``policy.json``."""
+    contract = json.loads((source / "policy.json").read_text())
+    contract["closed_loop"] = {
+        "stop_tolerance": loop["stop_tolerance"],
+        "warmup_frames": loop["warmup_frames"],
+        "chosen_on": chosen_on,
+    }
+    contract.setdefault("training", {})["recipe"] = provenance
+    partial = dest.with_name(dest.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    shutil.copy2(source / "policy.npz", partial / "policy.npz")
+    write_json(partial / "policy.json", contract)
+    shutil.rmtree(dest, ignore_errors=True)
+    os.replace(partial, dest)
+
+
+def commit() -> dict[str, Any]:
+    """The package's git commit and whether its tree had changes (nulls outside a checkout)."""
+    here = Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=30)
+        if head.returncode != 0:
+            return {"commit": None, "dirty": None}
+        dirty = subprocess.run(
+            ["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        return {"commit": head.stdout.strip(), "dirty": bool(dirty.stdout.strip())}
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+
+
+def check_manifest(out: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    """The folder's record (new, or the earlier one of the same recipe and overrides)."""
+    path = out / "recipe.json"
+    if not path.is_file():
+        return {"format": FORMAT, **manifest, "runs": []}
+    record = json.loads(path.read_text())
+    if {k: record.get(k) for k in manifest} != manifest:
+        raise ConfigError(
+            f"{out} holds recipe {record.get('recipe')} with overrides {record.get('set')}; accepted: the same "
+            "recipe and --set to resume it, or another --out"
+        )
+    return record
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m regrasp_mjx.recipe", description=__doc__.splitlines()[0])
+    p.add_argument("name", nargs="?", help=f"the recipe: one of {', '.join(RECIPES)}")
+    p.add_argument("--out", help="recipe folder (resumed when it holds this recipe)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a setting for every stage with it")
+    p.add_argument("--gpus", default=None, help="GPU indices, comma-separated (default: every one nvidia-smi lists)")
+    p.add_argument(
+        "--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="planner processes for demonstrations"
+    )
+    p.add_argument(
+        "--until", choices=STAGES, default=None, help="run the stages up to this one (default: all); later calls go on"
+    )
+    p.add_argument("--list", action="store_true", help="print every recipe's stages and exit")
+    p.add_argument("--dry-run", action="store_true", help="print each job's command and whether it has finished")
+    p.add_argument("--step", choices=("choose",), help=argparse.SUPPRESS)  # the job that chooses and exports
+    args = p.parse_args(argv)
+    log = lambda msg: print(msg, flush=True)  # noqa: E731
+    if args.list:
+        log("\n".join(recipes.render_docs()))
+        return 0
+    if args.name not in RECIPES:
+        p.error(f"recipe {args.name!r} is not accepted: one of {', '.join(RECIPES)}")
+    if not args.out:
+        p.error("--out is required: the recipe's folder")
+    if args.workers < 1:
+        p.error(f"--workers {args.workers} is not accepted: at least 1")
+    out = Path(args.out)
+    if problem := output_folder_problem(out):
+        p.error(problem)
+    try:
+        plan = Plan(RECIPES[args.name], out, args.set, args.workers)
+        if args.step == "choose":
+            plan.choose(log)
+            return 0
+        jobs = plan.jobs()
+        if args.until:
+            jobs = [j for j in jobs if STAGES.index(j.stage) <= STAGES.index(args.until)]
+        if args.dry_run:
+            for j in jobs:
+                log(f"[{'finished' if j.done() else 'to run'}] {j.name}: python {shlex.join(j.argv())}")
+            return 0
+        with folder_lock(out):
+            record = check_manifest(out, {"recipe": args.name, "set": args.set})
+            slots = gpu_slots(args.gpus)
+            run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "gpus": slots, "jobs": {}}
+            record["runs"].append(run)
+            write_json(out / "recipe.json", record)
+            t0 = time.perf_counter()
+            try:
+                run["jobs"] = run_jobs(jobs, slots, log)
+            finally:
+                run["wall_s"] = time.perf_counter() - t0
+                write_json(out / "recipe.json", record)
+    except (ConfigError, FolderInUse) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    code = summary(out, run, log)
+    if code == 0 and args.until and args.until != STAGES[-1]:
+        log(f"the stages up to {args.until} have finished; the same command without --until goes on from there")
+    return code
+
+
+def summary(out: Path, run: dict[str, Any], log) -> int:
+    """Per stage: the jobs this call ran and their wall time; the exported policy; exit status."""
+    stages: dict[str, list[float]] = {}
+    for r in run["jobs"].values():
+        stages.setdefault(r["stage"], []).append(r["wall_s"])
+    log(
+        f"recipe wall {run['wall_s']:.0f} s; "
+        + "; ".join(f"{s} {len(w)} job(s), longest {max(w):.0f} s" for s, w in stages.items())
+    )
+    failed = [n for n, r in run["jobs"].items() if r["exit"] != 0]
+    if failed:
+        print(
+            f"error: {len(failed)} job(s) did not finish: {', '.join(failed)}; their output is in {out / 'logs'}; "
+            "run the same command again to resume",
+            file=sys.stderr,
+        )
+        return 1
+    if (out / "selection.json").is_file() and (out / "robustness.json").is_file():
+        log(
+            f"exported {out / 'policy'}; its robustness table: {out / 'robustness.md'}; the choice: {out / 'selection.md'}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_command(main, "run the same command again to resume: finished jobs are kept"))

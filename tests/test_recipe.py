@@ -1,0 +1,201 @@
+"""Recipes as data and as one command: where a --set goes, the jobs a recipe makes, the scheduler's
+needs and memory shares, the export, the docs' copy, and the smoke recipe built on the CPU end to
+end, killed mid-way and resumed."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from regrasp_mjx import recipe as recipe_cli
+from regrasp_mjx import recipes
+from regrasp_mjx.config import ConfigError
+from regrasp_mjx.jobs import Job, run_jobs
+from regrasp_mjx.planning.episodes import DemosError, check_made_for
+from regrasp_mjx.policy import load_policy
+from regrasp_mjx.policy_file import resolve
+from regrasp_mjx.recipes import RECIPES
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_a_set_reaches_every_stage_that_has_its_key_and_a_prefixed_one_only_its_stage():
+    r = RECIPES["default"]
+    routed = recipes.route(
+        r, {"obs_noise_mm": 0.3, "env.scene.needle_radius_mm": 4.0, "teachers.hidden": (64,), "iterations": 5}
+    )
+    assert routed["teachers"] == {"obs_noise_mm": 0.3, "env.scene.needle_radius_mm": 4.0, "hidden": (64,)}
+    assert routed["students"] == {"obs_noise_mm": 0.3, "iterations": 5}
+    # the user's value wins over the recipe's own, in every variant
+    assert r.student_config("t07n075", routed["students"]).obs_noise_mm == 0.3
+    assert r.student_config("t07n075", {}).obs_noise_mm == 0.75
+    assert r.teacher_config(routed["teachers"]).env.scene.needle_radius_mm == 4.0
+    with pytest.raises(ConfigError, match="no stage of recipe default has 'colour'"):
+        recipes.route(r, {"colour": 1})
+    with pytest.raises(ConfigError, match="recipe general has no students"):
+        recipes.route(RECIPES["general"], {"students.iterations": 3})
+    with pytest.raises(ConfigError, match="epochs"):  # every stage's config is made before anything runs
+        recipes.check(r, {"epochs": -1})
+
+
+def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
+    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["env.scene.needle_radius_mm=4.0", "iterations=5"], 3)
+    jobs = {j.name: j for j in plan.jobs()}
+    students = [n for n in jobs if n.startswith("students/")]
+    assert students == [f"students/{v}/s{s}" for v in ("t07", "t07n075") for s in range(3)]
+    assert [n for n in jobs if n.startswith("select/")] == [
+        f"select/{v}_s{s}" for v in ("t07", "t07n075") for s in range(3)
+    ]
+    assert jobs["teachers"].needs == ("demos",) and jobs["choose"].needs == tuple(
+        f"select/{n}" for n in plan.candidates()
+    )
+    demos = jobs["demos"].argv()
+    assert demos[demos.index("--n") + 1] == "9900" and "scene.needle_radius_mm=4.0" in demos
+    assert demos[demos.index("--workers") + 1] == "3"
+    train = jobs["teachers"].argv()
+    assert train[train.index("--preset") + 1] == "decay" and "env.scene.needle_radius_mm=4.0" in train
+    s = jobs["students/t07n075/s2"].argv()
+    assert s[s.index("--teacher") + 1] == str(tmp_path / "teachers" / "seed2" / "policy")
+    # the variant's noise, then the user's iterations last (the last --set of a key wins)
+    sets = [s[i + 1] for i, x in enumerate(s) if x == "--set"]
+    assert sets.index("obs_noise_mm=0.75") < sets.index("iterations=5") == len(sets) - 1
+    assert "iterations=20" in sets
+    sel = jobs["select/t07_s0"].argv()
+    assert sel[sel.index("--heldout") + 1] == "1000:7000001" and "--no-testset" in sel  # never a test set
+    # a general recipe's candidates are its teacher seeds
+    general = recipe_cli.Plan(RECIPES["general"], tmp_path / "g", [], 1)
+    assert list(general.candidates()) == ["teacher_s0", "teacher_s1", "teacher_s2"]
+    assert (
+        "--task" in (d := {j.name: j for j in general.jobs()}["demos"].argv()) and d[d.index("--task") + 1] == "general"
+    )
+
+
+def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):
+    """A job that records when it ran and which GPU it was given, then exits with ``code``."""
+    done = tmp_path / f"{name}.done"
+    script = (
+        f"import os, sys, time; t0 = time.time(); time.sleep({seconds}); "
+        f"open({str(done)!r}, 'w').write(f\"{{t0}} {{time.time()}} {{os.environ.get('CUDA_VISIBLE_DEVICES')}} "
+        f"{{os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION')}}\") if {code} == 0 else None; sys.exit({code})"
+    )
+    return Job(name, "stage", lambda: ["-c", script], done, tmp_path / "logs" / f"{name}.txt", share, needs)
+
+
+def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp_path):
+    jobs = [
+        _job(tmp_path, "a", 0.5),
+        _job(tmp_path, "b", 0.5),
+        _job(tmp_path, "c", 0.5),  # a and b fill GPU 0 and 1 half each: c fits beside one of them
+        _job(tmp_path, "d", 0.9, needs=("a", "b", "c")),
+        _job(tmp_path, "e", 0.1, needs=("d",), code=3),
+        _job(tmp_path, "f", 0.1, needs=("e",)),
+    ]
+    lines = []
+    out = run_jobs(jobs, ["0", "1"], lines.append, heartbeat_s=1e9)
+    ran = {j.name: j.finished.read_text().split() for j in jobs if j.done()}
+    assert set(ran) == {"a", "b", "c", "d"}
+    start, end = {n: float(v[0]) for n, v in ran.items()}, {n: float(v[1]) for n, v in ran.items()}
+    assert start["d"] >= max(end["a"], end["b"], end["c"])  # its needs first
+    assert max(start["a"], start["b"], start["c"]) < min(end["a"], end["b"], end["c"])  # three side by side
+    assert ran["d"][3] == "0.900" and {ran[n][2] for n in "abc"} == {"0", "1"}
+    assert out["e"]["exit"] == 3 and out["f"]["exit"] is None  # a failed need: never started
+    assert any("f not started: a job it needs failed" in x for x in lines)
+    # started again: the finished ones are skipped, the failed one runs again
+    again = []
+    out = run_jobs(jobs, ["0"], again.append, heartbeat_s=1e9)
+    assert set(out) == {"e", "f"} and again[0].startswith("6 jobs: 4 finished already, 2 to run")
+    # a job whose dependents have all finished is not run again (demonstrations deleted after training)
+    made = _job(tmp_path, "made", 0.1)
+    uses = _job(tmp_path, "uses", 0.1, needs=("made",))
+    uses.finished.write_text("done earlier")
+    spared = []
+    assert run_jobs([made, uses], ["0"], spared.append, heartbeat_s=1e9) == {}
+    assert spared[0].startswith("2 jobs: 1 finished already, 1 no longer needed") and not made.done()
+    # no GPU: one job at a time, no memory fraction set
+    cpu = [_job(tmp_path / "cpu", n, 0.1) for n in "xy"]
+    run_jobs(cpu, [None], lambda _: None, heartbeat_s=1e9)
+    x, y = (j.finished.read_text().split() for j in cpu)
+    assert float(y[0]) >= float(x[1]) and x[3] == "None"
+
+
+def test_export_writes_the_closed_loop_and_the_recipe_into_a_loadable_policy(tmp_path):
+    source = resolve("default")
+    provenance = {"name": "smoke", "overrides": ["iterations=3"], "commit": recipe_cli.commit()}
+    recipe_cli.export(
+        source, tmp_path / "policy", {"stop_tolerance": 0.9, "warmup_frames": 5}, "validation", provenance
+    )
+    policy = load_policy(tmp_path / "policy")
+    assert policy.closed_loop_defaults == {"stop_tolerance": 0.9, "warmup_frames": 5}
+    contract = json.loads((tmp_path / "policy" / "policy.json").read_text())
+    assert contract["training"]["recipe"]["overrides"] == ["iterations=3"]
+    assert set(contract["training"]["recipe"]["commit"]) == {"commit", "dirty"}
+    assert not (tmp_path / "policy.partial").exists()
+
+
+def test_demonstrations_of_another_scene_are_refused(tmp_path):
+    r = RECIPES["default"]
+
+    class Made:
+        meta = {"settings": {"env": {"scene": {"needle_radius_mm": 5.4}, "task": {"start_distance_mm": 13.0}}}}
+
+    assert check_made_for(Made, r.teacher_config().env, tmp_path) is Made
+    with pytest.raises(DemosError, match=r"another scene \(needle_radius_mm=5.4; this run: needle_radius_mm=4.0\)"):
+        check_made_for(Made, r.teacher_config({"env.scene.needle_radius_mm": 4.0}).env, tmp_path)
+
+
+def test_docs_show_the_recipes_as_the_data_says():
+    text = (ROOT / "docs" / "training.md").read_text()
+    block = text.split("<!-- recipes:begin -->\n", 1)[1].split("<!-- recipes:end -->", 1)[0]
+    assert block.strip().splitlines() == recipes.render_docs(), (
+        "docs/training.md's recipe block is stale: python experiments/recipe_docs.py"
+    )
+
+
+def _recipe(out: Path, *more: str, **kw) -> subprocess.Popen:
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    argv = [sys.executable, "-m", "regrasp_mjx.recipe", "smoke", "--out", str(out), "--workers", "1", *more]
+    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, **kw)
+
+
+def test_the_smoke_recipe_builds_on_the_cpu_and_resumes_after_a_kill(tmp_path):
+    out = tmp_path / "r"
+    first = _recipe(out, start_new_session=True)  # its own process group: killed whole, as by a lost machine
+    seen = []
+    deadline = time.time() + 900
+    for line in first.stdout:
+        seen.append(line)
+        if line.startswith("started students/t07/s1"):
+            time.sleep(3.0)  # the student under way
+            os.killpg(first.pid, signal.SIGKILL)
+            break
+        assert time.time() < deadline, "".join(seen)
+    first.wait()
+    assert (out / "teachers" / "final_eval.json").is_file() and not (out / "policy").exists(), "".join(seen)
+
+    again = _recipe(out)
+    text = again.communicate(timeout=900)[0]
+    assert again.returncode == 0, text
+    assert text.startswith("8 jobs: 3 finished already, 5 to run"), text  # demos, teachers, s0 kept
+    assert "started demos" not in text and "started teachers" not in text
+    policy = load_policy(out / "policy")
+    contract = policy.contract
+    assert contract["training"]["recipe"]["name"] == "smoke"
+    assert contract["training"]["recipe"]["candidate"] in ("t07_s0", "t07_s1")
+    assert contract["closed_loop"]["stop_tolerance"] in (0.8, 0.9)
+    assert (out / "robustness.json").is_file() and (out / "selection.md").is_file()
+    record = json.loads((out / "recipe.json").read_text())
+    assert len(record["runs"]) == 2 and record["runs"][1]["jobs"]["students/t07/s1"]["exit"] == 0
+
+    # the same arguments again: nothing left to run; other arguments: refused in one line
+    done = _recipe(out)
+    assert "8 jobs: 8 finished already, 0 to run" in done.communicate(timeout=300)[0]
+    other = _recipe(out, "--set", "iterations=3")
+    text = other.communicate(timeout=300)[0]
+    assert other.returncode == 2 and text.strip().count("\n") == 0 and "holds recipe smoke with overrides []" in text
