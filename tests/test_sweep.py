@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from regrasp_mjx import sweep
+from regrasp_mjx import jobs, sweep
 from regrasp_mjx.config import ConfigError
 
 
@@ -99,5 +99,5 @@ def test_gpu_slots_follow_the_request_and_visible_devices(monkeypatch):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1,3")
     assert sweep.gpu_slots(None) == ["1", "3"]
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
-    monkeypatch.setattr(sweep.shutil, "which", lambda _: None)
+    monkeypatch.setattr(jobs.shutil, "which", lambda _: None)
     assert sweep.gpu_slots(None) == [None]  # no GPU: one run at a time on this machine
