@@ -33,6 +33,8 @@ from regrasp_mjx.planning.pool import PlannerPool
 from regrasp_mjx.sampling import Episode, sample_episode
 from regrasp_mjx.testset import versions
 
+ALL_FAILED = 16  # this many plans in a row failing with an error (not unsolved) stop the build
+
 
 def problem_sampler(env: RegraspEnv, seed: int, batch: int = 1024):
     """``sample(indices) -> Episode`` (numpy): problem i from ``fold_in(PRNGKey(seed), i)``."""
@@ -144,7 +146,7 @@ def build(
     replay = make_replay(env)
     sample = problem_sampler(env, seed)
     verified: dict[int, dict] = {}
-    stats = {"planned": 0, "failed": 0, "replay_failed": 0, "resumed": 0}
+    stats = {"planned": 0, "failed": 0, "errors": 0, "replay_failed": 0, "resumed": 0}
 
     def verify(items: list[tuple[int, dict]]) -> None:
         if not items:
@@ -191,6 +193,13 @@ def build(
                 result = r.result if r.ok else None
                 _write_plan(plans, r.payload, result, r.error)
                 stats["planned"] += 1
+                stats["errors"] += not r.ok
+                if stats["errors"] == stats["planned"] >= ALL_FAILED:  # a broken planner, not hard problems
+                    raise DemosError(
+                        f"the first {ALL_FAILED} plans all failed with an error, the last: "
+                        f"{r.error.strip().splitlines()[-1] if r.error.strip() else 'none given'}; "
+                        "check that OMPL imports (python -c 'import ompl') and the planner settings"
+                    )
                 if result and result["solved"]:
                     pending.append((r.payload, result))
                 else:

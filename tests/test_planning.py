@@ -348,3 +348,27 @@ def test_load_demos_errors(tmp_path):
     np.savez(tmp_path / "demos.npz", meta=np.array("{}"), obs=np.zeros((2, 21)))
     with pytest.raises(DemosError, match="lacks"):
         load_demos(tmp_path)
+
+
+def test_demos_cli_stops_with_the_error_when_every_plan_fails(tmp_path):
+    """A machine without OMPL (or a broken planner) must not plan failures forever: the build stops
+    after ALL_FAILED errors in a row and says what the error was."""
+    fake = tmp_path / "site" / "ompl"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('no OMPL on this machine')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), os.environ.get("PYTHONPATH", "")])}
+    argv = [
+        sys.executable,
+        "-m",
+        "regrasp_mjx.demos",
+        "--n",
+        "4",
+        "--workers",
+        "2",
+        "--out",
+        str(tmp_path / "d"),
+        "--quiet",
+    ]
+    r = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 2, r.stderr
+    assert "the first 16 plans all failed with an error, the last: ImportError: no OMPL on this machine" in r.stderr
