@@ -86,11 +86,17 @@ class _Running:
 
 
 def run_jobs(
-    jobs: list[Job], slots: list[str | None], log: Callable[[str], None], heartbeat_s: float = HEARTBEAT_S
+    jobs: list[Job],
+    slots: list[str | None],
+    log: Callable[[str], None],
+    heartbeat_s: float = HEARTBEAT_S,
+    on_end: Callable[[dict[str, dict]], None] | None = None,
 ) -> dict[str, dict]:
     """Runs the jobs not finished yet (see the module's docstring); returns, per job this call
     started, ``{"exit": code, "wall_s": seconds, "stage": stage}`` (exit None: not started because
-    a job it needs failed). A SIGTERM or Ctrl-C stops the running jobs; they resume when started again."""
+    a job it needs failed; "stopped": running when this call was stopped), and passes the same
+    record to ``on_end`` each time a job ends. A SIGTERM or Ctrl-C stops the running jobs; they
+    resume when started again."""
     by_name = {j.name: j for j in jobs}
     for j in jobs:
         unknown = [n for n in j.needs if n not in by_name]
@@ -104,14 +110,10 @@ def run_jobs(
         + (f"{spared} no longer needed (what needs them has finished), " if spared else "")
         + f"{len(todo)} to run on {_where(slots)}"
     )
-    gpu = slots != [None]
     load = {s: 0.0 for s in slots}
     running: list[_Running] = []
     failed: set[str] = set()
     out: dict[str, dict] = {}
-    stage_left = {s: sum(1 for j in todo if j.stage == s) for s in dict.fromkeys(j.stage for j in todo)}
-    stage_t0: dict[str, float] = {}
-    t0 = last_beat = time.perf_counter()
 
     def stop(signum, frame):  # the jobs resume from their own checkpoints when started again
         for r in running:
@@ -120,54 +122,72 @@ def run_jobs(
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:
-        while todo or running:
-            for job in list(todo):
-                if any(n in failed for n in job.needs):
-                    todo.remove(job)
-                    failed.add(job.name)
-                    out[job.name] = {"exit": None, "wall_s": 0.0, "stage": job.stage}
-                    log(f"{job.name} not started: a job it needs failed")
-                    continue
-                if not all(n in finished for n in job.needs):
-                    continue
-                slot = _place(job, load, gpu, busy=bool(running))
-                if slot is False:
-                    continue
-                todo.remove(job)
-                running.append(_start(job, slot, gpu))
-                load[slot] += job.share if gpu else 1.0
-                stage_t0.setdefault(job.stage, time.perf_counter())
-                where = f"GPU {slot}, {job.share:.0%} of its memory" if gpu else "this machine"
-                log(f"started {job.name} on {where}")
-            time.sleep(0.5)
-            now = time.perf_counter()
-            if running and now - last_beat >= heartbeat_s:
-                last_beat = now
-                for r in running:
-                    log(f"  {r.job.name} ({(now - r.started) / 60:.1f} min): {last_line(r.job.log) or '...'}")
-            for r in [r for r in running if r.proc.poll() is not None]:
-                running.remove(r)
-                r.stdout.close()
-                load[r.slot] -= r.job.share if gpu else 1.0
-                wall = now - r.started
-                code = r.proc.returncode
-                out[r.job.name] = {"exit": code, "wall_s": wall, "stage": r.job.stage}
-                if code == 0 and r.job.done():
-                    finished.add(r.job.name)
-                    verdict = "finished"
-                else:
-                    failed.add(r.job.name)
-                    why = f"exit {code}" if code != 0 else f"exit 0 without {r.job.finished.name}"
-                    verdict = f"FAILED ({why}; its output: {r.job.log})"
-                left = len(todo) + len(running)
-                log(
-                    f"{r.job.name} {verdict} after {wall:.0f} s; {len(out)} done, {left} left, {(now - t0) / 60:.1f} min in"
-                )
-                stage_left[r.job.stage] -= 1
-                if stage_left[r.job.stage] == 0:
-                    log(f"stage {r.job.stage}: {now - stage_t0[r.job.stage]:.0f} s")
+        return _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end)
     finally:
         signal.signal(signal.SIGTERM, previous)
+        now = time.perf_counter()
+        for r in running:  # stopped (SIGTERM, Ctrl-C): recorded with the time they had
+            out[r.job.name] = {"exit": "stopped", "wall_s": now - r.started, "stage": r.job.stage}
+            r.proc.terminate()
+        if running and on_end is not None:
+            on_end(out)
+
+
+def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end) -> dict[str, dict]:
+    """Starts and reaps jobs until none is left to start or running (``running`` and ``out`` are the
+    caller's, so a stopped loop leaves them as they were)."""
+    gpu = slots != [None]
+    stage_left = {s: sum(1 for j in todo if j.stage == s) for s in dict.fromkeys(j.stage for j in todo)}
+    stage_t0: dict[str, float] = {}
+    t0 = last_beat = time.perf_counter()
+    while todo or running:
+        for job in list(todo):
+            if any(n in failed for n in job.needs):
+                todo.remove(job)
+                failed.add(job.name)
+                out[job.name] = {"exit": None, "wall_s": 0.0, "stage": job.stage}
+                log(f"{job.name} not started: a job it needs failed")
+                continue
+            if not all(n in finished for n in job.needs):
+                continue
+            slot = _place(job, load, gpu, busy=bool(running))
+            if slot is False:
+                continue
+            todo.remove(job)
+            running.append(_start(job, slot, gpu))
+            load[slot] += job.share if gpu else 1.0
+            stage_t0.setdefault(job.stage, time.perf_counter())
+            where = f"GPU {slot}, {job.share:.0%} of its memory" if gpu else "this machine"
+            log(f"started {job.name} on {where}")
+        time.sleep(0.5)
+        now = time.perf_counter()
+        if running and now - last_beat >= heartbeat_s:
+            last_beat = now
+            for r in running:
+                log(f"  {r.job.name} ({(now - r.started) / 60:.1f} min): {last_line(r.job.log) or '...'}")
+        for r in [r for r in running if r.proc.poll() is not None]:
+            running.remove(r)
+            r.stdout.close()
+            load[r.slot] -= r.job.share if gpu else 1.0
+            wall = now - r.started
+            code = r.proc.returncode
+            out[r.job.name] = {"exit": code, "wall_s": wall, "stage": r.job.stage}
+            if code == 0 and r.job.done():
+                finished.add(r.job.name)
+                verdict = "finished"
+            else:
+                failed.add(r.job.name)
+                why = f"exit {code}" if code != 0 else f"exit 0 without {r.job.finished.name}"
+                verdict = f"FAILED ({why}; its output: {r.job.log})"
+            left = len(todo) + len(running)
+            log(
+                f"{r.job.name} {verdict} after {wall:.0f} s; {len(out)} done, {left} left, {(now - t0) / 60:.1f} min in"
+            )
+            stage_left[r.job.stage] -= 1
+            if stage_left[r.job.stage] == 0:
+                log(f"stage {r.job.stage}: {now - stage_t0[r.job.stage]:.0f} s")
+            if on_end is not None:
+                on_end(out)
     return out
 
 

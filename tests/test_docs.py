@@ -11,7 +11,7 @@ import pytest
 
 from tests.conftest import ROOT
 
-CLIS = ("train", "evaluate", "compare", "distill", "demos", "sweep", "testset", "export_onnx", "grasps")
+CLIS = ("train", "evaluate", "compare", "distill", "demos", "recipe", "sweep", "testset", "export_onnx", "grasps")
 
 
 def _options(module: str) -> set[str]:

@@ -192,6 +192,7 @@ def test_the_smoke_recipe_builds_on_the_cpu_and_resumes_after_a_kill(tmp_path):
     assert (out / "robustness.json").is_file() and (out / "selection.md").is_file()
     record = json.loads((out / "recipe.json").read_text())
     assert len(record["runs"]) == 2 and record["runs"][1]["jobs"]["students/t07/s1"]["exit"] == 0
+    assert record["runs"][0]["jobs"]["teachers"]["exit"] == 0  # the killed call kept the times of what ended
 
     # the same arguments again: nothing left to run; other arguments: refused in one line
     done = _recipe(out)
