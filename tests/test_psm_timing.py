@@ -1,0 +1,146 @@
+"""Timed joint trajectories at the dVRK's own limits: a hand-worked bang-bang move, every sample
+within the limits and through every waypoint, a shipped plan timed and re-checked clear, the
+grasping tool put in the executed motion's way caught, and the refusals."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from regrasp_mjx import dvrk
+from regrasp_mjx.policy import load_policy
+from regrasp_mjx.psm_timing import (
+    A_MAX,
+    HEADROOM,
+    V_MAX,
+    MotionRefused,
+    _tool_poses,
+    check_motion,
+    time_joints,
+    time_plan,
+    time_waypoints,
+)
+from regrasp_mjx.sampling import episode_poses
+
+
+def test_one_insertion_move_is_the_hand_worked_bang_bang_profile():
+    """0.05 m of insertion alone, at rest at both ends, a = 0.2 m/s^2 x HEADROOM: the distance is
+    below v^2 / a (0.2 m), so the fastest move accelerates for half the way and brakes for the
+    other half, T = 2 sqrt(d / a) = 1.0153 s, peak speed sqrt(d a) = 0.0985 m/s."""
+    q0 = np.array([0.1, -0.2, 0.10, 0.3, 0.0, 0.0])
+    q1 = q0 + [0, 0, 0.05, 0, 0, 0]
+    timed = time_joints([q0, q1])
+    a = 0.2 * HEADROOM
+    assert timed.duration_s == pytest.approx(2 * math.sqrt(0.05 / a), rel=0.01)
+    assert np.abs(timed.qd[:, 2]).max() == pytest.approx(math.sqrt(0.05 * a), rel=0.01)
+    np.testing.assert_allclose(timed.q[0], q0, atol=1e-12)
+    np.testing.assert_allclose(timed.q[-1], q1, atol=1e-9)
+    np.testing.assert_allclose(timed.qd[[0, -1]], 0.0, atol=1e-6)
+    np.testing.assert_allclose(np.diff(timed.t[:-1]), 1e-3, atol=1e-12)  # the controller's 1 kHz
+    np.testing.assert_allclose(timed.q[:, [0, 1, 3, 4, 5]], np.tile(q0[[0, 1, 3, 4, 5]], (len(timed.t), 1)), atol=1e-9)
+
+
+def test_every_sample_keeps_the_dvrk_limits_and_passes_every_waypoint():
+    rng = np.random.default_rng(3)
+    waypoints = dvrk.Q_MIN + (dvrk.Q_MAX - dvrk.Q_MIN) * (0.4 + 0.2 * rng.random((6, 6)))
+    timed = time_joints(waypoints, rate_hz=500.0)
+    assert np.all(np.abs(timed.qd) <= V_MAX * (1 + 1e-9)) and np.all(np.abs(timed.qdd) <= A_MAX * (1 + 1e-9))
+    step = V_MAX / 500.0  # a sample period at full speed
+    for w in waypoints:  # the path goes through each waypoint: some sample is within one period of it
+        assert np.min(np.max(np.abs(timed.q - w) / step, axis=1)) <= 1.0
+    # a repeated waypoint is no new segment; one waypoint is a trajectory of one sample
+    again = time_joints(np.repeat(waypoints[:2], 2, axis=0), rate_hz=500.0)
+    assert again.duration_s == pytest.approx(time_joints(waypoints[:2], rate_hz=500.0).duration_s)
+    assert time_joints(waypoints[:1]).duration_s == 0.0
+    for bad in (np.zeros((3, 5)), np.full((2, 6), np.nan)):
+        with pytest.raises(ValueError, match=r"\[W, 6\] finite joint vectors"):
+            time_joints(bad)
+    with pytest.raises(ValueError, match="6 positive numbers"):
+        time_joints(waypoints, v_max=np.zeros(6))
+    with pytest.raises(ValueError, match="rate_hz"):
+        time_joints(waypoints, rate_hz=0.0)
+
+
+def _camera_plan(paper_testset, row: int):
+    episodes, _ = paper_testset
+    needle, start, _ = episode_poses(episodes)
+    camera_eg = np.array([0.01, -0.02, 0.1, 0.9238795, 0.3826834, 0.0, 0.0])
+    eg = dvrk.pose_matrix(camera_eg)
+    cam = lambda pose: _as_pose(eg @ dvrk.pose_matrix(pose))  # noqa: E731
+    psm = {"regrasping_base": eg @ dvrk.base_behind(start[row])}
+    policy = load_policy()
+    plan = policy.plan_from_camera(camera_eg, cam(start[row]), cam(needle[row]), psm=psm)
+    return policy, plan, camera_eg, cam(needle[row]), psm, needle[row]
+
+
+def _as_pose(t: np.ndarray) -> np.ndarray:
+    w = math.sqrt(max(1e-12, 1.0 + np.trace(t[:3, :3]))) / 2.0
+    q = np.array([w, (t[2, 1] - t[1, 2]) / (4 * w), (t[0, 2] - t[2, 0]) / (4 * w), (t[1, 0] - t[0, 1]) / (4 * w)])
+    return np.r_[t[:3, 3], q / np.linalg.norm(q)]
+
+
+def test_a_shipped_plan_is_timed_and_clear_and_a_tool_in_its_way_is_caught(paper_testset):
+    policy, plan, camera_eg, needle_cam, psm, needle_eg = _camera_plan(paper_testset, 0)
+    assert plan.success and plan.joints.all_reachable
+    timed = time_plan(policy, plan, camera_eg, needle_cam, psm)
+    assert not timed.check.collides and timed.check.within_limits
+    assert 0.2 < timed.trajectory.duration_s < 3.0
+    assert 0.0 < timed.check.chord_margin_m < 1e-5  # the arc between 1-kHz samples: micrometres at most
+    # the executed tool poses start and end where the plan does (in e_g)
+    base = np.linalg.inv(dvrk.pose_matrix(camera_eg)) @ dvrk.as_matrix(psm["regrasping_base"])
+    poses = _tool_poses(base, timed.trajectory.q)
+    np.testing.assert_allclose(poses[[0, -1], :3], plan.trajectory("eg")[[0, -1], :3], atol=1e-5)
+    # the same motion with the arm's base moved so that the tool tip meets the grasping tool's tip
+    # halfway: caught, at or before halfway
+    middle = len(poses) // 2
+    shifted = np.eye(4)
+    shifted[:3, 3] = -poses[middle, :3]
+    check = check_motion(timed.trajectory, shifted @ base, needle_eg, policy)
+    assert check.collides and check.index <= middle and check.t_s == timed.trajectory.t[check.index]
+    assert not check_motion(timed.trajectory, base, needle_eg, policy).collides
+
+
+def test_plans_that_cannot_be_timed_are_refused_with_the_reason(paper_testset):
+    policy, plan, camera_eg, needle_cam, psm, _ = _camera_plan(paper_testset, 0)
+    import dataclasses
+
+    with pytest.raises(MotionRefused, match="has no joints"):
+        time_plan(policy, dataclasses.replace(plan, joints=None), camera_eg, needle_cam, psm)
+    with pytest.raises(MotionRefused, match="did not reach the goal"):
+        time_plan(policy, dataclasses.replace(plan, success=np.array(False)), camera_eg, needle_cam, psm)
+    out = dataclasses.replace(
+        plan.joints,
+        reachable=np.r_[plan.joints.reachable[:-1], False],
+        violations=(*plan.joints.violations[:-1], ("outer_wrist_yaw",)),
+    )
+    with pytest.raises(MotionRefused, match=r"outside the PSM's joint limits \(outer_wrist_yaw\)"):
+        time_plan(policy, dataclasses.replace(plan, joints=out), camera_eg, needle_cam, psm)
+
+
+def test_a_spline_past_a_joint_limit_gets_waypoints_and_a_colliding_sweep_is_refused(paper_testset):
+    """paper300 row 175 from one fixed port (0.12 m behind the average start): its 13 waypoints are
+    within the limits, the spline through them is not, and inserted Cartesian midpoints bring it back.
+    A yaw sweep of the arc through the grasping tool, whose Cartesian chord collides too, is refused."""
+    episodes, _ = paper_testset
+    needle, start, _ = episode_poses(episodes)
+    row = 175
+    psm = {"regrasping_base": dvrk.base_behind(dvrk.average_pose(start))}
+    identity = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    policy = load_policy()
+    depth = float(np.asarray(episodes.goal_depth)[row] * 1e3)
+    plan = policy.plan_from_camera(identity, start[row], needle[row], goal_depth_mm=depth, check_grasp=False, psm=psm)
+    assert plan.success and plan.joints.all_reachable
+    base = dvrk.as_matrix(psm["regrasping_base"])
+    first = check_motion(time_joints(plan.joints.q), base, needle[row], policy)
+    assert not first.collides and not first.within_limits
+    timed = time_plan(policy, plan, identity, needle[row], psm)
+    assert timed.inserted >= 1 and timed.check.within_limits and not timed.check.collides
+    assert len(timed.trajectory.waypoints) == len(plan.joints.q) + timed.inserted
+    # the tool tip sweeping 0.6 rad of outer yaw through the grasping tool's tip: refused
+    q0, q1 = np.array([-0.3, 0.0, 0.15, 0.0, 0.0, 0.0]), np.array([0.3, 0.0, 0.15, 0.0, 0.0, 0.0])
+    through = np.linalg.inv(dvrk.forward_kinematics(np.array([0.0, 0.0, 0.15, 0.0, 0.0, 0.0])))
+    far = np.r_[0.2, 0.2, 0.2, 1.0, 0.0, 0.0, 0.0]
+    with pytest.raises(MotionRefused, match=r"collides at 0\.\d+ s after 8 inserted waypoints"):
+        time_waypoints([q0, q1], through, far, policy)
