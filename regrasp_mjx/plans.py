@@ -70,6 +70,9 @@ class Plan:
       joints: with ``plan_from_camera(..., psm=...)``, the regrasping PSM's
         :class:`~regrasp_mjx.psm_joints.JointTrajectory` of the valid poses (a list of them for a batch).
       grasping_joints: likewise the grasping PSM's :class:`~regrasp_mjx.dvrk.IKResult` at its pose.
+      motion: with ``plan_from_camera(..., psm=..., timed=True)``, the regrasping PSM's motion
+        (:class:`~regrasp_mjx.psm_timing.TimedPlan`: a 1-kHz joint trajectory at the dVRK's limits,
+        re-checked, or why it was refused; a list of them for a batch).
     """
 
     success: np.ndarray
@@ -84,6 +87,7 @@ class Plan:
     nearest_grasp_distance: np.ndarray | None = None
     joints: Any = None
     grasping_joints: Any = None
+    motion: Any = None
 
     def __repr__(self) -> str:
         ok = np.atleast_1d(self.success)
@@ -274,6 +278,7 @@ def plan_from_camera(
     shield: bool = True,
     psm: dict | None = None,
     respect_limits: bool = True,
+    timed: bool = False,
     **task: Any,
 ) -> Plan:
     """Plans with ``policy`` from three camera-frame poses (7-vectors or ``[B, 7]``), as on a real
@@ -286,7 +291,9 @@ def plan_from_camera(
     verdict (``Plan.joints``) and the grasping arm's joints at its pose (``Plan.grasping_joints``)
     from :mod:`regrasp_mjx.dvrk`; out-of-limit poses are reported, not changed. With
     ``respect_limits`` (and the shield) the shield also replaces an action whose end pose would
-    leave the regrasping arm's joint limits, as it replaces a colliding one."""
+    leave the regrasping arm's joint limits, as it replaces a colliding one. With ``timed`` (and
+    ``psm``) each plan's motion on the arm, timed at the dVRK's limits and re-checked where it goes,
+    is ``Plan.motion`` (:mod:`regrasp_mjx.psm_timing`)."""
     spec = TaskSpec.of(task)
     (c_eg, c_er, c_n), single = batch_poses(grasping_ee=grasping_ee, regrasping_ee=regrasping_ee, needle=needle)
     grasp, radii = policy.task_ranges.resolve(len(c_eg), spec)
@@ -297,6 +304,8 @@ def plan_from_camera(
         warn_far_grasps(nearest)
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (numpy in: the fastest dispatch)
     base_inv = None
+    if timed and psm is None:
+        raise PoseError("timed=True is not accepted without psm: the motion timed is the regrasping PSM's")
     if psm is not None:
         unknown = set(psm) - {"regrasping_base", "grasping_base"}
         if "regrasping_base" not in psm or unknown:
@@ -306,17 +315,26 @@ def plan_from_camera(
             base_inv = f32([base @ dvrk.pose_matrix(e) for e in c_eg])
     out = policy.program((True, shield))(f32(c_eg), f32(c_er), f32(c_n), f32(grasp), f32(radii), base_inv)
     result = _finish(out, single, nearest)
-    return result if psm is None else _with_joints(result, psm, c_eg, single)
+    return result if psm is None else _with_joints(result, psm, c_eg, single, (policy, c_n) if timed else None)
 
 
-def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool) -> Plan:
+def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool, timed: tuple | None = None) -> Plan:
     steps = np.atleast_1d(plan.steps)
     cam = plan.poses_camera[None] if single else plan.poses_camera
     joints = [psm_joints.joint_trajectory(psm["regrasping_base"], cam[i][: steps[i] + 1]) for i in range(len(cam))]
+    motion = None
+    if timed is not None:
+        # here: toppra (and the matplotlib it imports) load in ~0.7 s, only where a timed motion is asked
+        from regrasp_mjx.psm_timing import motion_or_reason
+
+        policy, c_n = timed
+        ok = np.atleast_1d(plan.success)
+        motion = [motion_or_reason(policy, j, bool(ok[i]), c_eg[i], c_n[i], psm) for i, j in enumerate(joints)]
     grasping = None
     if psm.get("grasping_base") is not None:
         base_inv = np.linalg.inv(dvrk.as_matrix(psm["grasping_base"]))
         grasping = [dvrk.inverse_kinematics(base_inv @ dvrk.pose_matrix(e)) for e in c_eg]
     if single:
         joints, grasping = joints[0], None if grasping is None else grasping[0]
-    return dataclasses.replace(plan, joints=joints, grasping_joints=grasping)
+        motion = None if motion is None else motion[0]
+    return dataclasses.replace(plan, joints=joints, grasping_joints=grasping, motion=motion)

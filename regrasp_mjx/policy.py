@@ -214,7 +214,7 @@ class Policy:
 
     def plan_from_camera(self, grasping_ee: Any, regrasping_ee: Any, needle: Any, **options: Any) -> Plan:
         """Plans from three camera-frame poses, as on a real dVRK (options ``check_grasp``,
-        ``shield``, ``psm``, ``respect_limits`` and the task keywords):
+        ``shield``, ``psm``, ``respect_limits``, ``timed`` and the task keywords):
         :func:`regrasp_mjx.plans.plan_from_camera`."""
         return plans.plan_from_camera(self, grasping_ee, regrasping_ee, needle, **options)
 

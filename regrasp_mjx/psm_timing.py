@@ -158,12 +158,19 @@ def check_motion(timed: TimedTrajectory, base_in_eg, needle_in_eg, policy) -> Mo
 
 @dataclasses.dataclass(frozen=True)
 class TimedPlan:
-    """:func:`time_plan`'s result: the ``trajectory``, its ``check`` (clear), and ``inserted``: the
-    waypoints added where the first timing's motion left the checked steps."""
+    """A plan's motion on the arm: the ``trajectory``, its ``check`` (clear), and ``inserted``: the
+    waypoints added where the first timing's motion left the checked steps; or, where it could not
+    be timed (``Plan.motion`` of ``plan_from_camera(..., timed=True)``), ``refused``: why, and
+    neither trajectory nor check."""
 
-    trajectory: TimedTrajectory
-    check: MotionCheck
-    inserted: int
+    trajectory: TimedTrajectory | None
+    check: MotionCheck | None
+    inserted: int = 0
+    refused: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.refused is None
 
 
 class MotionRefused(ValueError):
@@ -181,16 +188,29 @@ def time_plan(
         raise MotionRefused("the plan has no joints: make it with plan_from_camera(..., psm=...)")
     i = 0 if query is None else query
     joints: JointTrajectory = plan.joints if query is None else plan.joints[query]
-    if not bool(np.atleast_1d(plan.success)[i]):
+    c_eg, c_n = (np.asarray(x, np.float64).reshape(-1, 7) for x in (camera_eg, needle))
+    return time_query(policy, joints, bool(np.atleast_1d(plan.success)[i]), c_eg[i], c_n[i], psm, rate_hz)
+
+
+def time_query(policy, joints: JointTrajectory, success: bool, camera_eg, needle, psm: dict, rate_hz=RATE_HZ):
+    """:func:`time_plan` of one query's ``joints`` and ``success`` (camera-frame 7-vectors)."""
+    if not success:
         raise MotionRefused("the plan did not reach the goal: no motion to time")
     if not joints.all_reachable:
         bad = [k for k, ok in enumerate(joints.reachable) if not ok]
         raise MotionRefused(f"poses {bad} are outside the PSM's joint limits ({', '.join(joints.violations[bad[0]])})")
-    eg_inv = np.linalg.inv(dvrk.as_matrix(np.asarray(camera_eg, np.float64).reshape(-1, 7)[i]))
+    eg_inv = np.linalg.inv(dvrk.as_matrix(camera_eg))
     base = eg_inv @ dvrk.as_matrix(psm["regrasping_base"])
-    n = eg_inv @ dvrk.as_matrix(np.asarray(needle, np.float64).reshape(-1, 7)[i])
-    needle_eg = np.r_[n[:3, 3], _quat(n[:3, :3])]
-    return time_waypoints(joints.q, base, needle_eg, policy, rate_hz)
+    n = eg_inv @ dvrk.as_matrix(needle)
+    return time_waypoints(joints.q, base, np.r_[n[:3, 3], _quat(n[:3, :3])], policy, rate_hz)
+
+
+def motion_or_reason(policy, joints: JointTrajectory, success: bool, camera_eg, needle, psm: dict) -> TimedPlan:
+    """:func:`time_query`, a refusal returned as ``TimedPlan(refused=why)`` instead of raised."""
+    try:
+        return time_query(policy, joints, success, camera_eg, needle, psm)
+    except MotionRefused as why:
+        return TimedPlan(None, None, 0, str(why))
 
 
 def time_waypoints(waypoints, base_in_eg, needle_in_eg, policy, rate_hz: float = RATE_HZ) -> TimedPlan:

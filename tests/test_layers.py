@@ -10,7 +10,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "regrasp_mjx"
-MAX_LOCAL_IMPORTS = 10
+MAX_LOCAL_IMPORTS = 11
 
 
 def modules() -> dict[str, Path]:

@@ -120,24 +120,35 @@ def test_plans_that_cannot_be_timed_are_refused_with_the_reason(paper_testset):
 
 
 def test_a_spline_past_a_joint_limit_gets_waypoints_and_a_colliding_sweep_is_refused(paper_testset):
-    """paper300 row 175 from one fixed port (0.12 m behind the average start): its 13 waypoints are
-    within the limits, the spline through them is not, and inserted Cartesian midpoints bring it back.
-    A yaw sweep of the arc through the grasping tool, whose Cartesian chord collides too, is refused."""
+    """paper300 rows 175 and 229 from one fixed port (0.12 m behind the average start), planned with
+    ``timed=True``: row 175's 13 waypoints are within the limits, the spline through them is not, and
+    inserted Cartesian midpoints bring it back; row 229 has a pose past the wrist yaw's limit and its
+    motion is refused with that reason. A yaw sweep of the tool tip through the grasping tool, whose
+    Cartesian chord collides too, is refused."""
     episodes, _ = paper_testset
     needle, start, _ = episode_poses(episodes)
-    row = 175
+    rows = [175, 229]
     psm = {"regrasping_base": dvrk.base_behind(dvrk.average_pose(start))}
-    identity = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    identity = np.tile([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], (2, 1))
     policy = load_policy()
-    depth = float(np.asarray(episodes.goal_depth)[row] * 1e3)
-    plan = policy.plan_from_camera(identity, start[row], needle[row], goal_depth_mm=depth, check_grasp=False, psm=psm)
-    assert plan.success and plan.joints.all_reachable
+    depth = np.asarray(episodes.goal_depth)[rows] * 1e3
+    plan = policy.plan_from_camera(
+        identity, start[rows], needle[rows], goal_depth_mm=depth, check_grasp=False, psm=psm, timed=True
+    )
+    assert plan.success.all() and plan.joints[0].all_reachable and not plan.joints[1].all_reachable
     base = dvrk.as_matrix(psm["regrasping_base"])
-    first = check_motion(time_joints(plan.joints.q), base, needle[row], policy)
+    first = check_motion(time_joints(plan.joints[0].q), base, needle[rows[0]], policy)
     assert not first.collides and not first.within_limits
-    timed = time_plan(policy, plan, identity, needle[row], psm)
-    assert timed.inserted >= 1 and timed.check.within_limits and not timed.check.collides
-    assert len(timed.trajectory.waypoints) == len(plan.joints.q) + timed.inserted
+    timed = plan.motion[0]
+    assert timed.ok and timed.inserted >= 1 and timed.check.within_limits and not timed.check.collides
+    assert len(timed.trajectory.waypoints) == len(plan.joints[0].q) + timed.inserted
+    assert time_plan(policy, plan, identity, needle[rows], psm, query=0).trajectory.duration_s == pytest.approx(
+        timed.trajectory.duration_s
+    )
+    assert not plan.motion[1].ok and plan.motion[1].trajectory is None
+    assert "outside the PSM's joint limits (outer_wrist_yaw)" in plan.motion[1].refused
+    with pytest.raises(ValueError, match="timed=True is not accepted without psm"):
+        policy.plan_from_camera(identity[0], start[0], needle[0], timed=True)
     # the tool tip sweeping 0.6 rad of outer yaw through the grasping tool's tip: refused
     q0, q1 = np.array([-0.3, 0.0, 0.15, 0.0, 0.0, 0.0]), np.array([0.3, 0.0, 0.15, 0.0, 0.0, 0.0])
     through = np.linalg.inv(dvrk.forward_kinematics(np.array([0.0, 0.0, 0.15, 0.0, 0.0, 0.0])))
