@@ -24,6 +24,16 @@ from regrasp_mjx.sampling import episode_poses, load_testset
 from regrasp_mjx.scene import load_scene
 
 
+def _timed_ms(waypoints: np.ndarray, size: int | None) -> tuple[float, float]:
+    """Milliseconds of one ``time_joints`` and the motion's length (NaN where TOPP-RA found none)."""
+    t0 = time.perf_counter()
+    try:
+        duration = time_joints(waypoints, gridpoints=size).duration_s
+    except ValueError:  # too coarse a grid can leave no feasible parameterisation
+        duration = float("nan")
+    return 1e3 * (time.perf_counter() - t0), duration
+
+
 def _off_path(points: np.ndarray, path: np.ndarray) -> float:
     """The farthest any of ``points`` [N, 3] lies from the polyline ``path`` [K, 3] (m)."""
     if len(path) == 1:
@@ -40,6 +50,9 @@ def main() -> None:
     p.add_argument("--policy", default=None, help="policy folder or shipped name (default: the shipped one)")
     p.add_argument("--testset", default="paper300")
     p.add_argument("--out", default=None)
+    p.add_argument(
+        "--grids", default="50,100,200", help="TOPP-RA grid sizes to time against the default, comma-separated"
+    )
     args = p.parse_args()
     policy = load_policy(args.policy)
     episodes, _ = load_testset(args.testset)
@@ -50,7 +63,7 @@ def main() -> None:
     plan = policy.plan_from_camera(identity, start, needle, goal_depth_mm=depth, check_grasp=False, psm=psm)
     checker = HostChecker(load_scene(policy.env_config.scene))  # MuJoCo's distances: an independent measure
     base = dvrk.as_matrix(psm["regrasping_base"])
-    durations, inserted, refused, seconds, timing_ms, deviation, clearance = [], [], {}, [], [], [], []
+    durations, inserted, refused, seconds, timing_ms, deviation, clearance, waypoints = [], [], {}, [], [], [], [], []
     for i in range(len(start)):
         t0 = time.perf_counter()
         try:
@@ -65,10 +78,25 @@ def main() -> None:
         timing_ms.append(1e3 * (time.perf_counter() - t0))
         durations.append(r.trajectory.duration_s)
         inserted.append(r.inserted)
+        waypoints.append(r.trajectory.waypoints)
         poses = _tool_poses(base, r.trajectory.q)
         deviation.append(_off_path(poses[:, :3], plan.trajectory("eg", i)[:, :3]))
         clearance.append(min(checker.clearance(needle[i, :3], needle[i, 3:], p[:3], p[3:]) for p in poses))
     d = np.array(durations)
+    # TOPP-RA's grid: time against motion length, on the same waypoints (each timed 3 times, the fastest kept)
+    grids = {}
+    for size in [None, *(int(g) for g in args.grids.split(",") if g)]:
+        ms, dur = [], []
+        for w in waypoints:
+            best = min(_timed_ms(w, size) for _ in range(3))
+            ms.append(best[0])
+            dur.append(best[1])
+        dur = np.array(dur)
+        grids[str(size or "default")] = {
+            "ms_median": float(np.median(ms)),
+            "duration_median_s": float(np.nanmedian(dur)),
+            "failed": int(np.isnan(dur).sum()),
+        }
     row = {
         "policy": args.policy or "default",
         "testset": args.testset,
@@ -84,6 +112,7 @@ def main() -> None:
         "deviation_mm": {"median": 1e3 * float(np.median(deviation)), "max": 1e3 * float(np.max(deviation))},
         "clearance_um_min": 1e6 * float(np.min(clearance)),
         "penetrations": int(np.sum(np.array(clearance) < 0.0)),
+        "toppra_grid": grids,
     }  # fmt: skip
     lines = [
         f"Policy `{row['policy']}` on {args.testset} ({row['problems']} problems), one fixed port; timed at the dVRK "
@@ -98,6 +127,19 @@ def main() -> None:
         + f" | {row['deviation_mm']['median']:.3f} / {row['deviation_mm']['max']:.3f} | {row['clearance_um_min']:.1f} | "
         f"{row['penetrations']} | {row['toppra_ms']['median']:.1f} / {row['toppra_ms']['max']:.1f} | "
         f"{row['timing_call_ms']['median']:.1f} / {row['timing_call_ms']['max']:.1f} |",
+    ]
+    base_d = grids["default"]["duration_median_s"]
+    lines += [
+        "",
+        "TOPP-RA's grid (`time_joints(gridpoints=...)`, default max(200, 40 W)) on the same waypoints, the fastest of 3:",
+        "",
+        "| grid points | time_joints, median (ms) | motion, median (s) | against the default grid | no trajectory found |",
+        "| --- | ---: | ---: | ---: | ---: |",
+        *(
+            f"| {k} | {v['ms_median']:.2f} | {v['duration_median_s']:.3f} | {v['duration_median_s'] / base_d - 1:+.1%} | "
+            f"{v['failed']} |"
+            for k, v in grids.items()
+        ),
     ]
     print("\n".join(lines))
     for k, v in refused.items():

@@ -72,10 +72,14 @@ class TimedTrajectory:
         return float(self.t[-1])
 
 
-def time_joints(waypoints, rate_hz: float = RATE_HZ, v_max=V_MAX, a_max=A_MAX) -> TimedTrajectory:
+def time_joints(
+    waypoints, rate_hz: float = RATE_HZ, v_max=V_MAX, a_max=A_MAX, gridpoints: int | None = None
+) -> TimedTrajectory:
     """The time-optimal trajectory through joint ``waypoints`` ``[W, 6]`` (at rest at both ends) under
     ``v_max`` and ``a_max`` (6 each; every sample within them: TOPP-RA is given :data:`HEADROOM` of
-    each), sampled at ``rate_hz`` (see the module's docstring)."""
+    each), sampled at ``rate_hz`` (see the module's docstring). ``gridpoints``: TOPP-RA's grid along
+    the path (default ``max(200, 40 W)``; fewer is faster and slightly slower motion,
+    experiments/RESULTS.md)."""
     q = np.asarray(waypoints, np.float64)
     if q.ndim != 2 or q.shape[1] != 6 or len(q) < 1 or not np.all(np.isfinite(q)):
         raise ValueError(f"waypoints of shape {q.shape} are not accepted: [W, 6] finite joint vectors, W >= 1")
@@ -99,7 +103,9 @@ def time_joints(waypoints, rate_hz: float = RATE_HZ, v_max=V_MAX, a_max=A_MAX) -
         toppra.constraint.JointVelocityConstraint(np.stack([-v, v], 1)),
         toppra.constraint.JointAccelerationConstraint(np.stack([-a, a], 1)),
     ]
-    grid = np.linspace(0.0, 1.0, max(200, 40 * len(q)))
+    if gridpoints is not None and not (isinstance(gridpoints, int) and gridpoints >= 2):
+        raise ValueError(f"gridpoints={gridpoints!r} is not accepted: an integer >= 2")
+    grid = np.linspace(0.0, 1.0, gridpoints or max(200, 40 * len(q)))
     solver = toppra.algorithm.TOPPRA(limits, path, gridpoints=grid, parametrizer="ParametrizeConstAccel")
     timed = solver.compute_trajectory(0.0, 0.0)
     if timed is None:

@@ -61,6 +61,10 @@ def test_every_sample_keeps_the_dvrk_limits_and_passes_every_waypoint():
         time_joints(waypoints, v_max=np.zeros(6))
     with pytest.raises(ValueError, match="rate_hz"):
         time_joints(waypoints, rate_hz=0.0)
+    with pytest.raises(ValueError, match="gridpoints=1 is not accepted"):
+        time_joints(waypoints, gridpoints=1)
+    coarse = time_joints(waypoints, rate_hz=500.0, gridpoints=50)  # a coarser grid: never faster motion
+    assert coarse.duration_s >= timed.duration_s * (1 - 1e-6)
 
 
 def _camera_plan(paper_testset, row: int):
