@@ -207,7 +207,7 @@ RECIPES: dict[str, Recipe] = {
         "smoke",
         "every stage at a toy size, minutes on a CPU (the tests run it; not a policy to use)",
         "paper300",
-        Teachers("smoke", 2, (("distill.iterations", 0), *NOISE)),
+        Teachers("smoke", 1, (("distill.iterations", 0), *NOISE)),
         Students(
             (
                 ("hidden", (32, 32)),
