@@ -89,7 +89,8 @@ def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):
     return Job(name, "stage", lambda: ["-c", script], done, tmp_path / "logs" / f"{name}.txt", share, needs)
 
 
-def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp_path):
+def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp_path, monkeypatch):
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)  # another test's process may have set it
     jobs = [
         _job(tmp_path, "a", 0.5),
         _job(tmp_path, "b", 0.5),
