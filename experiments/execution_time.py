@@ -19,7 +19,7 @@ from regrasp_mjx import dvrk
 from regrasp_mjx.atomic import write_results
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.policy import load_policy
-from regrasp_mjx.psm_timing import MotionRefused, _tool_poses, time_joints, time_plan
+from regrasp_mjx.psm_timing import MotionRefused, time_joints, time_plan, tool_poses
 from regrasp_mjx.sampling import episode_poses, load_testset
 from regrasp_mjx.scene import load_scene
 
@@ -79,7 +79,7 @@ def main() -> None:
         durations.append(r.trajectory.duration_s)
         inserted.append(r.inserted)
         waypoints.append(r.trajectory.waypoints)
-        poses = _tool_poses(base, r.trajectory.q)
+        poses = tool_poses(base, r.trajectory.q)
         deviation.append(_off_path(poses[:, :3], plan.trajectory("eg", i)[:, :3]))
         clearance.append(min(checker.clearance(needle[i, :3], needle[i, 3:], p[:3], p[3:]) for p in poses))
     d = np.array(durations)

@@ -139,7 +139,7 @@ def check_motion(timed: TimedTrajectory, base_in_eg, needle_in_eg, policy) -> Mo
     one sample period: ``a dt^2 / 8`` for the fastest acceleration ``a`` of any tool point, bounded by
     the joints' accelerations and velocities times :data:`TOOL_REACH`."""
     base = dvrk.as_matrix(base_in_eg)
-    poses = _tool_poses(base, timed.q)
+    poses = tool_poses(base, timed.q)
     dt = 1.0 / timed.rate_hz
     qd, qdd = np.abs(timed.qd), np.abs(timed.qdd)
     angular_v = qd[:, [0, 1, 3, 4, 5]].sum(1)
@@ -267,7 +267,7 @@ def _quat(rot: np.ndarray) -> np.ndarray:
     return q
 
 
-def _tool_poses(base: np.ndarray, q: np.ndarray) -> np.ndarray:
+def tool_poses(base: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Tool-tip poses ``[N, 7]`` (xyz, wxyz) in the frame of ``base`` for joints ``q`` ``[N, 6]``."""
     t = base @ dvrk._fk_batch(np.asarray(q, np.float64), np)
     return np.stack([np.r_[m[:3, 3], _quat(m[:3, :3])] for m in t])

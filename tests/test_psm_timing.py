@@ -4,6 +4,7 @@ grasping tool put in the executed motion's way caught, and the refusals."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -16,13 +17,14 @@ from regrasp_mjx.psm_timing import (
     HEADROOM,
     V_MAX,
     MotionRefused,
-    _tool_poses,
     check_motion,
     time_joints,
     time_plan,
     time_waypoints,
+    tool_poses,
 )
 from regrasp_mjx.sampling import episode_poses
+from tests.test_clearance import _as_pose
 
 
 def test_one_insertion_move_is_the_hand_worked_bang_bang_profile():
@@ -79,12 +81,6 @@ def _camera_plan(paper_testset, row: int):
     return policy, plan, camera_eg, cam(needle[row]), psm, needle[row]
 
 
-def _as_pose(t: np.ndarray) -> np.ndarray:
-    w = math.sqrt(max(1e-12, 1.0 + np.trace(t[:3, :3]))) / 2.0
-    q = np.array([w, (t[2, 1] - t[1, 2]) / (4 * w), (t[0, 2] - t[2, 0]) / (4 * w), (t[1, 0] - t[0, 1]) / (4 * w)])
-    return np.r_[t[:3, 3], q / np.linalg.norm(q)]
-
-
 def test_a_shipped_plan_is_timed_and_clear_and_a_tool_in_its_way_is_caught(paper_testset):
     policy, plan, camera_eg, needle_cam, psm, needle_eg = _camera_plan(paper_testset, 0)
     assert plan.success and plan.joints.all_reachable
@@ -94,7 +90,7 @@ def test_a_shipped_plan_is_timed_and_clear_and_a_tool_in_its_way_is_caught(paper
     assert 0.0 < timed.check.chord_margin_m < 1e-5  # the arc between 1-kHz samples: micrometres at most
     # the executed tool poses start and end where the plan does (in e_g)
     base = np.linalg.inv(dvrk.pose_matrix(camera_eg)) @ dvrk.as_matrix(psm["regrasping_base"])
-    poses = _tool_poses(base, timed.trajectory.q)
+    poses = tool_poses(base, timed.trajectory.q)
     np.testing.assert_allclose(poses[[0, -1], :3], plan.trajectory("eg")[[0, -1], :3], atol=1e-5)
     # the same motion with the arm's base moved so that the tool tip meets the grasping tool's tip
     # halfway: caught, at or before halfway
@@ -108,8 +104,6 @@ def test_a_shipped_plan_is_timed_and_clear_and_a_tool_in_its_way_is_caught(paper
 
 def test_plans_that_cannot_be_timed_are_refused_with_the_reason(paper_testset):
     policy, plan, camera_eg, needle_cam, psm, _ = _camera_plan(paper_testset, 0)
-    import dataclasses
-
     with pytest.raises(MotionRefused, match="has no joints"):
         time_plan(policy, dataclasses.replace(plan, joints=None), camera_eg, needle_cam, psm)
     with pytest.raises(MotionRefused, match="did not reach the goal"):
