@@ -11,6 +11,8 @@ Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no
 import contextlib as _contextlib
 import io as _io
 
+import gymnasium as _gymnasium
+
 # mujoco.mjx prints "Failed to import warp" (twice) to stdout when the optional NVIDIA Warp backend
 # is absent, which we never use; importing it once here with stdout captured keeps every command's
 # output (e.g. `evaluate --json`) to this project's own. Anything else it prints is passed on.
@@ -24,6 +26,31 @@ from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig, TaskConfig  
 from regrasp_mjx.geometry import grasp_pose  # noqa: E402
 
 __version__ = "0.1.0"
+
+# The gymnasium ids, one per environment of regrasp_mjx.registry (tests/test_gym.py keeps the two
+# lists equal): registered here with the modules as strings, so importing the package stays light.
+GYM_NAMES = (
+    "NeedleRegrasp",
+    "NeedleRegraspGeneral",
+    "NeedleRegraspNoisy",
+    "NeedleRegraspCalibration",
+    "NeedleRegraspCamera",
+)
+
+
+def _register_gymnasium() -> None:
+    for name in GYM_NAMES:
+        env_id = f"regrasp_mjx/{name}-v0"
+        if env_id not in _gymnasium.registry:
+            _gymnasium.register(
+                id=env_id,
+                entry_point="regrasp_mjx.gym_envs:NeedleRegraspEnv",
+                vector_entry_point="regrasp_mjx.gym_envs:NeedleRegraspVectorEnv",
+                kwargs={"name": name},
+            )
+
+
+_register_gymnasium()
 __all__ = ["ConfigError", "EnvConfig", "SceneConfig", "TaskConfig", "grasp_pose", "load_policy", "__version__"]
 
 

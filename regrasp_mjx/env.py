@@ -202,6 +202,12 @@ class RegraspEnv(Env):
         ``(p + s dp, exp(s w) q)`` for s in [0, 1], is proved clear of the margin
         (:func:`regrasp_mjx.continuous.motion_collides`: not only sampled poses).
         """
+        a = self.checked_action(action)
+        return self.move(state, a[:3] * self.max_dp, a[3:] * self.max_drot)
+
+    def checked_action(self, action: jax.Array) -> jax.Array:
+        """One environment's action as :meth:`step` takes it: shape ``(6,)``, floating point, finite
+        (where ``check_actions``), clipped to [-1, 1] as float32; anything else refused with what is accepted."""
         action = jnp.asarray(action)
         if action.shape != (ACTION_SIZE,):
             raise ValueError(
@@ -216,8 +222,7 @@ class RegraspEnv(Env):
                 ~jnp.all(jnp.isfinite(action)),
                 "RegraspEnv.step: action has NaN or inf; accepted: finite values in [-1, 1]",
             )
-        a = jnp.clip(action.astype(jnp.float32), -1.0, 1.0)
-        return self.move(state, a[:3] * self.max_dp, a[3:] * self.max_drot)
+        return jnp.clip(action.astype(jnp.float32), -1.0, 1.0)
 
     def move(self, state: State, dp: jax.Array, rotvec: jax.Array) -> State:
         """:meth:`step` by a translation ``dp`` [m] and rotation vector ``rotvec`` [rad] (e_g frame)

@@ -1,0 +1,220 @@
+"""The field's interfaces (issue 49): Playground-style ``registry.load`` and the gymnasium ids. Every
+registered environment is deterministic under a key and judges as :class:`RegraspEnv` does on the
+same actions; every gymnasium id passes ``check_env``; HER's ``compute_reward`` is the step's own
+reward; the vector env's autoreset modes do what gymnasium 1.x says they do."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax.envs.base import State as BraxState
+from gymnasium.utils.env_checker import check_env
+
+import regrasp_mjx
+from regrasp_mjx import gym_envs, registry, robot_errors
+from regrasp_mjx.config import ConfigError
+from regrasp_mjx.sampling import load_testset
+
+ACTIONS = np.random.default_rng(0).uniform(-1.0, 1.0, (6, 6)).astype(np.float32)
+
+
+def _leaves_equal(a, b) -> bool:
+    return all(bool(jnp.array_equal(x, y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_the_gymnasium_ids_are_the_registry():
+    assert tuple(registry.ENVS) == regrasp_mjx.GYM_NAMES
+    for name in registry.ENVS:
+        spec = gymnasium.spec(gym_envs.gym_id(name))
+        assert spec.kwargs == {"name": name} and spec.vector_entry_point is not None
+
+
+@pytest.mark.parametrize("name", ["NeedleRegrasp", "NeedleRegraspGeneral", "NeedleRegraspNoisy"])
+def test_a_registered_env_is_deterministic_and_judges_as_regrasp_env(name):
+    """Same key, same states; the reward, success, collision and time-out are RegraspEnv's on the
+    same actions (the noisy variant sees the needle elsewhere, but its tool moves as commanded)."""
+    env = registry.load(name, config_overrides={"env.horizon": 4})
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    inner = env.env
+    key = jax.random.PRNGKey(5)
+    state, again = reset(key), reset(key)
+    assert _leaves_equal(state, again)
+    assert not _leaves_equal(state.data, reset(jax.random.PRNGKey(6)).data)
+    ref = inner.reset(jax.random.split(key)[0])
+    assert _leaves_equal(state.data, ref.pipeline_state)
+    assert env.observation_size == inner.observation_size == state.obs.shape[0]
+    inner_step = jax.jit(inner.step)
+    for a in ACTIONS[:4]:
+        state, ref = step(state, a), inner_step(ref, a)
+        # two compiled programs: the same poses to float32 rounding, the same verdicts exactly
+        for x, y in zip(jax.tree.leaves(state.data), jax.tree.leaves(ref.pipeline_state)):
+            np.testing.assert_allclose(x, y, rtol=0, atol=1e-6)
+        for k in ("success", "collision", "time_out"):
+            assert float(state.metrics[k]) == float(ref.metrics[k])
+        assert float(state.reward) == float(ref.reward) and float(state.done) == float(ref.done)
+        if name == "NeedleRegraspNoisy":
+            assert not np.allclose(state.obs, ref.obs, atol=1e-6)  # it sees through its noise
+        else:
+            np.testing.assert_allclose(state.obs, ref.obs, rtol=0, atol=1e-5)
+    assert float(state.info["truncation"]) == 1.0  # the horizon of 4, overridden
+
+
+@pytest.mark.parametrize("name", ["NeedleRegraspCalibration", "NeedleRegraspCamera"])
+def test_a_robot_error_env_moves_the_tool_as_its_arm_would(name):
+    """Without errors it is RegraspEnv; with them, the step is the commanded motion turned by the
+    view's orientation error (the same length, as ``robot_errors.executed`` says), judged by RegraspEnv."""
+    key = jax.random.PRNGKey(1)
+    zero = {f"errors.{k}": 0.0 for k in registry.ERROR_SIZES}
+    plain = registry.load(name, config_overrides=zero)
+    s, ref = plain.reset(key), plain.env.reset(jax.random.split(key)[0])
+    s, ref = plain.step(s, ACTIONS[0]), plain.env.step(ref, ACTIONS[0])
+    assert bool(jnp.array_equal(s.obs, ref.obs)) and _leaves_equal(s.data, ref.pipeline_state)
+
+    env = registry.load(name, config_overrides={"errors.randomise": False})
+    s = env.reset(key)
+    seen_needle, seen_ee = env.view_of(s.data, s.info)
+    ee = np.r_[s.data.ee_pos, s.data.ee_quat]
+    assert np.linalg.norm(seen_ee[:3] - ee[:3]) > 1e-5  # the tool is seen off its true pose
+    turned = robot_errors.executed(None, ee[None], seen_ee[None], ACTIONS[1][None], env.env.max_dp, env.env.max_drot)[0]
+    assert np.linalg.norm(turned[:3]) == pytest.approx(np.linalg.norm(np.clip(ACTIONS[1][:3], -1, 1)), rel=1e-5)
+    moved = env.step(s, ACTIONS[1])
+    brax_state = BraxState(s.data, s.obs, s.reward, s.done, s.metrics, s.info)
+    expected = env.env.move(brax_state, turned[:3] * env.env.max_dp, turned[3:] * env.env.max_drot)
+    np.testing.assert_allclose(moved.data.ee_pos, expected.pipeline_state.ee_pos, atol=1e-9)
+    assert float(moved.reward) == float(expected.reward)
+    assert float(moved.metrics["collision"]) == float(expected.metrics["collision"])
+
+
+def test_registry_refuses_what_it_does_not_know():
+    with pytest.raises(ValueError, match="no environment 'Nope'; registered: NeedleRegrasp"):
+        registry.load("Nope")
+    with pytest.raises(ConfigError, match="no config key 'env.horizont'; accepted: .*env.horizon"):
+        registry.load("NeedleRegrasp", config_overrides={"env.horizont": 5})
+    with pytest.raises(ConfigError, match="errors.view = 'eyes' is not accepted: one of exact, kinematic, camera"):
+        registry.load("NeedleRegrasp", config_overrides={"errors.view": "eyes"})
+    with pytest.raises(ConfigError, match=r"errors.needle_sigma_mm = -1.0 is not accepted: a number in \[0, 10\]"):
+        registry.load("NeedleRegrasp", config_overrides={"errors.needle_sigma_mm": -1.0})
+    with pytest.raises(ConfigError, match="horizon"):
+        registry.load("NeedleRegrasp", config_overrides={"env.horizon": 0})
+    cfg = registry.default_config("NeedleRegraspNoisy")
+    assert cfg.errors.needle_sigma_mm == 0.5 and cfg.env.horizon == 100
+
+
+@pytest.mark.parametrize("name", list(registry.ENVS))
+def test_check_env_passes(name):
+    env = gymnasium.make(gym_envs.gym_id(name), config_overrides={"env.horizon": 3})
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*Box observation space (minimum|maximum) value")
+        check_env(env.unwrapped, skip_render_check=True)
+    obs, _ = env.reset(seed=2)
+    assert env.observation_space.contains(obs)
+    again, _ = env.reset(seed=2)
+    assert all(np.array_equal(obs[k], again[k]) for k in obs)
+
+
+def test_her_reward_is_the_step_reward_through_a_successful_episode():
+    """The shipped default drives paper300's first problem to success through the gymnasium env;
+    ``compute_reward`` from the goals (and the info) is every step's reward, +1 at the end."""
+    policy = regrasp_mjx.load_policy()
+    env = gymnasium.make("regrasp_mjx/NeedleRegrasp-v0")
+    episodes, _ = load_testset("paper300")
+    obs, info = env.reset(seed=0, options={"episode": episodes.row(slice(0, 1))})
+    rewards, computed = [], []
+    for _ in range(100):
+        obs, reward, terminated, truncated, info = env.step(policy.act(obs["observation"]))
+        rewards.append(reward)
+        computed.append(float(env.unwrapped.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)))
+        if terminated or truncated:
+            break
+    assert info["is_success"] and rewards[-1] == 1.0
+    assert computed == pytest.approx(rewards)
+    # vectorised over a batch of goals, a collision read from a sequence of info dicts (as SB3's HER passes them)
+    a = np.stack([obs["achieved_goal"]] * 3)
+    got = env.unwrapped.compute_reward(a, a, np.array([{"collision": False}, {"collision": True}, {}]))
+    np.testing.assert_array_equal(got, [1.0, -1.0, 1.0])
+    far = a.copy()
+    far[:, 0] += 1.5  # mm: beyond the 1 mm tolerance
+    np.testing.assert_array_equal(env.unwrapped.compute_reward(far, a, None), np.float32([-0.02] * 3))
+
+
+def test_bad_actions_are_refused():
+    env = gymnasium.make("regrasp_mjx/NeedleRegrasp-v0")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action has shape \(5,\); accepted: \(6,\)"):
+        env.step(np.zeros(5))
+    with pytest.raises(ValueError, match="NaN, inf"):
+        env.step(np.array([np.nan, 0, 0, 0, 0, 0]))
+    venv = gym_envs.NeedleRegraspVectorEnv(num_envs=2)
+    with pytest.raises(RuntimeError, match="reset"):
+        venv.step(np.zeros((2, 6)))
+    with pytest.raises(ValueError, match="autoreset_mode 'later' is not accepted"):
+        gym_envs.NeedleRegraspVectorEnv(num_envs=2, autoreset_mode="later")
+
+
+def _run(venv, steps: int, seed: int):
+    out = [venv.reset(seed=seed)]
+    rng = np.random.default_rng(seed)
+    for _ in range(steps):
+        out.append(venv.step(rng.uniform(-1, 1, (venv.num_envs, 6)).astype(np.float32)))
+    return out
+
+
+@pytest.mark.parametrize("mode", ["same_step", "next_step"])
+def test_the_vector_env_autoresets_as_gymnasium_says(mode):
+    venv = gymnasium.make_vec(
+        "regrasp_mjx/NeedleRegrasp-v0",
+        num_envs=3,
+        vectorization_mode="vector_entry_point",
+        autoreset_mode=mode,
+        config_overrides={"env.horizon": 2},
+    )
+    assert venv.metadata["autoreset_mode"] == gym_envs.AUTORESET[mode]
+    run = _run(venv, 5, seed=4)
+    again = _run(venv, 5, seed=4)
+    for a, b in zip(run, again):  # the same seed, the same numbers
+        assert all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+    # every episode ends by step 2 (horizon 2 or sooner)
+    obs1, _, term1, trunc1, info1 = run[1]
+    obs2, reward2, term2, trunc2, info2 = run[2]
+    ended = term2 | trunc2 | term1 | trunc1
+    assert ended.all()
+    if mode == "same_step":
+        end2 = term2 | trunc2
+        assert np.array_equal(info2["_final_obs"], end2)
+        # the returned observation of an ended lane is a new episode's first; the last is in final_obs
+        rows = np.flatnonzero(end2)
+        assert rows.size and not np.allclose(obs2["observation"][rows], info2["final_obs"]["observation"][rows])
+    else:
+        first_end = term1 | trunc1
+        # a lane that ended at step 1 starts over at step 2: no reward, not terminated
+        assert np.all(reward2[first_end] == 0.0) and not np.any(term2[first_end] | trunc2[first_end])
+
+
+def test_the_vector_env_starts_from_given_problems():
+    episodes, _ = load_testset("paper300")
+    venv = gym_envs.NeedleRegraspVectorEnv(num_envs=2, autoreset_mode="disabled")
+    obs, _ = venv.reset(seed=0, options={"episodes": episodes.row(slice(0, 2))})
+    single = gymnasium.make("regrasp_mjx/NeedleRegrasp-v0")
+    first, _ = single.reset(seed=9, options={"episode": episodes.row(slice(1, 2))})
+    np.testing.assert_allclose(obs["observation"][1], first["observation"], atol=1e-6)
+    with pytest.raises(ValueError, match=r"options\['episodes'\] has rows \[3\]; accepted: an Episode of 2 rows"):
+        venv.reset(options={"episodes": episodes.row(slice(0, 3))})
+
+
+def test_rgb_array_renders_the_scene():
+    from regrasp_mjx import render
+
+    env = gymnasium.make("regrasp_mjx/NeedleRegrasp-v0", render_mode="rgb_array", width=64, height=48)
+    env.reset(seed=0)
+    try:
+        frame = env.render()
+    except render.RenderUnavailable as err:
+        pytest.skip(f"no OpenGL on this machine ({err})")
+    finally:
+        env.close()
+    assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8 and frame.std() > 0
