@@ -93,14 +93,22 @@ def goal_reward(config, achieved: Any, desired: Any, info: Any = None) -> np.nda
 
 class _Program:
     """``num_envs`` environments stepped by one jitted program: reset, reset from given problems,
-    and a step with the autoreset mode folded in. Each call returns one packed array ``[N, K]``."""
+    and a step with the autoreset mode folded in. Each call takes and returns a carry (the states,
+    a pool of fresh problems, the key, the lanes pending a reset) and returns one packed array ``[N, K]``.
+
+    Ended episodes restart from the pool: problems drawn ahead, ``POOL_PER_ENV`` per environment,
+    redrawn all at once when the next ends would use it up (a ``lax.cond``), so that a step does not
+    sample a whole batch of problems to keep the few that ended (sampling rejects colliding draws,
+    and costs about three steps)."""
+
+    POOL_PER_ENV = 2
 
     def __init__(self, env: registry.RegistryEnv, num_envs: int, autoreset: AutoresetMode):
         self.env, self.n, self.autoreset = env, num_envs, autoreset
         self.obs_size = env.observation_size
         reset, step = jax.vmap(env.reset), jax.vmap(env.step)
         reset_from = jax.vmap(env.reset_from)
-        n = num_envs
+        n, size = num_envs, self.POOL_PER_ENV * num_envs
 
         def pack(state) -> jax.Array:
             achieved, desired = jax.vmap(goals)(state.data)
@@ -113,33 +121,51 @@ class _Program:
         def select(mask, a, b):
             return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
+        def carry_of(state, key):
+            key, k = jax.random.split(key)
+            pool = reset(jax.random.split(k, size)) if autoreset != AutoresetMode.DISABLED else None
+            return {"state": state, "pool": pool, "cursor": jnp.int32(0), "key": key, "pending": jnp.zeros(n, bool)}
+
         def first(key):
             key, k = jax.random.split(key)
             state = reset(jax.random.split(k, n))
-            return state, key, jnp.zeros(n, bool), pack(state)
+            return carry_of(state, key), pack(state)
 
         def start_from(episodes, key):
             key, k = jax.random.split(key)
             state = reset_from(episodes, jax.random.split(k, n))
-            return state, key, jnp.zeros(n, bool), pack(state)
+            return carry_of(state, key), pack(state)
 
-        def advance(state, actions, key, pending):
-            stepped = step(state, actions)
+        def restart(carry, mask):
+            """The lanes of ``mask`` from the pool's next problems (the pool redrawn first if too few remain)."""
+            count = jnp.sum(mask, dtype=jnp.int32)
+
+            def redraw(c):
+                key, k = jax.random.split(c["key"])
+                return {**c, "pool": reset(jax.random.split(k, size)), "cursor": jnp.int32(0), "key": key}
+
+            carry = jax.lax.cond(carry["cursor"] + count > size, redraw, lambda c: c, carry)
+            index = jnp.where(mask, carry["cursor"] + jnp.cumsum(mask) - 1, 0)
+            fresh = jax.tree.map(lambda x: x[index], carry["pool"])
+            return {**carry, "cursor": carry["cursor"] + count}, fresh
+
+        def advance(carry, actions):
+            stepped = step(carry["state"], actions)
             out = pack(stepped)
-            if autoreset == AutoresetMode.DISABLED:
-                return stepped, key, pending, out
-            key, k = jax.random.split(key)
-            fresh = reset(jax.random.split(k, n))
             ended = stepped.done > 0
+            if autoreset == AutoresetMode.DISABLED:
+                return {**carry, "state": stepped}, out
             if autoreset == AutoresetMode.SAME_STEP:  # the next episode's first observation; the last in final_obs
-                nxt = select(ended, fresh, stepped)
+                carry, fresh = restart(carry, ended)
                 obs = jnp.where(ended[:, None], pack(fresh), out)
-                size = self.obs_size + 2 * GOAL_SIZE
-                return nxt, key, pending, jnp.concatenate([obs[:, :size], out[:, size:], out[:, :size]], -1)
+                width = self.obs_size + 2 * GOAL_SIZE
+                packed = jnp.concatenate([obs[:, :width], out[:, width:], out[:, :width]], -1)
+                return {**carry, "state": select(ended, fresh, stepped)}, packed
             # next step: a lane that ended last step starts its next episode now, ignoring its action
-            nxt = select(pending, fresh, stepped)
+            pending = carry["pending"]
+            carry, fresh = restart(carry, pending)
             out = jnp.where(pending[:, None], pack(fresh).at[:, -len(SCALARS) :].set(0.0), out)
-            return nxt, key, ended & ~pending, out
+            return {**carry, "state": select(pending, fresh, stepped), "pending": ended & ~pending}, out
 
         self.first = jax.jit(first)
         self.start_from = jax.jit(start_from)
@@ -222,7 +248,7 @@ class NeedleRegraspEnv(gymnasium.Env):
         self.observation_space, self.action_space = _spaces(self.registry_env)
         self.render_mode, self.width, self.height = render_mode, width, height
         self._program = _Program(self.registry_env, 1, AutoresetMode.DISABLED)
-        self._state = self._key = self._pending = None
+        self._carry = None
         self._renderer = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -232,15 +258,15 @@ class NeedleRegraspEnv(gymnasium.Env):
             out = self._program.start_from(_episodes(options["episode"], 1), key)
         else:
             out = self._program.first(key)
-        self._state, self._key, self._pending, packed = out
+        self._carry, packed = out
         obs, scalars, _ = self._program.unpack(np.asarray(packed))
         return _row(obs), _info(scalars, 0)
 
     def step(self, action):
-        if self._state is None:
+        if self._carry is None:
             raise RuntimeError("call reset() before step()")
         a = _checked_actions(action, (ACTION_SIZE,))[None]
-        self._state, self._key, self._pending, packed = self._program.advance(self._state, a, self._key, self._pending)
+        self._carry, packed = self._program.advance(self._carry, a)
         obs, s, _ = self._program.unpack(np.asarray(packed))
         return _row(obs), float(s["reward"][0]), bool(s["terminated"][0]), bool(s["truncated"][0]), _info(s, 0)
 
@@ -248,11 +274,11 @@ class NeedleRegraspEnv(gymnasium.Env):
         return goal_reward(self.registry_env.env_config, achieved_goal, desired_goal, info)
 
     def render(self):
-        if self.render_mode is None or self._state is None:
+        if self.render_mode is None or self._carry is None:
             return None
         if self._renderer is None:
             self._renderer = SceneRenderer(self.registry_env.env.scene, self.width, self.height)
-        es = jax.tree.map(lambda x: np.asarray(x)[0], self._state.data)
+        es = jax.tree.map(lambda x: np.asarray(x)[0], self._carry["state"].data)
         pose = lambda p, q: np.concatenate([p, q])  # noqa: E731
         return self._renderer.image(
             pose(es.needle_pos, es.needle_quat), pose(es.ee_pos, es.ee_quat), pose(es.goal_pos, es.goal_quat)
@@ -308,7 +334,7 @@ class NeedleRegraspVectorEnv(VectorEnv):
         self.metadata = {"autoreset_mode": autoreset_mode}
         self.render_mode = None
         self._program = _Program(self.registry_env, num_envs, autoreset_mode)
-        self._state = self._key = self._pending = None
+        self._carry = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -317,15 +343,15 @@ class NeedleRegraspVectorEnv(VectorEnv):
             out = self._program.start_from(_episodes(options["episodes"], self.num_envs), key)
         else:
             out = self._program.first(key)
-        self._state, self._key, self._pending, packed = out
+        self._carry, packed = out
         obs, scalars, _ = self._program.unpack(np.asarray(packed))
         return obs, self._infos(scalars)
 
     def step(self, actions):
-        if self._state is None:
+        if self._carry is None:
             raise RuntimeError("call reset() before step()")
         a = _checked_actions(actions, (self.num_envs, ACTION_SIZE))
-        self._state, self._key, self._pending, packed = self._program.advance(self._state, a, self._key, self._pending)
+        self._carry, packed = self._program.advance(self._carry, a)
         obs, s, final = self._program.unpack(np.asarray(packed))
         terminated, truncated = s["terminated"] > 0, s["truncated"] > 0
         infos = self._infos(s)

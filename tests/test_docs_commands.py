@@ -166,6 +166,16 @@ def test_a_documented_command_runs_and_makes_what_it_says(command, tmp_path, mon
     assert os.listdir(tmp_path) == [Path(argv[i + 1]).name]
 
 
+LEARNER_SNIPPETS = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "learners.md").read_text(), re.S)
+
+
+@pytest.mark.parametrize("snippet", LEARNER_SNIPPETS, ids=["playground", "gymnasium", "gymnasium-vector"])
+def test_the_learners_page_snippets_run(snippet, capsys):
+    """docs/learners.md's three snippets (Playground style, gymnasium single and vector) run as written."""
+    exec(compile(snippet, "docs/learners.md", "exec"), {"__name__": "__docs__"})
+    assert capsys.readouterr().out.strip()  # each prints what it shows
+
+
 @pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "experiments").glob("[!_]*.py")))
 def test_every_experiment_script_answers_help(script, monkeypatch, capsys):
     """``python experiments/X.py --help`` prints its usage and exits 0 (nothing else runs)."""

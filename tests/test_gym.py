@@ -218,3 +218,17 @@ def test_rgb_array_renders_the_scene():
     finally:
         env.close()
     assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8 and frame.std() > 0
+
+
+def test_ended_episodes_restart_from_new_problems_the_pool_redrawn_when_used_up():
+    """Horizon 1: every lane ends every step, so two lanes use up the pool (two problems a lane)
+    every other step; twelve restarts are twelve different problems."""
+    venv = gym_envs.NeedleRegraspVectorEnv(num_envs=2, config_overrides={"env.horizon": 1})
+    obs, _ = venv.reset(seed=1)
+    seen = [obs["desired_goal"]]
+    for _ in range(6):
+        obs, _, terminated, truncated, info = venv.step(np.zeros((2, 6), np.float32))
+        assert np.all(terminated | truncated) and info["_final_obs"].all()
+        seen.append(obs["desired_goal"])
+    starts = np.concatenate(seen)
+    assert len(np.unique(np.round(starts, 6), axis=0)) == len(starts) == 14
