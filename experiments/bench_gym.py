@@ -7,7 +7,9 @@ gymnasium: ``make_vec("regrasp_mjx/NeedleRegrasp-v0", num_envs=B, vectorization_
 stepped from Python with actions made before the clock starts, every step's observation dict,
 rewards, flags and infos on the host as numpy arrays (what a learner gets), in each autoreset
 mode (same-step draws a new problem for every ended episode; the raw rollout restores its first).
-Compile time is excluded; env-steps/s = B * steps / wall.
+A third row steps the raw env one jitted step per call (what any step-at-a-time API must do), so
+the table tells the vector env's own cost from the cost of leaving the scan. Compile time is
+excluded; env-steps/s = B * steps / wall.
 
     python experiments/bench_gym.py --batch-sizes 4096 --out experiments/results/gym
 """
@@ -21,10 +23,38 @@ import gymnasium
 import jax
 import numpy as np
 from bench_env import bench_mjx
+from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
 import regrasp_mjx  # noqa: F401  (registers the ids)
 from regrasp_mjx.atomic import machine, write_results
 from regrasp_mjx.config import EnvConfig
+from regrasp_mjx.env import RegraspEnv
+
+
+def bench_step_calls(batch: int, steps: int, repeats: int, seed: int) -> dict:
+    """The raw env stepped as a step API must step it: one jitted step per call (device actions,
+    nothing back to the host, dispatched ahead), under the same wrappers as the scan."""
+    wrapped = AutoResetWrapper(VmapWrapper(RegraspEnv(EnvConfig())))
+    step = jax.jit(wrapped.step)
+    actions = jax.random.uniform(jax.random.PRNGKey(seed), (steps, batch, 6), minval=-1.0, maxval=1.0)
+    state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(seed), batch))
+    jax.block_until_ready(step(state, actions[0]))  # compiles
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for a in actions:
+            state = step(state, a)
+        jax.block_until_ready(state.reward)
+        walls.append(time.perf_counter() - t0)
+    wall = min(walls)
+    return {
+        "backend": "raw MJX env, one jitted step per call",
+        "batch": batch,
+        "steps": steps,
+        "repeats": repeats,
+        "wall_s": round(wall, 4),
+        "env_steps_per_s": batch * steps / wall,
+    }
 
 
 def bench_vector(batch: int, steps: int, repeats: int, mode: str, seed: int) -> dict:
@@ -72,6 +102,10 @@ def main() -> None:
         raw["backend"] = "raw MJX env (scan)"
         rows.append(raw)
         print(raw, flush=True)
+        calls = bench_step_calls(b, args.steps, args.repeats, args.seed)
+        calls["of_raw"] = calls["env_steps_per_s"] / raw["env_steps_per_s"]
+        rows.append(calls)
+        print(calls, flush=True)
         for mode in args.modes.split(","):
             row = bench_vector(b, args.steps, args.repeats, mode, args.seed)
             row["of_raw"] = row["env_steps_per_s"] / raw["env_steps_per_s"]
