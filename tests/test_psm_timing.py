@@ -18,6 +18,7 @@ from regrasp_mjx.psm_timing import (
     V_MAX,
     MotionRefused,
     check_motion,
+    sample_const_accel,
     time_joints,
     time_plan,
     time_waypoints,
@@ -67,6 +68,25 @@ def test_every_sample_keeps_the_dvrk_limits_and_passes_every_waypoint():
         time_joints(waypoints, gridpoints=1)
     coarse = time_joints(waypoints, rate_hz=500.0, gridpoints=50)  # a coarser grid: never faster motion
     assert coarse.duration_s >= timed.duration_s * (1 - 1e-6)
+
+
+def test_the_sampled_trajectory_is_toppra_s_own_constant_acceleration_one():
+    """``sample_const_accel`` (whole arrays) gives what ``toppra.parametrizer.ParametrizeConstAccel``
+    (a loop over samples) gives for the same TOPP-RA velocities, at every sample and order."""
+    import toppra
+    from toppra.parametrizer import ParametrizeConstAccel
+
+    rng = np.random.default_rng(5)
+    q = dvrk.Q_MIN + (dvrk.Q_MAX - dvrk.Q_MIN) * (0.45 + 0.1 * rng.random((4, 6)))
+    path = toppra.SplineInterpolator(np.linspace(0.0, 1.0, 4), q)
+    grid = np.linspace(0.0, 1.0, 60)
+    sd = 0.5 + np.sin(np.linspace(0.0, 3.0, 60)) ** 2  # any positive path velocities
+    t, position, velocity, acceleration = sample_const_accel(path, grid, sd, 1000.0)
+    reference = ParametrizeConstAccel(path, grid, sd)
+    assert t[0] == 0.0 and t[-1] == pytest.approx(reference.duration, abs=1e-12)
+    assert np.all(np.diff(t[:-1]) == pytest.approx(1e-3))
+    for order, mine in enumerate((position, velocity, acceleration)):
+        np.testing.assert_allclose(mine, reference(t, order), rtol=0, atol=1e-9)
 
 
 def _camera_plan(paper_testset, row: int):
