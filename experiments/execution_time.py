@@ -17,9 +17,10 @@ import numpy as np
 
 from regrasp_mjx import dvrk
 from regrasp_mjx.atomic import write_results
+from regrasp_mjx.estimates import NeedleNoise
 from regrasp_mjx.host import HostChecker
 from regrasp_mjx.policy import load_policy
-from regrasp_mjx.psm_timing import MotionRefused, time_joints, time_plan, tool_poses
+from regrasp_mjx.psm_timing import MotionRefused, time_executed, time_joints, time_plan, tool_poses
 from regrasp_mjx.sampling import episode_poses, load_testset
 from regrasp_mjx.scene import load_scene
 
@@ -45,6 +46,41 @@ def _off_path(points: np.ndarray, path: np.ndarray) -> float:
     return float(np.linalg.norm(points[:, None] - nearest, axis=2).min(1).max())
 
 
+def closed_loop_motion(policy, needle, start, goal, depth, base, checker, noise_mm: float, seed: int) -> dict:
+    """The closed loop's executed steps as the arm's motion (``psm_timing.time_executed``): every row
+    of ``policy.execute`` (fused, the policy's own settings, needle noise sigma ``noise_mm``) that
+    succeeded, timed and re-checked against the true needle; MuJoCo's clearance at every sample."""
+    out = policy.execute(needle, start, goal, noise=NeedleNoise(noise_mm, 0.0), seed=seed, goal_depth_mm=depth)
+    durations, inserted, refused, clearance, seconds = [], [], {}, [], []
+    for i in np.flatnonzero(out["success"]):
+        t0 = time.perf_counter()
+        try:
+            r = time_executed(policy, out["poses"][i][: out["steps"][i] + 1], needle[i], base)
+        except MotionRefused as why:
+            refused[int(i)] = str(why)
+            continue
+        finally:
+            seconds.append(time.perf_counter() - t0)
+        durations.append(r.trajectory.duration_s)
+        inserted.append(r.inserted)
+        poses = tool_poses(base, r.trajectory.q)
+        clearance.append(min(checker.clearance(needle[i, :3], needle[i, 3:], p[:3], p[3:]) for p in poses))
+    d = np.array(durations)
+    return {
+        "noise_mm": noise_mm,
+        "succeeded": int(np.sum(out["success"])),
+        "timed": len(d),
+        "refused": len(refused),
+        "refused_why": {str(k): v for k, v in refused.items()},
+        "with_inserted_waypoints": int(np.sum(np.array(inserted) > 0)),
+        "steps_median": float(np.median(out["steps"][out["success"]])),
+        "duration_s": {"median": float(np.median(d)), "p95": float(np.percentile(d, 95)), "max": float(d.max())},
+        "timing_call_ms": {"median": 1e3 * float(np.median(seconds)), "max": 1e3 * float(np.max(seconds))},
+        "clearance_um_min": 1e6 * float(np.min(clearance)),
+        "penetrations": int(np.sum(np.array(clearance) < 0.0)),
+    }
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--policy", default=None, help="policy folder or shipped name (default: the shipped one)")
@@ -52,6 +88,12 @@ def main() -> None:
     p.add_argument("--out", default=None)
     p.add_argument(
         "--grids", default="50,100,200", help="TOPP-RA grid sizes to time against the default, comma-separated"
+    )
+    p.add_argument(
+        "--closed-loop-noise-mm",
+        type=float,
+        default=0.25,
+        help="also time the fused closed loop's executed steps under this needle noise (negative: skip)",
     )
     args = p.parse_args()
     policy = load_policy(args.policy)
@@ -141,6 +183,23 @@ def main() -> None:
             for k, v in grids.items()
         ),
     ]
+    if args.closed_loop_noise_mm >= 0:
+        loop = closed_loop_motion(policy, needle, start, None, depth, base, checker, args.closed_loop_noise_mm, 0)
+        row["closed_loop"] = loop
+        lines += [
+            "",
+            f"The fused closed loop's executed steps (needle noise sigma {loop['noise_mm']:g} mm, the policy's own "
+            "settings, seed 0), each succeeded row's motion timed and re-checked the same way "
+            "(`psm_timing.time_executed`; the warm-up frames, the tool still, not counted):",
+            "",
+            "| succeeded | timed | refused | with inserted waypoints | steps, median | duration median / p95 / max (s) "
+            "| smallest clearance at a sample (um) | penetrations | timing and re-check, median (ms) |",
+            "| ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: |",
+            f"| {loop['succeeded']} | {loop['timed']} | {loop['refused']} | {loop['with_inserted_waypoints']} | "
+            f"{loop['steps_median']:g} | "
+            + " / ".join(f"{loop['duration_s'][k]:.3f}" for k in ("median", "p95", "max"))
+            + f" | {loop['clearance_um_min']:.1f} | {loop['penetrations']} | {loop['timing_call_ms']['median']:.1f} |",
+        ]
     print("\n".join(lines))
     for k, v in refused.items():
         print(f"refused {k}: {v}")

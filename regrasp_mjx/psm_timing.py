@@ -39,7 +39,7 @@ import toppra
 import toppra.algorithm
 import toppra.constraint
 
-from regrasp_mjx import dvrk
+from regrasp_mjx import dvrk, psm_joints
 from regrasp_mjx.host import quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
 from regrasp_mjx.lean_checker import LeanChecker
 from regrasp_mjx.psm_joints import JointTrajectory
@@ -236,6 +236,20 @@ def motion_or_reason(policy, joints: JointTrajectory, success: bool, camera_eg, 
         return time_query(policy, joints, success, camera_eg, needle, psm)
     except MotionRefused as why:
         return TimedPlan(None, None, 0, str(why))
+
+
+def time_executed(policy, poses, needle_in_eg, base_in_eg, rate_hz: float = RATE_HZ) -> TimedPlan:
+    """The timed, re-checked joint trajectory of a closed loop's executed poses (``execute(...)["poses"]``
+    of one row up to its ``steps``: 7-vectors ``[S + 1, 7]`` in e_g) on the regrasping PSM whose base
+    is ``base_in_eg``, against the true needle ``needle_in_eg``: the motion the arm makes through the
+    steps the loop chose (:func:`time_waypoints`). Raises :class:`MotionRefused` where a pose is
+    outside the joint limits or the motion cannot be made clear."""
+    joints = psm_joints.joint_trajectory(base_in_eg, poses)
+    if not joints.all_reachable:
+        bad = [k for k, ok in enumerate(joints.reachable) if not ok]
+        raise MotionRefused(f"poses {bad} are outside the PSM's joint limits ({', '.join(joints.violations[bad[0]])})")
+    base = dvrk.as_matrix(base_in_eg)
+    return time_waypoints(joints.q, base, np.asarray(needle_in_eg, np.float64), policy, rate_hz)
 
 
 def time_waypoints(waypoints, base_in_eg, needle_in_eg, policy, rate_hz: float = RATE_HZ) -> TimedPlan:

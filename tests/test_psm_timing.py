@@ -19,6 +19,7 @@ from regrasp_mjx.psm_timing import (
     MotionRefused,
     check_motion,
     sample_const_accel,
+    time_executed,
     time_joints,
     time_plan,
     time_waypoints,
@@ -120,6 +121,14 @@ def test_a_shipped_plan_is_timed_and_clear_and_a_tool_in_its_way_is_caught(paper
     check = check_motion(timed.trajectory, shifted @ base, needle_eg, policy)
     assert check.collides and check.index <= middle and check.t_s == timed.trajectory.t[check.index]
     assert not check_motion(timed.trajectory, base, needle_eg, policy).collides
+    # a closed loop's executed poses (e_g) go through time_executed: the plan's poses give the plan's motion
+    again = time_executed(policy, plan.trajectory("eg"), needle_eg, base)
+    assert again.trajectory.duration_s == pytest.approx(timed.trajectory.duration_s, rel=1e-6)
+    np.testing.assert_allclose(again.trajectory.q, timed.trajectory.q, atol=1e-6)  # the frames differ by rounding
+    with pytest.raises(MotionRefused, match="outside the PSM's joint limits"):
+        far = plan.trajectory("eg").copy()
+        far[:, 2] += 0.5  # half a metre past the arm's reach
+        time_executed(policy, far, needle_eg, base)
 
 
 def test_plans_that_cannot_be_timed_are_refused_with_the_reason(paper_testset):
