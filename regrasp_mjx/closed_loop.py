@@ -251,21 +251,8 @@ def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: flo
 
 # ---- the host entry points (Policy.closed_loop_step, Policy.execute) ------------------------------
 
+
 # the closed loop's settings where a policy file names none (chosen for `student_v1` on validation)
-DEFAULT_STOP, DEFAULT_WARMUP = 0.7, 10
-
-
-def defaults(contract: dict[str, Any]) -> dict[str, Any]:
-    """A policy's closed-loop settings: ``stop_tolerance`` and ``warmup_frames`` from its file's
-    ``closed_loop`` entry (chosen for it on validation problems), else :data:`DEFAULT_STOP` and
-    :data:`DEFAULT_WARMUP`."""
-    given = contract.get("closed_loop") or {}
-    return {
-        "stop_tolerance": float(given.get("stop_tolerance", DEFAULT_STOP)),
-        "warmup_frames": int(given.get("warmup_frames", DEFAULT_WARMUP)),
-    }
-
-
 def _estimate_inputs(policy: Any, needle: Any, ee_name: str, ee: Any, goal: Any, spec: TaskSpec):
     """Checked ``[B, 7]`` needle, end-effector and goal poses (the goal grasp on ``needle`` by
     default), each needle's radii ``[B, 2]`` (m) and whether one query was given."""

@@ -40,13 +40,13 @@ from regrasp_mjx import robustness
 from regrasp_mjx.analysis import markdown_table
 from regrasp_mjx.atomic import dumps, machine, output_folder_problem, write_results
 from regrasp_mjx.config import ConfigError, parse_overrides
-from regrasp_mjx.evaluate import plan_testset
 from regrasp_mjx.host_loop import run_command
 from regrasp_mjx.policy import PolicyError, load_policy, shipped_policies
 from regrasp_mjx.queries import PoseError
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import TestsetError, load_testset
 from regrasp_mjx.testset import make_testset
+from regrasp_mjx.testset_plans import plan_testset
 
 R_BINS_MM = (4.0, 6.0, 8.0, 10.0, 12.0)
 ALPHA_BINS_RAD = tuple(10 * math.pi / 9 + k * (math.pi / 3) / 4 for k in range(5))  # [10pi/9, 13pi/9] in 4

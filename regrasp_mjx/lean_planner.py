@@ -2,18 +2,16 @@
 
 ``Policy.plan`` of one query on the CPU spends most of its time around the XLA program, not in
 it: dispatch, argument handling, and a while loop whose every small op is a runtime thunk. The
-compute is tiny (a few matrix-vector products and a few dozen capsule distances per sub-step,
-about seven steps), so this module runs the same rollout as :func:`regrasp_mjx.planner.make_planner`
-for one query, as plain loops compiled once by numba: the network (members averaged), the
-ego-centric observation (:mod:`regrasp_mjx.lean_network`), the step with its collision sub-steps
-(:mod:`regrasp_mjx.lean_collision`; one test of the end pose stands for all of them where it is
-clear by as far as the tool moves between them; poses: :mod:`regrasp_mjx.lean_geometry`),
-the shield's alternatives in the same order with the same random draws
-(:func:`regrasp_mjx.shield.shield_candidates`, drawn once here for every step of the horizon), the
-success test, the trajectory. Nothing is allocated per step: the network's layers, the
-observation and the member actions use buffers made once per query, poses are tuples. What every
-query passes is held in one native object (:class:`~regrasp_mjx.lean_collision.Held`), so a call
-unboxes one pointer.
+compute is tiny (a few matrix-vector products and a few dozen capsule distances per step, about
+seven steps), so this module runs the same rollout as :func:`regrasp_mjx.planner.make_planner` for
+one query, as plain loops compiled once by numba: the network (members averaged), the ego-centric
+observation (:mod:`regrasp_mjx.lean_network`), the step with its continuous collision test
+(:mod:`regrasp_mjx.lean_collision`; poses: :mod:`regrasp_mjx.lean_geometry`), the shield's
+alternatives in the same order with the same random draws (:func:`regrasp_mjx.shield.shield_candidates`,
+drawn once here for every step of the horizon), the success test, the trajectory. Nothing is
+allocated per step: the network's layers, the observation and the member actions use buffers made
+once per query, poses are tuples. What every query passes is held in one native object
+(:class:`~regrasp_mjx.lean_collision.Held`), so a call unboxes one pointer.
 
 It mirrors the JAX path, which stays the reference (batches, the GPU, camera-frame queries and
 the joint-limit check given PSM bases go there): geometry in float64 here against float32 there,

@@ -36,6 +36,7 @@ from regrasp_mjx.policy_file import (
     SHIPPED,
     WEIGHT_DTYPES,
     PolicyError,
+    closed_loop_settings,
     obs_size,
     read_policy,
     save_policy,
@@ -181,8 +182,8 @@ class Policy:
 
     @property
     def closed_loop_defaults(self) -> dict[str, Any]:
-        """Its closed loop's ``stop_tolerance`` and ``warmup_frames`` (:func:`regrasp_mjx.closed_loop.defaults`)."""
-        return closed_loop.defaults(self.contract)
+        """Its closed loop's ``stop_tolerance`` and ``warmup_frames`` (:func:`regrasp_mjx.policy_file.closed_loop_settings`)."""
+        return closed_loop_settings(self.contract)
 
     # ---- its programs -----------------------------------------------------------------------
     def program(self, setting: tuple, build: Callable[[], Callable] | None = None) -> Callable:

@@ -130,6 +130,21 @@ def save_policy(
     return out
 
 
+# a closed loop's settings where a policy file names none (regrasp_mjx.closed_loop.execute)
+DEFAULT_STOP, DEFAULT_WARMUP = 0.7, 10
+
+
+def closed_loop_settings(contract: dict[str, Any]) -> dict[str, Any]:
+    """A policy's closed-loop settings: ``stop_tolerance`` and ``warmup_frames`` from its file's
+    ``closed_loop`` entry (chosen for it on validation problems), else :data:`DEFAULT_STOP` and
+    :data:`DEFAULT_WARMUP`."""
+    given = contract.get("closed_loop") or {}
+    return {
+        "stop_tolerance": float(given.get("stop_tolerance", DEFAULT_STOP)),
+        "warmup_frames": int(given.get("warmup_frames", DEFAULT_WARMUP)),
+    }
+
+
 def shipped_policies() -> list[str]:
     """Names of the policies shipped in the package (``default``: one network; ``student_v1``: the
     earlier default, distilled before the conservative needle model; ``ensemble3``: the earlier

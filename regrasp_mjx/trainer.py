@@ -31,13 +31,13 @@ from regrasp_mjx.agents.ddpg_bc.exchange import PlannerExchange
 from regrasp_mjx.agents.ddpg_bc.learner import Learner, TrainingState
 from regrasp_mjx.atomic import atomic_write, write_json
 from regrasp_mjx.distill import distill
-from regrasp_mjx.evaluate import outcomes
 from regrasp_mjx.host_loop import BestOf, Phases, RunLog, epoch_line, eta, mm, tensorboard_writer
 from regrasp_mjx.planning.episodes import DemosError, check_made_for, load_demos
 from regrasp_mjx.policy import load_policy, save_policy
 from regrasp_mjx.rollout import summarize
 from regrasp_mjx.sampling import PAPER300, load_testset
 from regrasp_mjx.testset import make_testset
+from regrasp_mjx.testset_plans import outcomes
 
 VALIDATION_SEED = 1_000_003
 DEFAULT_TESTSET = PAPER300

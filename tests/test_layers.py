@@ -101,3 +101,9 @@ def test_imports_inside_functions_are_few_and_each_says_why():
     for name, line, source in local:
         above = mods[name].read_text().splitlines()[line - 2]
         assert "#" in source or "#" in above, f"{name}:{line} imports inside a function without saying why"
+
+
+def test_no_module_is_over_400_lines():
+    """Small modules whose names say what they hold (issue 50): split one that grows past 400 lines."""
+    long = {name: n for name, path in modules().items() if (n := len(path.read_text().splitlines())) > 400}
+    assert not long, f"modules over 400 lines: {long}"

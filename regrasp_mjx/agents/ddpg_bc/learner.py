@@ -1,24 +1,22 @@
 """One jitted program per iteration: vmapped rollouts, buffer inserts, the updates in a scan.
 
 An iteration resets ``num_envs`` environments to fresh problems and runs ``horizon`` steps with
-exploration (an action is uniformly random with probability E_R, else the policy's); an
-environment that ends restarts its problem (brax's auto-reset), so every one of the
-``num_envs * horizon`` transitions is valid and goes into the online buffer. Then
-``updates_per_iteration`` DDPG+BC updates, each on ``online_batch`` online and ``demo_batch``
-demonstration samples (flashbax item buffers); the target networks move by polyak averaging every
-``target_every`` updates. The first episode of each environment is the one that counts for
-Algorithm 1: the host sends failed ones to the planner pool with probability E_T.
+exploration (an action is uniformly random with probability E_R, else the policy's); an environment
+that ends restarts its problem (brax's auto-reset), so every one of the ``num_envs * horizon``
+transitions is valid and goes into the online buffer. Then ``updates_per_iteration`` DDPG+BC
+updates, each on ``online_batch`` online and ``demo_batch`` demonstration samples (flashbax item
+buffers); the target networks move by polyak averaging every ``target_every`` updates. The first
+episode of each environment is the one that counts for Algorithm 1: the host sends failed ones to
+the planner pool with probability E_T.
 
 Members are a batch axis: ``num_members`` independent learners (seeds ``seed, seed + 1, ...``, for
-each of the config's ``settings``; E_R comes per member), each with
-its own networks, optimisers, normaliser, buffers and key, run as one vmapped program, so several
-seeds of Table I cost about what one costs on a GPU. Every state leaf has that leading axis (1 for
-a single seed); the single-learner functions (``init_one``, ``update``, ``iteration_one``,
-``evaluate_one``) are the ones vmapped.
+each of the config's ``settings``; E_R comes per member), each with its own networks, optimisers,
+normaliser, buffers and key, run as one vmapped program, so several seeds of Table I cost about what
+one costs on a GPU. Every state leaf has that leading axis (1 for a single seed); the single-learner
+functions (``init_one``, ``update``, ``iteration_one``, ``evaluate_one``) are the ones vmapped.
 
-Several devices (``devices`` in the config) share the work by whole members or data parallel:
-:mod:`regrasp_mjx.agents.ddpg_bc.placement`. The schedules of the learning rate and the
-regularisers: :mod:`regrasp_mjx.agents.ddpg_bc.schedules`.
+Several devices (``devices`` in the config) share the work by whole members or data parallel
+(:mod:`~regrasp_mjx.agents.ddpg_bc.placement`); schedules: :mod:`~regrasp_mjx.agents.ddpg_bc.schedules`.
 """
 
 from __future__ import annotations
