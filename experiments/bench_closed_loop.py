@@ -25,11 +25,11 @@ from datetime import date
 
 import numpy as np
 
-from regrasp_mjx import dvrk
-from regrasp_mjx.atomic import machine, write_results
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.robustness import policy_hash
-from regrasp_mjx.sampling import episode_poses, load_testset
+from regrasp_mjx.core.atomic import machine, write_results
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.robustness import policy_hash
+from regrasp_mjx.robot import dvrk
+from regrasp_mjx.world.sampling import episode_poses, load_testset
 
 
 def _vec(m):

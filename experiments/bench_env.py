@@ -3,7 +3,7 @@
 A rollout is ``reset`` of B environments from the paper's distributions (collision-free starts
 redrawn) and ``T`` steps of uniformly random actions in one ``lax.scan``, under brax's
 ``AutoResetWrapper(VmapWrapper(env))``; env-steps/s = B * T * rollouts / wall time, compile time
-excluded and printed apart. The CPU row steps the same MDP (:class:`regrasp_mjx.host.HostEnv`, same
+excluded and printed apart. The CPU row steps the same MDP (:class:`regrasp_mjx.envs.host.HostEnv`, same
 continuous collision test, observation and reward) one problem at a time on one thread, restarting a problem when it
 ends, as the auto-reset does.
 
@@ -22,12 +22,12 @@ import mujoco
 import numpy as np
 from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
-from regrasp_mjx import continuous
-from regrasp_mjx.atomic import machine, write_json, write_text
-from regrasp_mjx.config import EnvConfig
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.host import HostEnv
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.core.atomic import machine, write_json, write_text
+from regrasp_mjx.core.config import EnvConfig
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.host import HostEnv
+from regrasp_mjx.world import continuous
+from regrasp_mjx.world.testsets import make_testset
 
 POSE_FIELDS = ("needle_pos", "needle_quat", "start_pos", "start_quat")
 # the fewest poses a step's continuous test looks at (its end pose and its midpoint): the raw CPU
@@ -131,7 +131,7 @@ def main() -> None:
         "--pending-shares",
         default=None,
         help="comma-separated shares of a batch whose pending lanes the continuous test gathers a round "
-        f"(regrasp_mjx.continuous.PENDING_SHARE, default {continuous.PENDING_SHARE:g}; 1 = none gathered)",
+        f"(regrasp_mjx.world.continuous.PENDING_SHARE, default {continuous.PENDING_SHARE:g}; 1 = none gathered)",
     )
     p.add_argument("--out", default=None, help="folder for bench_env.json and bench_env.md")
     args = p.parse_args()

@@ -26,9 +26,9 @@ from bench_env import bench_mjx
 from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
 import regrasp_mjx  # noqa: F401  (registers the ids)
-from regrasp_mjx.atomic import machine, write_results
-from regrasp_mjx.config import EnvConfig
-from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.core.atomic import machine, write_results
+from regrasp_mjx.core.config import EnvConfig
+from regrasp_mjx.envs.env import RegraspEnv
 
 
 def bench_step_calls(batch: int, steps: int, repeats: int, seed: int) -> dict:

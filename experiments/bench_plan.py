@@ -4,7 +4,7 @@ Every method plans the same queries in the same process, pinned to one core, in 
 (each repeat rotates which method goes first, so drift of the machine falls on all of them), and
 the script prints each method's median per repeat, the median over all, and the ratio to the first
 method. Methods: the shipped policy through ``Policy.plan`` as a user calls it (shielded, the
-grasp-library check on) on the lean path (numba, :mod:`regrasp_mjx.lean_planner`, the default for
+grasp-library check on) on the lean path (numba, :mod:`regrasp_mjx.inference.lean_planner`, the default for
 one query on the CPU) and on the JAX path (one compiled rollout per query, numpy in and out), the
 lean planner's compiled call alone (``LeanPlanner``: the same checks and rollout, no ``Plan``
 built), and OMPL RRT-Connect (forward and reverse, with and without 0.2 s of
@@ -33,15 +33,15 @@ from datetime import date
 import jax
 import numpy as np
 
-from regrasp_mjx.atomic import dumps, machine, write_results
-from regrasp_mjx.grasps import GraspLibrary
-from regrasp_mjx.host import HostChecker
+from regrasp_mjx.core.atomic import dumps, machine, write_results
+from regrasp_mjx.envs.host import HostChecker
+from regrasp_mjx.inference.grasps import GraspLibrary
+from regrasp_mjx.inference.plans import NO_LIBRARY
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.queries import TaskSpec
+from regrasp_mjx.inference.robustness import policy_hash
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig
-from regrasp_mjx.plans import NO_LIBRARY
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.queries import TaskSpec
-from regrasp_mjx.robustness import policy_hash
-from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
+from regrasp_mjx.world.sampling import episode_needles, episode_poses, load_testset
 
 
 def main() -> None:

@@ -25,7 +25,7 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.agents.ddpg_bc.learner import Learner
-from regrasp_mjx.atomic import dumps, write_results
+from regrasp_mjx.core.atomic import dumps, write_results
 
 
 def bench(num_envs: int, seeds: int, updates: int, iterations: int, devices: int = 1, shard: str = "auto") -> dict:

@@ -13,7 +13,7 @@ finely, and whether the regrasping PSM can follow the plans (issue: dVRK kinemat
    the true wire or an under-estimate of its clearance by at most the needle model's bound,
    ``Scene.needle_error_bound``).
 3. Reachability. The shipped policy's shielded plans (margin 0) as dVRK PSM joint trajectories
-   (``regrasp_mjx.dvrk``) for two placements of the regrasping arm's remote centre of motion (RCM):
+   (``regrasp_mjx.robot.dvrk``) for two placements of the regrasping arm's remote centre of motion (RCM):
    ``start`` puts it 0.12 m behind each problem's start pose on the tool's shaft (the arm starts
    at its neutral configuration, as when a surgeon has brought the tool there); ``fixed`` puts it
    where ``start`` would for the average start pose and keeps it for every problem (one port for
@@ -32,14 +32,15 @@ import os
 
 import numpy as np
 
-from regrasp_mjx import dvrk, host, psm_joints
-from regrasp_mjx.atomic import dumps, write_results
-from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.core.atomic import dumps, write_results
+from regrasp_mjx.envs import host
+from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.evaluate import DEFAULT_TESTSET, episode_poses
+from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.planning.ompl_planner import PlannerConfig
 from regrasp_mjx.planning.pool import plan_all
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.robot import dvrk, psm_joints
+from regrasp_mjx.world.sampling import load_testset
 
 
 def clearance_stats(values: list[float]) -> dict:

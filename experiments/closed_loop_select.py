@@ -1,7 +1,7 @@
 """Chooses the closed loop's settings (warm-up frames, stop tolerance) on validation problems of
 their own seed, never on paper300: the closed loop of a policy (default: the shipped one) at frame
 noise 0.1, 0.25 and 0.5 mm (and any ``SIGMA:BIAS`` pairs of ``--noises``; ``SIGMA:BIAS:T:R:J:TOOL``
-adds the robot's errors, :class:`~regrasp_mjx.robot_errors.RobotErrors`, seen as ``--observe`` says);
+adds the robot's errors, :class:`~regrasp_mjx.robot.robot_errors.RobotErrors`, seen as ``--observe`` says);
 the setting with the best mean success over them is ``Policy.execute``'s default.
 
     python experiments/closed_loop_select.py --n 1000 --seed 7000017 --out experiments/results/closed_loop
@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import argparse
 
-from regrasp_mjx.atomic import dumps, write_results
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.robot_errors import OBSERVE
-from regrasp_mjx.selection import closed_loop_markdown, closed_loop_settings, parse_noises
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.core.atomic import dumps, write_results
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.selection import closed_loop_markdown, closed_loop_settings, parse_noises
+from regrasp_mjx.robot.robot_errors import OBSERVE
+from regrasp_mjx.world.testsets import make_testset
 
 
 def main() -> None:

@@ -21,12 +21,12 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
-from regrasp_mjx import geometry as g
-from regrasp_mjx.atomic import machine, write_results
+from regrasp_mjx.core import geometry as g
+from regrasp_mjx.core.atomic import machine, write_results
 from regrasp_mjx.evaluate import episode_poses
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.sampling import episode_needles, load_testset
-from regrasp_mjx.scene import load_scene
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.world.sampling import episode_needles, load_testset
+from regrasp_mjx.world.scene import load_scene
 
 
 def recheck(policy, testset: str, shield: bool, poses: int, limit: int | None) -> dict:

@@ -1,5 +1,5 @@
 """How long a regrasp takes on the dVRK: every paper300 plan of a policy (the shipped default)
-timed at the PSM's own joint limits and re-checked along its executed motion (``regrasp_mjx.psm_timing``).
+timed at the PSM's own joint limits and re-checked along its executed motion (``regrasp_mjx.robot.psm_timing``).
 
     python experiments/execution_time.py --out experiments/results/psm_timing
 
@@ -15,14 +15,14 @@ import time
 
 import numpy as np
 
-from regrasp_mjx import dvrk
-from regrasp_mjx.atomic import write_results
-from regrasp_mjx.estimates import NeedleNoise
-from regrasp_mjx.host import HostChecker
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.psm_timing import MotionRefused, time_executed, time_joints, time_plan, tool_poses
-from regrasp_mjx.sampling import episode_poses, load_testset
-from regrasp_mjx.scene import load_scene
+from regrasp_mjx.core.atomic import write_results
+from regrasp_mjx.envs.estimates import NeedleNoise
+from regrasp_mjx.envs.host import HostChecker
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.robot import dvrk
+from regrasp_mjx.robot.psm_timing import MotionRefused, time_executed, time_joints, time_plan, tool_poses
+from regrasp_mjx.world.sampling import episode_poses, load_testset
+from regrasp_mjx.world.scene import load_scene
 
 
 def _timed_ms(waypoints: np.ndarray, size: int | None) -> tuple[float, float]:
@@ -158,7 +158,7 @@ def main() -> None:
     }  # fmt: skip
     lines = [
         f"Policy `{row['policy']}` on {args.testset} ({row['problems']} problems), one fixed port; timed at the dVRK "
-        "PSM's joint limits, 1 kHz, every 1-ms piece re-checked (`regrasp_mjx.psm_timing`).",
+        "PSM's joint limits, 1 kHz, every 1-ms piece re-checked (`regrasp_mjx.robot.psm_timing`).",
         "",
         "| timed | refused | with inserted waypoints | duration mean / median / p95 / max (s) | off the checked path, "
         "median / max (mm) | smallest clearance at a sample (um) | penetrations | TOPP-RA alone, median / max (ms) | "

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import dumps, write_results
+from regrasp_mjx.core.atomic import dumps, write_results
 
 
 def gpu_sampler(stop: threading.Event, samples: list[list[float]]) -> None:

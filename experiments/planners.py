@@ -18,13 +18,13 @@ import os
 import time
 from pathlib import Path
 
-from regrasp_mjx.atomic import dumps, machine, write_csv, write_text
-from regrasp_mjx.config import SceneConfig
-from regrasp_mjx.host import HostChecker
+from regrasp_mjx.core.atomic import dumps, machine, write_csv, write_text
+from regrasp_mjx.core.config import SceneConfig
+from regrasp_mjx.envs.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
 from regrasp_mjx.planning.pool import plan_all, summarize_plans
-from regrasp_mjx.sampling import load_testset
-from regrasp_mjx.scene import load_scene
+from regrasp_mjx.world.sampling import load_testset
+from regrasp_mjx.world.scene import load_scene
 
 SHORT = {"PRMstar": "PRM*", "RRTstar": "RRT*", "BFMTstar": "BFMT*", "BITstar": "BIT*", "RRTConnect": "RRT-Connect"}
 

@@ -22,11 +22,11 @@ from datetime import date
 import jax
 import numpy as np
 
-from regrasp_mjx import plans
-from regrasp_mjx.atomic import write_results
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.queries import TaskSpec
-from regrasp_mjx.sampling import episode_needles, episode_poses, load_testset
+from regrasp_mjx.core.atomic import write_results
+from regrasp_mjx.inference import plans
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.queries import TaskSpec
+from regrasp_mjx.world.sampling import episode_needles, episode_poses, load_testset
 
 
 def median_s(fn, repeats: int) -> float:

@@ -1,4 +1,4 @@
-"""docs/training.md's recipe block, generated from the recipes as data (``regrasp_mjx.recipes``).
+"""docs/training.md's recipe block, generated from the recipes as data (``regrasp_mjx.workflows.recipes``).
 
 python experiments/recipe_docs.py            # rewrite the block
 python experiments/recipe_docs.py --check    # exit 1 when the block differs (tests/test_recipe.py checks too)
@@ -10,8 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from regrasp_mjx.atomic import write_text
-from regrasp_mjx.recipes import render_docs
+from regrasp_mjx.core.atomic import write_text
+from regrasp_mjx.workflows.recipes import render_docs
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "training.md"
 BEGIN, END = "<!-- recipes:begin -->", "<!-- recipes:end -->"

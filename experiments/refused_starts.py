@@ -4,7 +4,7 @@ General-task problems (the shipped ``general`` policy's task: needles of 4-12 mm
 mm) drawn with ``sampling.draw_episode`` (no collision test), and each start also *pushed* toward
 the wire: the regrasping tool moved along the exact closest-point normal until its exact clearance
 to the true wire is a target drawn from U(5, 25) um, where a model's error decides. For every start
-the exact clearance (``regrasp_mjx.true_needle``, the grasping tool's capsules exact already) against
+the exact clearance (``regrasp_mjx.world.true_needle``, the grasping tool's capsules exact already) against
 the model's (``Scene.distance_fn`` with the problem's needle, float32 as the environment runs it):
 
     python experiments/refused_starts.py --n 1000 --seed 9000030 --out experiments/results/needle_model
@@ -22,12 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from regrasp_mjx import true_needle
-from regrasp_mjx.atomic import dumps, write_results
-from regrasp_mjx.geometry import rotation_matrix
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.sampling import draw_episode
-from regrasp_mjx.scene import load_scene
+from regrasp_mjx.core.atomic import dumps, write_results
+from regrasp_mjx.core.geometry import rotation_matrix
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.world import true_needle
+from regrasp_mjx.world.sampling import draw_episode
+from regrasp_mjx.world.scene import load_scene
 
 
 def main(argv: list[str] | None = None) -> None:

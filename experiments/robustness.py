@@ -4,7 +4,7 @@
     python experiments/robustness.py --docs experiments/results/robustness/robustness.json
 
 ``--docs`` rewrites the generated robustness blocks of docs/results.md, docs/inference.md and
-experiments/RESULTS.md (``regrasp_mjx.robustness.docs_blocks``: the default and ``exact``, each named
+experiments/RESULTS.md (``regrasp_mjx.inference.robustness.docs_blocks``: the default and ``exact``, each named
 by its hash, and the robot-error rows: the default and ``exact`` in docs/, every policy in RESULTS) from
 the table file; run it whenever the table is made again (tests/test_robustness.py
 checks that they agree).
@@ -16,8 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
-from regrasp_mjx import robustness
-from regrasp_mjx.atomic import write_text
+from regrasp_mjx.core.atomic import write_text
+from regrasp_mjx.inference import robustness
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_PAGES = {  # page -> the blocks it holds

@@ -19,10 +19,10 @@ import time
 
 import numpy as np
 
-from regrasp_mjx.atomic import machine, write_results
-from regrasp_mjx.gym_envs import NeedleRegraspVectorEnv, gym_id
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.core.atomic import machine, write_results
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.interfaces.gym_envs import NeedleRegraspVectorEnv, gym_id
+from regrasp_mjx.world.sampling import load_testset
 
 
 def judge(act, testset: str, name: str = "NeedleRegrasp") -> dict:

@@ -2,8 +2,8 @@
 
 Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no path; its
 ``plan``, ``plan_from_camera``, ``closed_loop_step``, ``camera_loop`` and ``execute``),
-:class:`regrasp_mjx.env.RegraspEnv`, :func:`regrasp_mjx.geometry.grasp_pose`,
-:func:`regrasp_mjx.scene.load_scene`, :func:`regrasp_mjx.sampling.load_testset`, and the CLIs
+:class:`regrasp_mjx.envs.env.RegraspEnv`, :func:`regrasp_mjx.core.geometry.grasp_pose`,
+:func:`regrasp_mjx.world.scene.load_scene`, :func:`regrasp_mjx.world.sampling.load_testset`, and the CLIs
 ``python -m regrasp_mjx.{train,evaluate,compare,distill,sweep,demos,testset,grasps,export_onnx}``
 (the README's command table).
 """
@@ -22,12 +22,12 @@ for _line in _captured.getvalue().splitlines():
     if not _line.startswith(("Failed to import warp", "Failed to import mujoco_warp")):
         print(_line)
 
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig, TaskConfig  # noqa: E402
-from regrasp_mjx.geometry import grasp_pose  # noqa: E402
+from regrasp_mjx.core.config import ConfigError, EnvConfig, SceneConfig, TaskConfig  # noqa: E402
+from regrasp_mjx.core.geometry import grasp_pose  # noqa: E402
 
 __version__ = "0.1.0"
 
-# The gymnasium ids, one per environment of regrasp_mjx.registry (tests/test_gym.py keeps the two
+# The gymnasium ids, one per environment of regrasp_mjx.interfaces.registry (tests/test_gym.py keeps the two
 # lists equal): registered here with the modules as strings, so importing the package stays light.
 GYM_NAMES = (
     "NeedleRegrasp",
@@ -44,19 +44,19 @@ def _register_gymnasium() -> None:
         if env_id not in _gymnasium.registry:
             _gymnasium.register(
                 id=env_id,
-                entry_point="regrasp_mjx.gym_envs:NeedleRegraspEnv",
-                vector_entry_point="regrasp_mjx.gym_envs:NeedleRegraspVectorEnv",
+                entry_point="regrasp_mjx.interfaces.gym_envs:NeedleRegraspEnv",
+                vector_entry_point="regrasp_mjx.interfaces.gym_envs:NeedleRegraspVectorEnv",
                 kwargs={"name": name},
             )
 
 
 _register_gymnasium()
-__all__ = ["ConfigError", "EnvConfig", "SceneConfig", "TaskConfig", "grasp_pose", "load_policy", "__version__"]
+__all__ = ["ConfigError", "EnvConfig", "SceneConfig", "TaskConfig", "grasp_pose", "load_policy", "Policy", "__version__"]
 
 
 def __getattr__(name: str):
-    if name == "load_policy":  # lazy: the policy module imports the learner's networks
-        from regrasp_mjx.policy import load_policy
+    if name in ("load_policy", "Policy"):  # lazy: the policy module imports the learner's networks
+        from regrasp_mjx.inference import policy
 
-        return load_policy
+        return getattr(policy, name)
     raise AttributeError(f"module 'regrasp_mjx' has no attribute {name!r}")

@@ -18,7 +18,7 @@ Without ``--robustness``: success, collision and time-out rates, path length and
 network alone) and shielded; for a general policy on general1000 also its bare success by needle
 radius and by goal angle alpha*, and in the JSON each problem's bare outcome (the heat map of
 ``notebooks/04_policy.ipynb``). With it: the robustness table of each policy
-(``regrasp_mjx.robustness``), its hash recorded, written after each policy so a cut run keeps them;
+(``regrasp_mjx.inference.robustness``), its hash recorded, written after each policy so a cut run keeps them;
 ``--merge`` joins such tables from runs made side by side. Writes ``OUT/NAME.md`` and ``NAME.json``.
 """
 
@@ -36,17 +36,17 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx import robustness
-from regrasp_mjx.analysis import markdown_table
-from regrasp_mjx.atomic import dumps, machine, output_folder_problem, write_results
-from regrasp_mjx.config import ConfigError, parse_overrides
-from regrasp_mjx.host_loop import run_command
-from regrasp_mjx.policy import PolicyError, load_policy, shipped_policies
-from regrasp_mjx.queries import PoseError
-from regrasp_mjx.rollout import summarize
-from regrasp_mjx.sampling import TestsetError, load_testset
-from regrasp_mjx.testset import make_testset
-from regrasp_mjx.testset_plans import plan_testset
+from regrasp_mjx.core.atomic import dumps, machine, output_folder_problem, write_results
+from regrasp_mjx.core.config import ConfigError, parse_overrides
+from regrasp_mjx.core.host_loop import run_command
+from regrasp_mjx.envs.rollout import summarize
+from regrasp_mjx.inference import robustness
+from regrasp_mjx.inference.policy import PolicyError, load_policy, shipped_policies
+from regrasp_mjx.inference.queries import PoseError
+from regrasp_mjx.inference.testset_plans import plan_testset
+from regrasp_mjx.workflows.analysis import markdown_table
+from regrasp_mjx.world.sampling import TestsetError, load_testset
+from regrasp_mjx.world.testsets import make_testset
 
 R_BINS_MM = (4.0, 6.0, 8.0, 10.0, 12.0)
 ALPHA_BINS_RAD = tuple(10 * math.pi / 9 + k * (math.pi / 3) / 4 for k in range(5))  # [10pi/9, 13pi/9] in 4

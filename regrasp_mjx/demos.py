@@ -23,15 +23,15 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from regrasp_mjx.atomic import atomic_write, dumps, output_folder_problem, write_json
-from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig, parse_overrides, replace
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.core.atomic import atomic_write, dumps, output_folder_problem, write_json
+from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig, parse_overrides, replace
+from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
 from regrasp_mjx.planning.ompl_planner import CHECKERS, PLANNERS, PlannerConfig
 from regrasp_mjx.planning.pool import PlannerPool
-from regrasp_mjx.sampling import Episode, sample_episode
-from regrasp_mjx.testset import versions
+from regrasp_mjx.world.sampling import Episode, sample_episode
+from regrasp_mjx.world.testsets import versions
 
 ALL_FAILED = 16  # this many plans in a row failing with an error (not unsolved) stop the build
 

@@ -26,16 +26,16 @@ import jax
 import jax.numpy as jnp
 
 from regrasp_mjx.agents.dagger import DistillConfig, Distiller
-from regrasp_mjx.atomic import dumps, output_folder_problem, write_json
-from regrasp_mjx.config import ConfigError, parse_overrides, replace
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.estimates import evaluate_noisy
-from regrasp_mjx.host_loop import BestOf, FolderInUse, Phases, RunLog, eta, folder_lock, run_command
-from regrasp_mjx.policy import Policy, PolicyError, load_policy, save_policy
-from regrasp_mjx.rollout import evaluate_actor, summarize
-from regrasp_mjx.sampling import PAPER300, Episode, TestsetError, load_testset
-from regrasp_mjx.testset import make_testset
-from regrasp_mjx.testset_plans import outcomes
+from regrasp_mjx.core.atomic import dumps, output_folder_problem, write_json
+from regrasp_mjx.core.config import ConfigError, parse_overrides, replace
+from regrasp_mjx.core.host_loop import BestOf, FolderInUse, Phases, RunLog, eta, folder_lock, run_command
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.estimates import evaluate_noisy
+from regrasp_mjx.envs.rollout import evaluate_actor, summarize
+from regrasp_mjx.inference.policy import Policy, PolicyError, load_policy, save_policy
+from regrasp_mjx.inference.testset_plans import outcomes
+from regrasp_mjx.world.sampling import PAPER300, Episode, TestsetError, load_testset
+from regrasp_mjx.world.testsets import make_testset
 
 VALIDATION_SEED = 2_000_003  # + the distillation seed; the learner's validation problems use 1_000_003 + seed
 DEFAULT_TESTSET = PAPER300

@@ -26,11 +26,11 @@ import time
 import jax
 import numpy as np
 
-from regrasp_mjx import robustness
-from regrasp_mjx.atomic import dumps
-from regrasp_mjx.config import ConfigError
-from regrasp_mjx.host_loop import run_command
-from regrasp_mjx.policy import (
+from regrasp_mjx.core.atomic import dumps
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.host_loop import run_command
+from regrasp_mjx.inference import robustness
+from regrasp_mjx.inference.policy import (
     DEFAULT_POLICY,
     START_WARN_MM,
     PolicyError,
@@ -39,8 +39,10 @@ from regrasp_mjx.policy import (
     load_policy,
     shipped_policies,
 )
-from regrasp_mjx.queries import PoseError
-from regrasp_mjx.robot_errors import (
+from regrasp_mjx.inference.queries import PoseError
+from regrasp_mjx.inference.robustness import check_condition
+from regrasp_mjx.inference.testset_plans import VERDICTS, engine_agreement, outcomes, plan_testset  # noqa: F401 (re-exported)
+from regrasp_mjx.robot.robot_errors import (
     MAX_CALIBRATION_DEG,
     MAX_CALIBRATION_MM,
     MAX_JOINT_OFFSET,
@@ -48,9 +50,7 @@ from regrasp_mjx.robot_errors import (
     OBSERVE,
     RobotErrors,
 )
-from regrasp_mjx.robustness import check_condition
-from regrasp_mjx.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
-from regrasp_mjx.testset_plans import VERDICTS, engine_agreement, outcomes, plan_testset  # noqa: F401 (re-exported)
+from regrasp_mjx.world.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
 
 DEFAULT_TESTSET = PAPER300
 

@@ -5,7 +5,7 @@
 Input ``obs`` float32 ``[B, 21]`` (``[B, 37]`` for a general policy; B dynamic; the layout in
 ``policy.json``), output ``action``
 float32 ``[B, 6]`` in [-1, 1]. The robot side then applies the action as ``policy.json`` says
-(or plans with :meth:`regrasp_mjx.policy.Policy.plan`, which also checks collisions). Converted
+(or plans with :meth:`regrasp_mjx.inference.policy.Policy.plan`, which also checks collisions). Converted
 with jax2onnx; ``check`` runs it in ONNX Runtime against JAX on random observations.
 """
 
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.atomic import atomic_write, dumps, output_file_problem
-from regrasp_mjx.policy import DEFAULT_POLICY, Policy, PolicyError, load_policy, shipped_policies
+from regrasp_mjx.core.atomic import atomic_write, dumps, output_file_problem
+from regrasp_mjx.inference.policy import DEFAULT_POLICY, Policy, PolicyError, load_policy, shipped_policies
 
 
 def export_onnx(policy: Policy, path: str | os.PathLike) -> Path:

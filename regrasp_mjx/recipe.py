@@ -5,10 +5,10 @@
     python -m regrasp_mjx.recipe general --out runs/general --gpus 0,1
     python -m regrasp_mjx.recipe --list                                      # the recipes, as data
 
-Every stage of the recipe (:mod:`regrasp_mjx.recipes`: demonstrations, teachers, students, the
+Every stage of the recipe (:mod:`regrasp_mjx.workflows.recipes`: demonstrations, teachers, students, the
 choice on validation problems of their own seed, the closed loop's settings, the exported policy's
 robustness table) is a job, a command of this package run as its own process; the jobs run over
-every local GPU (side by side on one where their memory shares fit, :mod:`regrasp_mjx.jobs`), one at
+every local GPU (side by side on one where their memory shares fit, :mod:`regrasp_mjx.core.jobs`), one at
 a time without a GPU. A finished job is skipped and an unfinished one resumes (a teacher run from
 its checkpoint, the demonstrations from the plans made so far, a student or a table anew), so a
 killed recipe started again with the same arguments goes on; other arguments in the same folder are
@@ -32,18 +32,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-from regrasp_mjx import recipes
 from regrasp_mjx.agents.ddpg_bc.config import make_config
-from regrasp_mjx.atomic import dumps, output_folder_problem, write_json, write_results
-from regrasp_mjx.config import TASKS, ConfigError, parse_overrides
+from regrasp_mjx.core.atomic import dumps, output_folder_problem, write_json, write_results
+from regrasp_mjx.core.config import TASKS, ConfigError, parse_overrides
+from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.core.jobs import Job, gpu_slots, run_jobs
 from regrasp_mjx.distill import DISTILL_OUTPUTS
-from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
-from regrasp_mjx.jobs import Job, gpu_slots, run_jobs
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.recipes import RECIPES, Recipe
-from regrasp_mjx.selection import closed_loop_markdown, closed_loop_settings, parse_noises, score
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.selection import closed_loop_markdown, closed_loop_settings, parse_noises, score
 from regrasp_mjx.train import restart_args
+from regrasp_mjx.workflows import recipes
+from regrasp_mjx.workflows.recipes import RECIPES, Recipe
+from regrasp_mjx.world.testsets import make_testset
 
 FORMAT = "regrasp_mjx.recipe"
 STAGES = ("demos", "teachers", "students", "selection", "choose", "report")  # the jobs' stages, in order

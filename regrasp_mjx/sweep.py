@@ -33,12 +33,12 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx import analysis
 from regrasp_mjx.agents.ddpg_bc.config import make_config
-from regrasp_mjx.atomic import write_figure, write_json, write_text
-from regrasp_mjx.config import ConfigError, parse_overrides
-from regrasp_mjx.jobs import Job, gpu_slots, run_jobs
+from regrasp_mjx.core.atomic import write_figure, write_json, write_text
+from regrasp_mjx.core.config import ConfigError, parse_overrides
+from regrasp_mjx.core.jobs import Job, gpu_slots, run_jobs
 from regrasp_mjx.train import restart_args
+from regrasp_mjx.workflows import analysis
 
 FORMAT = "regrasp_mjx.sweep"
 

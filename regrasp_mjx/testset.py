@@ -9,57 +9,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import sys
 import time
-from importlib import metadata
 
-import jax
 import numpy as np
 
-from regrasp_mjx.atomic import dumps, output_file_problem
-from regrasp_mjx.config import TASKS, ConfigError, EnvConfig, SceneConfig
-from regrasp_mjx.sampling import Episode, load_testset, sample_episode, save_testset
-from regrasp_mjx.scene import load_scene
-
-
-@functools.lru_cache(maxsize=8)
-def _sampler(config: EnvConfig):
-    """The jitted, batched problem sampler of an environment config, built once per config (a
-    trainer draws its validation problems with it every run; tracing it takes seconds)."""
-    radius, wire = config.scene.needle_radius_mm * 1e-3, config.scene.wire_radius_mm * 1e-3
-    distances = load_scene(config.scene).distance_fn()
-    return jax.jit(jax.vmap(lambda k: sample_episode(k, config.task, radius, distances, wire)))
-
-
-def make_testset(n: int, seed: int, config: EnvConfig = EnvConfig(), batch: int = 1024) -> Episode:
-    """``n`` problems from the paper's distributions; raises if any could not be made collision-free."""
-    if not isinstance(n, int) or n < 1:
-        raise ConfigError(f"n={n!r} is not accepted: a positive number of problems")
-    draw = _sampler(config)
-    keys = jax.random.split(jax.random.PRNGKey(seed), n)
-    parts, valid = [], []
-    for i in range(0, n, batch):
-        ep, ok = draw(keys[i : i + batch])
-        parts.append(jax.tree.map(np.asarray, ep))
-        valid.append(np.asarray(ok))
-    valid = np.concatenate(valid)
-    if not valid.all():
-        raise RuntimeError(
-            f"{int((~valid).sum())} of {n} problems stayed in collision after "
-            f"{config.task.max_sample_tries} draws; raise task.max_sample_tries"
-        )
-    return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
-
-
-def versions() -> dict[str, str]:
-    out = {}
-    for pkg in ("regrasp_mjx", "jax", "mujoco", "mujoco-mjx"):
-        try:
-            out[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            out[pkg] = "unknown"
-    return out
+from regrasp_mjx.core.atomic import dumps, output_file_problem
+from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.world.sampling import load_testset, save_testset
+from regrasp_mjx.world.testsets import make_testset, versions
 
 
 def main(argv: list[str] | None = None) -> int:

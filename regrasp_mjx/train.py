@@ -6,7 +6,7 @@
     python -m regrasp_mjx.train --preset fast --out runs/fast --resume
     python -m regrasp_mjx.train --preset fast --exploration targeted --seeds 3 --out runs/targeted
 
-The command line of :class:`regrasp_mjx.trainer.Run` (the host loop; the jitted learner is
+The command line of :class:`regrasp_mjx.workflows.trainer.Run` (the host loop; the jitted learner is
 :mod:`regrasp_mjx.agents.ddpg_bc.learner`). Python runs only between iterations: the planner exchange
 (failed episodes out with probability E_T, demonstrations in when they are ready), and per epoch the
 test-set evaluation, the log line, TensorBoard and JSONL logs and an atomic checkpoint. At the end the
@@ -27,16 +27,16 @@ from typing import Any
 
 import jax
 
-from regrasp_mjx import distributed, gpu_memory
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, grow_with_devices, make_config
 from regrasp_mjx.agents.ddpg_bc.placement import Placement
-from regrasp_mjx.atomic import dumps, output_folder_problem
-from regrasp_mjx.config import TASKS, ConfigError, parse_overrides
-from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.core import distributed, gpu_memory
+from regrasp_mjx.core.atomic import dumps, output_folder_problem
+from regrasp_mjx.core.config import TASKS, ConfigError, parse_overrides
+from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.inference.queries import PoseError, TaskRanges, TaskSpec
 from regrasp_mjx.planning.episodes import DemosError
-from regrasp_mjx.queries import PoseError, TaskRanges, TaskSpec
-from regrasp_mjx.sampling import TestsetError, episode_needles, load_testset
-from regrasp_mjx.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run
+from regrasp_mjx.workflows.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run
+from regrasp_mjx.world.sampling import TestsetError, episode_needles, load_testset
 
 __all__ = ["DEFAULT_TESTSET", "VALIDATION_SEED", "Run", "main"]
 

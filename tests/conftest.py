@@ -40,10 +40,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from regrasp_mjx.config import EnvConfig  # noqa: E402
-from regrasp_mjx.env import RegraspEnv  # noqa: E402
-from regrasp_mjx.sampling import load_testset  # noqa: E402
-from regrasp_mjx.scene import load_scene  # noqa: E402
+from regrasp_mjx.core.config import EnvConfig  # noqa: E402
+from regrasp_mjx.envs.env import RegraspEnv  # noqa: E402
+from regrasp_mjx.world.sampling import load_testset  # noqa: E402
+from regrasp_mjx.world.scene import load_scene  # noqa: E402
 
 # The files that take longest on two busy cores (seconds, from --durations), started first so that
 # the run does not end on one of them while the other worker idles; the rest follow in their order.

@@ -10,9 +10,9 @@ import jax
 import numpy as np
 import pytest
 
-from regrasp_mjx import analysis
+from regrasp_mjx.envs.host import HostChecker
 from regrasp_mjx.evaluate import episode_poses
-from regrasp_mjx.host import HostChecker
+from regrasp_mjx.workflows import analysis
 from tests.conftest import ROOT
 
 RESULTS = ROOT / "experiments" / "results"
@@ -24,7 +24,7 @@ def _pose(ep, field, i):
 
 # ---- logs --------------------------------------------------------------------------------------
 def test_write_results_writes_the_table_and_the_rows_whole_and_nothing_without_a_folder(tmp_path):
-    from regrasp_mjx.atomic import write_results
+    from regrasp_mjx.core.atomic import write_results
 
     write_results(tmp_path / "r", "t", ["| a |", "| 1 |"], {"rows": [1.5]})
     assert (tmp_path / "r" / "t.md").read_text() == "| a |\n| 1 |\n"
@@ -42,7 +42,7 @@ def test_figures_and_csv_tables_are_written_whole(tmp_path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from regrasp_mjx.atomic import write_csv, write_figure
+    from regrasp_mjx.core.atomic import write_csv, write_figure
 
     write_csv(tmp_path / "t.csv", ["name", "rate"], [["a, b", 0.5], ["c", 1]])
     assert list(csv.reader((tmp_path / "t.csv").open(newline=""))) == [["name", "rate"], ["a, b", "0.5"], ["c", "1"]]

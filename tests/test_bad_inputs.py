@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import compare, demos, distill, evaluate, export_onnx, grasps, load_policy, testset, train
-from regrasp_mjx.atomic import dumps
-from regrasp_mjx.host_loop import FolderInUse, folder_lock, run_command
-from regrasp_mjx.policy_file import PolicyError
-from regrasp_mjx.queries import PoseError
+from regrasp_mjx.core.atomic import dumps
+from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.inference.policy_file import PolicyError
+from regrasp_mjx.inference.queries import PoseError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -136,7 +136,7 @@ def test_a_second_run_into_a_held_folder_is_refused_and_a_killed_run_leaves_no_l
         _refused(train.main, ["--preset", "smoke", "--out", str(out)], r"is in use by another run", capsys, tmp_path)
         _refused(demos.main, ["--n", "2", "--out", str(out)], r"is in use by another run", capsys, tmp_path)
     # a process that holds the lock and is killed: the kernel drops it
-    code = "import sys, time; from pathlib import Path; from regrasp_mjx.host_loop import folder_lock\n"
+    code = "import sys, time; from pathlib import Path; from regrasp_mjx.core.host_loop import folder_lock\n"
     code += "with folder_lock(Path(sys.argv[1])):\n    print('held', flush=True); time.sleep(60)\n"
     proc = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert proc.stdout.readline().strip() == "held"
@@ -201,7 +201,7 @@ def test_json_written_or_printed_is_strict(capsys):
 
 def test_a_policy_with_nan_weights_is_refused(tmp_path):
     """A diverged or damaged network (NaN in its weights) no longer loads and plans silently."""
-    from regrasp_mjx.policy_file import resolve
+    from regrasp_mjx.inference.policy_file import resolve
 
     folder = tmp_path / "p"
     folder.mkdir()

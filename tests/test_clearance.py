@@ -11,12 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import dvrk, load_policy, true_needle
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
-from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx import load_policy
+from regrasp_mjx.core.config import ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.host import HostChecker
 from regrasp_mjx.evaluate import episode_poses
-from regrasp_mjx.host import HostChecker
-from regrasp_mjx.scene import load_scene
+from regrasp_mjx.robot import dvrk
+from regrasp_mjx.world import true_needle
+from regrasp_mjx.world.scene import load_scene
 
 
 def test_margin_is_checked_and_old_substep_settings_are_refused():
@@ -24,7 +26,7 @@ def test_margin_is_checked_and_old_substep_settings_are_refused():
         EnvConfig(clearance_mm=-0.1)
     with pytest.raises(TypeError):
         EnvConfig(collision_substeps=4)  # gone: every step is tested along its whole motion
-    from regrasp_mjx.config import env_config_from_dict
+    from regrasp_mjx.core.config import env_config_from_dict
 
     d = dataclasses.asdict(EnvConfig())
     assert env_config_from_dict({**d, "collision_substeps": None}) == EnvConfig()  # policy files before issue 44

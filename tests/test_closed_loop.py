@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import load_policy
-from regrasp_mjx.estimates import NeedleNoise, episode_bias, frame_estimate
+from regrasp_mjx.envs.estimates import NeedleNoise, episode_bias, frame_estimate
 from regrasp_mjx.evaluate import episode_poses
 
 

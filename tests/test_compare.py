@@ -10,11 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from regrasp_mjx import compare, robustness
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx import compare
+from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.evaluate import plan_testset
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.inference import robustness
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.world.testsets import make_testset
 
 
 def test_compare_plans_each_policy_bare_and_shielded_as_policy_plan_does(tmp_path):

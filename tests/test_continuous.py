@@ -8,13 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import continuous
-from regrasp_mjx.config import EnvConfig
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.host import HostChecker, HostEnv, quat_from_rotvec, quat_mul
-from regrasp_mjx.lean_checker import LeanChecker, _placed
-from regrasp_mjx.lean_collision import Capsules, Fixed, make_scratch, motion_collides
-from regrasp_mjx.sampling import Episode
+from regrasp_mjx.core.config import EnvConfig
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.host import HostChecker, HostEnv, quat_from_rotvec, quat_mul
+from regrasp_mjx.envs.lean_checker import LeanChecker, _placed
+from regrasp_mjx.envs.lean_collision import Capsules, Fixed, make_scratch, motion_collides
+from regrasp_mjx.world import continuous
+from regrasp_mjx.world.sampling import Episode
 
 # paper300 row 161 and the first action the shipped default's shielded plan took there before the
 # continuous test: clear at the two poses the environment used to check (s = 0.5 by 3.3 um, s = 1 by

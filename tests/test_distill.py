@@ -10,12 +10,12 @@ import pytest
 
 import regrasp_mjx
 from regrasp_mjx.agents.dagger import DistillConfig, Distiller, teacher_actions
-from regrasp_mjx.config import ConfigError
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.rollout import evaluate_actor
-from regrasp_mjx.sampling import load_testset
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.rollout import evaluate_actor
 from regrasp_mjx.train import DEFAULT_TESTSET
+from regrasp_mjx.world.sampling import load_testset
+from regrasp_mjx.world.testsets import make_testset
 
 # paper300 rows where the earlier default (student_v2, the teacher here) alone collides, on its first
 # step (under the 18-chord needle model before issue 30 also 161, 179, 275), and rows it plans to the

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.world.sampling import load_testset
 from tests.conftest import REGENERATION_ATOL, ROOT, needle_model_redraws
 
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

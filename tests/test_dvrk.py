@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from regrasp_mjx import dvrk, psm_joints
+from regrasp_mjx.robot import dvrk, psm_joints
 
 
 def test_forward_kinematics_by_hand():

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
-from regrasp_mjx import geometry as g
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig, TaskConfig
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.host import HostEnv
-from regrasp_mjx.sampling import Episode
+from regrasp_mjx.core import geometry as g
+from regrasp_mjx.core.config import ConfigError, EnvConfig, SceneConfig, TaskConfig
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.host import HostEnv
+from regrasp_mjx.world.sampling import Episode
 
 
 def _rows(testset, idx) -> Episode:
@@ -88,7 +88,7 @@ def test_scripted_approach_succeeds_with_plus_one_on_its_last_step(env, jit_env,
 
 
 def test_rollout_ends_each_episode_as_a_hand_stepped_loop_does(env, jit_env, paper_testset):
-    from regrasp_mjx.rollout import rollout
+    from regrasp_mjx.envs.rollout import rollout
 
     _, reset_from, step = jit_env
     act = _toward_goal(env)
@@ -131,7 +131,7 @@ def test_rollout_ends_each_episode_as_a_hand_stepped_loop_does(env, jit_env, pap
 
 def test_a_compacted_rollout_ends_every_episode_as_the_whole_batch_does(env, jit_env, paper_testset):
     """``rollout(compact=True)`` carries on with the few live rows alone: same outcomes and traces."""
-    from regrasp_mjx.rollout import COMPACT, rollout
+    from regrasp_mjx.envs.rollout import COMPACT, rollout
 
     _, reset_from, _ = jit_env
     toward = _toward_goal(env)
@@ -164,7 +164,7 @@ def test_a_stopping_rule_ends_episodes_in_place_of_the_environment(env, jit_env,
     """``rollout(stop=...)``: the rule ends rows before a step (its success or not, ``stopped``),
     reaching the true goal no longer ends an episode, a collision still does, and the rows the rule
     never stops time out after ``max_steps`` steps; the rule's per-row data rides in ``state.info``."""
-    from regrasp_mjx.rollout import rollout
+    from regrasp_mjx.envs.rollout import rollout
 
     _, reset_from, _ = jit_env
     problems = _rows(paper_testset, range(12))
@@ -261,7 +261,7 @@ def test_sampled_starts_follow_the_spec(env, jit_env):
 
 
 def test_initial_grasp_parameters_in_range(env):
-    from regrasp_mjx.sampling import draw_episode
+    from regrasp_mjx.world.sampling import draw_episode
 
     eps = jax.vmap(lambda k: draw_episode(k, TaskConfig(), 0.0054))(jax.random.split(jax.random.PRNGKey(0), 2000))
     alpha, depth, theta, phi = np.asarray(eps.grasp).T

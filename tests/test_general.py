@@ -11,14 +11,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import geometry, host
-from regrasp_mjx.config import GENERAL_TASK, ConfigError, EnvConfig, SceneConfig, TaskConfig
-from regrasp_mjx.env import RegraspEnv
+from regrasp_mjx.core import geometry
+from regrasp_mjx.core.config import GENERAL_TASK, ConfigError, EnvConfig, SceneConfig, TaskConfig
+from regrasp_mjx.envs import host
+from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.evaluate import episode_needles, episode_poses
-from regrasp_mjx.policy import PoseError, load_policy
-from regrasp_mjx.sampling import GENERAL1000, TestsetError, load_testset
-from regrasp_mjx.scene import load_scene, needle_scene
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.inference.policy import PoseError, load_policy
+from regrasp_mjx.world.sampling import GENERAL1000, TestsetError, load_testset
+from regrasp_mjx.world.scene import load_scene, needle_scene
+from regrasp_mjx.world.testsets import make_testset
 from tests.conftest import PAPER_TESTSET, needle_model_redraws
 
 GENERAL = EnvConfig(task=GENERAL_TASK)
@@ -213,7 +214,7 @@ def test_specialist_refuses_what_it_was_not_trained_for_and_the_generalist_plans
 def test_demonstrations_of_the_wrong_task_are_refused(tmp_path):
     from regrasp_mjx.agents.ddpg_bc.config import make_config
     from regrasp_mjx.planning.episodes import DemosError, save_demos
-    from regrasp_mjx.trainer import Run
+    from regrasp_mjx.workflows.trainer import Run
 
     one = {
         "obs": np.zeros((3, 21), np.float32),

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import geometry as g
+from regrasp_mjx.core import geometry as g
 
 R = 0.0054
 

@@ -6,9 +6,9 @@ import dataclasses
 
 import pytest
 
-from regrasp_mjx import gpu_memory
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.core import gpu_memory
+from regrasp_mjx.core.config import ConfigError
 
 
 def test_state_bytes_by_hand():

@@ -16,9 +16,10 @@ from brax.envs.base import State as BraxState
 from gymnasium.utils.env_checker import check_env
 
 import regrasp_mjx
-from regrasp_mjx import gym_envs, registry, robot_errors
-from regrasp_mjx.config import ConfigError
-from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.interfaces import gym_envs, registry
+from regrasp_mjx.robot import robot_errors
+from regrasp_mjx.world.sampling import load_testset
 
 ACTIONS = np.random.default_rng(0).uniform(-1.0, 1.0, (6, 6)).astype(np.float32)
 
@@ -207,7 +208,7 @@ def test_the_vector_env_starts_from_given_problems():
 
 
 def test_rgb_array_renders_the_scene():
-    from regrasp_mjx import render
+    from regrasp_mjx.workflows import render
 
     env = gymnasium.make("regrasp_mjx/NeedleRegrasp-v0", render_mode="rgb_array", width=64, height=48)
     env.reset(seed=0)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx.agents.ddpg_bc import checkpoint
-from regrasp_mjx.host_loop import BestOf, Phases, RunLog, eta
+from regrasp_mjx.core.host_loop import BestOf, Phases, RunLog, eta
 
 
 def test_phases_sum_repeats_and_start_anew():

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 import regrasp_mjx
-from regrasp_mjx import host
+from regrasp_mjx.envs import host
 from regrasp_mjx.evaluate import episode_poses
-from regrasp_mjx.grasps import GraspLibrary, pose_distance
-from regrasp_mjx.policy import PoseError, load_policy
-from regrasp_mjx.sampling import load_testset
+from regrasp_mjx.inference.grasps import GraspLibrary, pose_distance
+from regrasp_mjx.inference.policy import PoseError, load_policy
 from regrasp_mjx.train import DEFAULT_TESTSET
+from regrasp_mjx.world.sampling import load_testset
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +102,7 @@ def test_shield_candidates_order_and_range():
     import jax
     import jax.numpy as jnp
 
-    from regrasp_mjx.shield import SHIELD_NOISE, SHIELD_PER_NOISE, shield_candidates
+    from regrasp_mjx.envs.shield import SHIELD_NOISE, SHIELD_PER_NOISE, shield_candidates
 
     a = jnp.array([[0.9, -0.9, 0.0, 0.5, 0.0, -0.2], [0.0] * 6])
     members = [a + 0.1, a - 0.1, a]
@@ -194,8 +194,8 @@ def test_onnx_export_matches_jax(policy, tmp_path):
 
 def test_evaluate_cli_json(tmp_path, capsys):
     from regrasp_mjx import evaluate
-    from regrasp_mjx.sampling import save_testset
-    from regrasp_mjx.testset import make_testset
+    from regrasp_mjx.world.sampling import save_testset
+    from regrasp_mjx.world.testsets import make_testset
 
     save_testset(tmp_path / "t.npz", make_testset(12, 5), {"seed": 5})
     assert evaluate.main(["--testset", str(tmp_path / "t.npz"), "--json", "--repeats", "1"]) == 0
@@ -218,7 +218,7 @@ def test_evaluate_cli_json(tmp_path, capsys):
 def test_policy_file_versions_and_missing_arrays(tmp_path, policy):
     import shutil
 
-    from regrasp_mjx.policy import DEFAULT_POLICY, PolicyError
+    from regrasp_mjx.inference.policy import DEFAULT_POLICY, PolicyError
 
     shutil.copytree(DEFAULT_POLICY, tmp_path / "p")
     contract = json.loads((tmp_path / "p" / "policy.json").read_text())
@@ -234,8 +234,8 @@ def test_policy_file_versions_and_missing_arrays(tmp_path, policy):
 
 
 def test_shipped_policies_by_name_and_one_compiled_planner_per_network_shape(policy, problems):
-    from regrasp_mjx import planner as planner_module
-    from regrasp_mjx.policy import PolicyError, shipped_policies
+    from regrasp_mjx.inference import planner as planner_module
+    from regrasp_mjx.inference.policy import PolicyError, shipped_policies
 
     assert shipped_policies() == [
         "decay",
@@ -268,7 +268,7 @@ def test_planning_multiplies_at_full_float32_on_any_device():
     from the CPU's by up to 1e-2 in an action. Checked in the traced program, so on the CPU too."""
     import jax
 
-    from regrasp_mjx.planner import members_apply
+    from regrasp_mjx.inference.planner import members_apply
 
     policy = load_policy("ensemble3")
     apply = members_apply(policy.hidden)

@@ -21,21 +21,33 @@ def modules() -> dict[str, Path]:
     return out
 
 
-def layers() -> dict[str, float]:
-    """Module -> layer from the table in docs/architecture.md (``4b`` is 4.5: beside 4a, above it)."""
-    out = {}
+def table() -> list[tuple[float, str, int, list[str]]]:
+    """docs/architecture.md's rows: ``(layer, module prefix, module count, modules)``; ``4b`` is 4.5
+    (beside 4a, above it), ``5a``/``5b`` 5.0/5.5; a folder's prefix is ``regrasp_mjx.<folder>.``, the
+    package root's ``regrasp_mjx.``."""
+    rows = []
     for line in (ROOT / "docs" / "architecture.md").read_text().splitlines():
-        m = re.match(r"\| (\d)([ab]?)\. [^|]+\| ([^|]+)\|", line)
+        m = re.match(r"\| (\d)([ab]?)\. [^|]+\| ([^|]+)\| ([^|]+)\|", line)
         if not m:
             continue
         level = int(m.group(1)) + (0.5 if m.group(2) == "b" else 0.0)
-        for name in re.findall(r"`([^`]+)`", m.group(3)):
-            if ".{" in name:  # agents.ddpg_bc.{config, networks}
+        where = re.fullmatch(r"\s*(?:`(\w+)/`|the package root) \((\d+)\)\s*", m.group(3))
+        assert where, f"docs/architecture.md: a layer's folder cell reads {m.group(3)!r}"
+        prefix = f"regrasp_mjx.{where.group(1)}." if where.group(1) else "regrasp_mjx."
+        names = []
+        for name in re.findall(r"`([^`]+)`", m.group(4)):
+            if ".{" in name:  # ddpg_bc.{config, networks}
                 base, rest = name.split(".{")
-                out.update({f"regrasp_mjx.{base}.{x}": level for x in rest.rstrip("}").split(", ")})
+                names += [f"{base}.{x}" for x in rest.rstrip("}").split(", ")]
             else:
-                out[f"regrasp_mjx.{name}"] = level
-    return out
+                names.append(name)
+        rows.append((level, prefix, int(where.group(2)), names))
+    return rows
+
+
+def layers() -> dict[str, float]:
+    """Module -> layer from the table in docs/architecture.md."""
+    return {prefix + name: level for level, prefix, _, names in table() for name in names}
 
 
 def imports(mods: dict[str, Path]) -> tuple[dict[str, set[str]], list[tuple[str, int, str]]]:
@@ -68,7 +80,7 @@ def imports(mods: dict[str, Path]) -> tuple[dict[str, set[str]], list[tuple[str,
 
 def test_every_module_has_a_layer_and_imports_only_from_its_own_or_lower_ones():
     mods, level = modules(), layers()
-    packages = {"regrasp_mjx", "regrasp_mjx.agents", "regrasp_mjx.agents.ddpg_bc", "regrasp_mjx.planning"}
+    packages = {name for name, path in mods.items() if path.name == "__init__.py"}
     assert sorted(set(mods) - set(level) - packages) == [], "modules missing from docs/architecture.md's table"
     assert sorted(set(level) - set(mods)) == [], "docs/architecture.md names modules that do not exist"
     graph, _ = imports(mods)
@@ -107,3 +119,22 @@ def test_no_module_is_over_400_lines():
     """Small modules whose names say what they hold (issue 50): split one that grows past 400 lines."""
     long = {name: n for name, path in modules().items() if (n := len(path.read_text().splitlines())) > 400}
     assert not long, f"modules over 400 lines: {long}"
+
+
+def test_the_folders_are_the_layers():
+    """Each row of the table is one folder (or the package root) and counts its modules; the package
+    root holds only the command-line modules, ``__init__`` and the layer folders (plus package data)."""
+    mods = modules()
+    for _, prefix, count, names in table():
+        assert count == len(names), f"{prefix}: the table counts {count} modules and lists {len(names)}"
+        if prefix != "regrasp_mjx.":
+            folder = prefix.rstrip(".")
+            inside = {m for m in mods if m.startswith(prefix) and mods[m].name != "__init__.py"}
+            assert inside == {prefix + n for n in names}, f"{folder}: the table and the folder differ"
+            assert (PACKAGE / folder.split(".", 1)[1] / "__init__.py").read_text().startswith('"""Layer')
+    root = {p.stem for p in PACKAGE.glob("*.py")} - {"__init__"}
+    commands = next(names for _, prefix, _, names in table() if prefix == "regrasp_mjx.")
+    assert root == {n for n in commands if "." not in n}, "the package root holds a module that is not a command"
+    data = {"data", "models", "policies", "__pycache__"}
+    folders = {p.name for p in PACKAGE.iterdir() if p.is_dir()} - data
+    assert folders == {prefix.split(".")[1] for _, prefix, _, _ in table() if prefix != "regrasp_mjx."}

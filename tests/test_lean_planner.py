@@ -11,15 +11,16 @@ import jax
 import numpy as np
 import pytest
 
-from regrasp_mjx import lean_collision, lean_geometry, plans
+from regrasp_mjx.envs import lean_collision, lean_geometry
+from regrasp_mjx.envs.lean_geometry import nearest_grasp
 from regrasp_mjx.evaluate import engine_agreement
-from regrasp_mjx.grasps import GraspLibrary
-from regrasp_mjx.lean_geometry import nearest_grasp
-from regrasp_mjx.plans import default_goal
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.queries import TASK_FIELDS, PoseError
-from regrasp_mjx.sampling import episode_poses, load_testset
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.inference import plans
+from regrasp_mjx.inference.grasps import GraspLibrary
+from regrasp_mjx.inference.plans import default_goal
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.queries import TASK_FIELDS, PoseError
+from regrasp_mjx.world.sampling import episode_poses, load_testset
+from regrasp_mjx.world.testsets import make_testset
 
 # The JAX path computes in float32 and this one its geometry in float64 (the network in float32 in
 # both): the observations round differently, the network amplifies it and a plan carries it along.

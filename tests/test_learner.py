@@ -15,14 +15,14 @@ from regrasp_mjx.agents.dagger import DistillConfig
 from regrasp_mjx.agents.ddpg_bc import checkpoint, losses
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, PAPER_LEARNER, Exploration, TrainConfig, make_config
 from regrasp_mjx.agents.ddpg_bc.learner import Learner
-from regrasp_mjx.config import ConfigError, EnvConfig, SceneConfig
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.estimates import NeedleNoise
+from regrasp_mjx.core.config import ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.estimates import NeedleNoise
+from regrasp_mjx.inference.policy import PolicyError, load_policy, save_policy
 from regrasp_mjx.planning.episodes import make_replay, replay_paths, save_demos
 from regrasp_mjx.planning.ompl_planner import PlannerConfig
 from regrasp_mjx.planning.pool import PlannerPool
-from regrasp_mjx.policy import PolicyError, load_policy, save_policy
-from regrasp_mjx.testset import make_testset
+from regrasp_mjx.world.testsets import make_testset
 
 # ---- losses by hand ---------------------------------------------------------------------------
 # Linear stand-ins for the networks: pi(p, o) = p * o[:, :1], Q(p, o, a) = p * (o[:, 0] + a[:, 0]).
@@ -162,7 +162,7 @@ def test_decay_preset_is_fast_with_both_regularisers_decayed_over_a_third_of_tra
 
 
 def test_set_overrides_parse_as_literals():
-    from regrasp_mjx.config import parse_overrides
+    from regrasp_mjx.core.config import parse_overrides
 
     got = parse_overrides(["env.horizon=80", "distill.hidden=(256, 256)", "critics = 1", "name=abc"])
     assert got == {"env.horizon": 80, "distill.hidden": (256, 256), "critics": 1, "name": "abc"}
@@ -383,11 +383,11 @@ def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):
 
 # ---- a run killed and resumed is the run uninterrupted -------------------------------------------
 def test_resume_continues_exactly(tmp_path, easy_demos):
-    from regrasp_mjx.trainer import Run
+    from regrasp_mjx.workflows.trainer import Run
 
     save_demos(tmp_path / "demos" / "demos.npz", easy_demos[0], {"settings": {"env": dataclasses.asdict(EASY)}})
     testset = tmp_path / "test.npz"
-    from regrasp_mjx.sampling import save_testset
+    from regrasp_mjx.world.sampling import save_testset
 
     save_testset(testset, make_testset(16, 3, EASY), {"seed": 3})
     cfg = _tiny_config(iterations_per_epoch=2, validation_size=16, num_seeds=2)

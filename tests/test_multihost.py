@@ -50,8 +50,8 @@ def _free_port() -> int:
 def _write_inputs(folder: Path) -> None:
     """Six random demonstration episodes and an 8-problem test set (values do not matter here)."""
     from regrasp_mjx.planning.episodes import save_demos
-    from regrasp_mjx.sampling import save_testset
-    from regrasp_mjx.testset import make_testset
+    from regrasp_mjx.world.sampling import save_testset
+    from regrasp_mjx.world.testsets import make_testset
 
     rng = np.random.default_rng(0)
     episodes = [
@@ -88,7 +88,7 @@ def _child(folder: Path, out: Path, process_id: int | None, port: int | None) ->
 
     from regrasp_mjx.agents.ddpg_bc.config import make_config
     from regrasp_mjx.agents.ddpg_bc.exchange import PlannerExchange
-    from regrasp_mjx.env import RegraspEnv
+    from regrasp_mjx.envs.env import RegraspEnv
 
     assert jax.process_count() == 2 and jax.device_count() == 4
     cfg = make_config("smoke", demo_chunk=4)

@@ -15,9 +15,9 @@ ROOT = Path(__file__).resolve().parent.parent
 CHECK = """
 import regrasp_mjx, sys
 from pathlib import Path
-from regrasp_mjx.scene import load_scene
-from regrasp_mjx.sampling import PAPER300, load_testset
-from regrasp_mjx.policy import load_policy, shipped_policies
+from regrasp_mjx.world.scene import load_scene
+from regrasp_mjx.world.sampling import PAPER300, load_testset
+from regrasp_mjx.inference.policy import load_policy, shipped_policies
 assert Path(regrasp_mjx.__file__).resolve().is_relative_to(Path(sys.argv[1]).resolve()), regrasp_mjx.__file__
 scene = load_scene()
 episodes, _ = load_testset(PAPER300)

@@ -14,8 +14,8 @@ import jax
 import numpy as np
 import pytest
 
-from regrasp_mjx.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
-from regrasp_mjx.lean_checker import LeanChecker
+from regrasp_mjx.envs.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
+from regrasp_mjx.envs.lean_checker import LeanChecker
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, path_to_actions, replay_paths
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
 from regrasp_mjx.planning.pool import PlannerPool
@@ -208,7 +208,7 @@ def test_straight_line_baseline(paper_testset):
 
 
 def test_bad_planner_inputs():
-    from regrasp_mjx.config import ConfigError
+    from regrasp_mjx.core.config import ConfigError
 
     with pytest.raises(ConfigError, match="planner='RRT' is not accepted"):  # every config raises ConfigError
         PlannerConfig(planner="RRT")

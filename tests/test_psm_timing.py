@@ -10,9 +10,9 @@ import math
 import numpy as np
 import pytest
 
-from regrasp_mjx import dvrk
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.psm_timing import (
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.robot import dvrk
+from regrasp_mjx.robot.psm_timing import (
     A_MAX,
     HEADROOM,
     V_MAX,
@@ -25,7 +25,7 @@ from regrasp_mjx.psm_timing import (
     time_waypoints,
     tool_poses,
 )
-from regrasp_mjx.sampling import episode_poses
+from regrasp_mjx.world.sampling import episode_poses
 from tests.test_clearance import _as_pose
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.queries import TASK_FIELDS, PoseError, TaskSpec, batch_poses
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.queries import TASK_FIELDS, PoseError, TaskSpec, batch_poses
 
 
 @pytest.mark.parametrize("name", ["default", "general"])

@@ -15,14 +15,14 @@ from pathlib import Path
 import pytest
 
 from regrasp_mjx import recipe as recipe_cli
-from regrasp_mjx import recipes
-from regrasp_mjx.config import ConfigError
-from regrasp_mjx.jobs import Job, run_jobs
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.jobs import Job, run_jobs
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.policy_file import resolve
+from regrasp_mjx.inference.selection import score
 from regrasp_mjx.planning.episodes import DemosError, check_made_for
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.policy_file import resolve
-from regrasp_mjx.recipes import RECIPES
-from regrasp_mjx.selection import score
+from regrasp_mjx.workflows import recipes
+from regrasp_mjx.workflows.recipes import RECIPES
 
 ROOT = Path(__file__).resolve().parents[1]
 

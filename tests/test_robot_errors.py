@@ -1,4 +1,4 @@
-"""The robot's errors (regrasp_mjx.robot_errors): the e_g-frame model against the lab's own frames
+"""The robot's errors (regrasp_mjx.robot.robot_errors): the e_g-frame model against the lab's own frames
 (camera, camera-to-base transforms, joint readings) worked by hand in float64, joint offsets through
 the dVRK's kinematics, the calibration cancelling in the camera view, and the checks of bad values."""
 
@@ -11,12 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import dvrk, geometry, load_policy
-from regrasp_mjx.config import ConfigError
-from regrasp_mjx.estimates import NeedleNoise, camera_view, frame_estimate
+from regrasp_mjx import load_policy
+from regrasp_mjx.core import geometry
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.envs.estimates import NeedleNoise, camera_view, frame_estimate
 from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.evaluate import main as evaluate_main
-from regrasp_mjx.robot_errors import (
+from regrasp_mjx.robot import dvrk
+from regrasp_mjx.robot.robot_errors import (
     NEUTRAL,
     Arms,
     RobotErrors,

@@ -12,12 +12,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import evaluate, geometry, load_policy, robustness
-from regrasp_mjx.config import ConfigError
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.estimates import noisy_observation, seen_from
-from regrasp_mjx.policy_file import shipped_policies
-from regrasp_mjx.sampling import load_testset
+from regrasp_mjx import evaluate, load_policy
+from regrasp_mjx.core import geometry
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.estimates import noisy_observation, seen_from
+from regrasp_mjx.inference import robustness
+from regrasp_mjx.inference.policy_file import shipped_policies
+from regrasp_mjx.world.sampling import load_testset
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = ROOT / "experiments" / "results" / "robustness" / "robustness.json"

@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx import geometry as g
-from regrasp_mjx.config import SceneConfig
-from regrasp_mjx.host import HostChecker
-from regrasp_mjx.scene import load_scene, segment_distance
+from regrasp_mjx.core import geometry as g
+from regrasp_mjx.core.config import SceneConfig
+from regrasp_mjx.envs.host import HostChecker
+from regrasp_mjx.world.scene import load_scene, segment_distance
 
 
 def test_needle_capsules_follow_the_arc():
@@ -113,6 +113,9 @@ def test_importing_the_package_prints_nothing():
     import sys
 
     out = subprocess.run(
-        [sys.executable, "-c", "import regrasp_mjx.env, regrasp_mjx.policy"], capture_output=True, text=True, check=True
+        [sys.executable, "-c", "import regrasp_mjx.envs.env, regrasp_mjx.policy"],
+        capture_output=True,
+        text=True,
+        check=True,
     )
     assert out.stdout == ""

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _config(devices: int, **kw):
     from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, TrainConfig
-    from regrasp_mjx.config import EnvConfig
+    from regrasp_mjx.core.config import EnvConfig
 
     fields = dict(
         exploration=EXPLORATION["ddpg_bc"],
@@ -66,7 +66,7 @@ def _child() -> dict:
     from jax.sharding import PartitionSpec as P
 
     from regrasp_mjx.agents.ddpg_bc.learner import AXIS, Learner
-    from regrasp_mjx.env import RegraspEnv
+    from regrasp_mjx.envs.env import RegraspEnv
 
     assert jax.device_count() == 2, jax.devices()
     rng = np.random.default_rng(0)
@@ -235,7 +235,7 @@ def test_devices_must_exist_and_divide_the_sizes():
     import dataclasses
 
     from regrasp_mjx.agents.ddpg_bc.learner import Learner
-    from regrasp_mjx.config import ConfigError
+    from regrasp_mjx.core.config import ConfigError
 
     with pytest.raises(ConfigError, match="devices=3 is not accepted: JAX sees 1"):
         Learner(_config(3))

@@ -1,4 +1,4 @@
-"""The one batched shield (``regrasp_mjx.shield.shield_rows``) that planning and the closed loop share:
+"""The one batched shield (``regrasp_mjx.envs.shield.shield_rows``) that planning and the closed loop share:
 against a brute-force choice over every alternative of every row, for any chunk size."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.policy import load_policy
-from regrasp_mjx.sampling import load_testset
-from regrasp_mjx.shield import shield_candidates, shield_rows, step_key
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.shield import shield_candidates, shield_rows, step_key
+from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.world.sampling import load_testset
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +60,7 @@ def test_shield_rows_takes_each_rows_first_free_allowed_alternative_in_any_chunk
 def test_the_closed_loop_shields_colliding_rows_with_shield_rows():
     """The closed loop's action choice: the network's action where it is free; where it collides,
     shield_rows' choice, which steps clear of the needle and the other tool."""
-    from regrasp_mjx.closed_loop import choose_action
+    from regrasp_mjx.inference.closed_loop import choose_action
 
     policy = load_policy("default")
     env = RegraspEnv(policy.env_config)

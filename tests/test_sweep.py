@@ -7,8 +7,9 @@ import json
 
 import pytest
 
-from regrasp_mjx import jobs, sweep
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx import sweep
+from regrasp_mjx.core import jobs
+from regrasp_mjx.core.config import ConfigError
 
 
 def test_grid_points_are_the_product_in_order():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import testset as testset_cli
-from regrasp_mjx.sampling import FIELD_SHAPES, TestsetError, load_testset
+from regrasp_mjx.world.sampling import FIELD_SHAPES, TestsetError, load_testset
 from tests.conftest import PAPER_TESTSET
 
 

@@ -3,7 +3,7 @@
 The **teacher** is a trained policy (one network or an ensemble) improved by lookahead. At a state
 it takes the policy's own action if rolling the policy out from there (bare, ``lookahead`` steps)
 reaches the goal; otherwise the first of the collision shield's alternatives
-(:mod:`regrasp_mjx.shield`, closest to the policy first) after which the policy's rollout reaches
+(:mod:`regrasp_mjx.envs.shield`, closest to the policy first) after which the policy's rollout reaches
 it; if none does, the first collision-free alternative (what the shield would take); if none is
 free, the policy's action. So the teacher does at least what the shielded policy does, and it also
 steers away from the states where the policy times out or collides a few steps later.
@@ -31,11 +31,11 @@ from brax.training.acme import running_statistics, specs
 from flax import struct
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
-from regrasp_mjx.config import ConfigError, is_integer, require, require_integers, require_numbers
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.estimates import noisy_observation
-from regrasp_mjx.rollout import rollout
-from regrasp_mjx.shield import shield_candidates
+from regrasp_mjx.core.config import ConfigError, is_integer, require, require_integers, require_numbers
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.estimates import noisy_observation
+from regrasp_mjx.envs.rollout import rollout
+from regrasp_mjx.envs.shield import shield_candidates
 
 MembersFn = Callable[[jax.Array], list]  # obs [B, 21] -> each teacher member's actions [B, 6]
 
@@ -59,12 +59,12 @@ class DistillConfig:
       seed: PRNG seed; validation_size: problems (of their own seed) that pick the exported iteration.
       obs_noise_mm, obs_bias_mm: needle-pose noise the student learns to act under (0 = off): its
         rollouts act on, and the buffer stores, observations of a needle estimate
-        (:func:`regrasp_mjx.estimates.noisy_observation`: a new frame each step, sigma drawn per
+        (:func:`regrasp_mjx.envs.estimates.noisy_observation`: a new frame each step, sigma drawn per
         problem from U[0, obs_noise_mm], a bias of U[0, obs_bias_mm] fixed per episode), while the
         teacher labels the true state (privileged: it sees the needle exactly). With noise the
         exported iteration is the one best on validation problems under the same noise.
       obs_tool_noise_mm: with it (> 0), the camera sees both tools too (the ``camera`` view of
-        :mod:`regrasp_mjx.robot_errors`): each frame's tool poses get noise of sigma_tool drawn per
+        :mod:`regrasp_mjx.robot.robot_errors`): each frame's tool poses get noise of sigma_tool drawn per
         problem from U[0, obs_tool_noise_mm] (ours, issue 45).
       goal_tolerance: the student learns to reach the goal within this fraction of the success
         tolerances (the teacher's lookahead and the rollouts end there; ours: below 1 it aims deeper

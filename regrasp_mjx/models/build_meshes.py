@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from regrasp_mjx.needle_mesh import needle_tube
+from regrasp_mjx.world.needle_mesh import needle_tube
 
 HERE = Path(__file__).resolve().parent
 NEEDLE_RADIUS = 0.0054

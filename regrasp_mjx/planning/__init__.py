@@ -1,1 +1,1 @@
-"""Host-side planning: OMPL planners over the CPU MuJoCo checker, paths to episodes, a worker pool."""
+"""Layer 4a, planning on the host: OMPL planners over the CPU MuJoCo checker or the lean one, planned paths replayed into episodes, a pool of planner processes."""

@@ -1,7 +1,7 @@
 """Planned paths become episodes: actions within the bounds, replayed in the environment.
 
 A path (poses from start to goal, e_g frame) is cut into steps that respect the action bounds and
-turned into actions; the actions are replayed in :class:`~regrasp_mjx.env.RegraspEnv` (batched,
+turned into actions; the actions are replayed in :class:`~regrasp_mjx.envs.env.RegraspEnv` (batched,
 jitted) and only episodes that succeed there are kept (SPEC "Planners"). The environment's own
 observations and rewards are stored, so a demonstration is exactly what the learner would have
 seen.
@@ -37,12 +37,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx import continuous
-from regrasp_mjx.atomic import atomic_write, dumps
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.host import quat_conj, quat_mul, quat_to_rotvec
-from regrasp_mjx.rollout import Rollout, rollout
-from regrasp_mjx.sampling import Episode
+from regrasp_mjx.core.atomic import atomic_write, dumps
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.host import quat_conj, quat_mul, quat_to_rotvec
+from regrasp_mjx.envs.rollout import Rollout, rollout
+from regrasp_mjx.world import continuous
+from regrasp_mjx.world.sampling import Episode
 
 DEMOS_FORMAT = "regrasp_mjx.demos"
 DEMOS_VERSION = 1

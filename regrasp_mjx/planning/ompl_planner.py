@@ -4,7 +4,7 @@ The state is the regrasping end-effector pose in the grasping end-effector frame
 when it lies in the planning box and the scene has no counted collision (CPU MuJoCo, the same MJCF
 and filtering as the MJX environment; or, with ``checker="lean"``, the same capsule pairs tested by
 compiled code, a whole motion per call). A motion between two states is valid only where every pose
-along it is proved clear (:mod:`regrasp_mjx.continuous`), not at sampled states.
+along it is proved clear (:mod:`regrasp_mjx.world.continuous`), not at sampled states.
 
 OMPL 2.x (nanobind) Python API: states come from ``space.allocState()``; validity checkers are plain
 callables; ``ou.RNG.setSeed`` must be called before any space or planner is built.
@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx.config import require, require_numbers
-from regrasp_mjx.geometry import unit_quaternions
-from regrasp_mjx.host import HostChecker
-from regrasp_mjx.lean_checker import LeanChecker
-from regrasp_mjx.lean_collision import Held
+from regrasp_mjx.core.config import require, require_numbers
+from regrasp_mjx.core.geometry import unit_quaternions
+from regrasp_mjx.envs.host import HostChecker
+from regrasp_mjx.envs.lean_checker import LeanChecker
+from regrasp_mjx.envs.lean_collision import Held
 
 PLANNERS = ("PRMstar", "RRTstar", "BFMTstar", "BITstar", "RRTConnect")
 DIRECTIONS = ("forward", "reverse")
@@ -47,9 +47,9 @@ class PlannerConfig:
         (largest motion of any tool point between two); motions are validated whole.
       rrt_range_mm: RRT*'s and RRT-Connect's longest extension (OMPL's "range"), in the weighted
         SE(3) distance.
-      checker: ``mujoco`` (:class:`~regrasp_mjx.host.HostChecker`: CPU MuJoCo's collision of the
+      checker: ``mujoco`` (:class:`~regrasp_mjx.envs.host.HostChecker`: CPU MuJoCo's collision of the
         counted capsule pairs, a Python call per checked state) or ``lean``
-        (:class:`~regrasp_mjx.lean_checker.LeanChecker`: the same pairs and verdicts from the
+        (:class:`~regrasp_mjx.envs.lean_checker.LeanChecker`: the same pairs and verdicts from the
         lean planner's compiled test, a whole motion's states in one call). Same verdicts (tested),
         so the same plans for the same seed; ``lean`` is faster.
     """
@@ -228,7 +228,7 @@ class OmplPlanner:
 
 def _lean_motions(ob: Any, si: Any, space: Any, checker: LeanChecker, placed: Held) -> Any:
     """An OMPL motion validator that tests the whole motion between two states (position linear,
-    orientation slerped, as OMPL interpolates; :mod:`regrasp_mjx.continuous`) in one compiled call
+    orientation slerped, as OMPL interpolates; :mod:`regrasp_mjx.world.continuous`) in one compiled call
     (:meth:`LeanChecker.motion_collides`)."""
 
     class LeanMotions(ob.MotionValidator):
@@ -268,7 +268,7 @@ def straight_line(
     config: PlannerConfig = PlannerConfig(),
 ) -> PlanResult:
     """The straight-line baseline (SPEC): position interpolated, orientation slerped, the whole
-    motion tested (:mod:`regrasp_mjx.continuous`)."""
+    motion tested (:mod:`regrasp_mjx.world.continuous`)."""
 
     t0 = time.perf_counter()
     needle, start, goal = (_unit_pose(name, v) for name, v in (("needle", needle), ("start", start), ("goal", goal)))

@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx.config import SceneConfig, is_integer, is_number, require
-from regrasp_mjx.host import HostChecker
+from regrasp_mjx.core.config import SceneConfig, is_integer, is_number, require
+from regrasp_mjx.envs.host import HostChecker
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
-from regrasp_mjx.scene import load_scene
+from regrasp_mjx.world.scene import load_scene
 
 PlanFn = Callable[[dict[str, Any], dict[str, Any]], dict[str, Any]]
 

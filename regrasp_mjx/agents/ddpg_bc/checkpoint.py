@@ -21,11 +21,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx import distributed
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.learner import TrainingState
-from regrasp_mjx.atomic import atomic_write, dumps, write_json
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.core import distributed
+from regrasp_mjx.core.atomic import atomic_write, dumps, write_json
+from regrasp_mjx.core.config import ConfigError
 
 # Learner fields added after checkpoints were first written; each default reproduces what those
 # checkpoints ran, so a checkpoint without them resumes as if they had been saved.

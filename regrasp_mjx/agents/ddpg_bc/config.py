@@ -6,7 +6,7 @@ import dataclasses
 import math
 
 from regrasp_mjx.agents.dagger import DistillConfig
-from regrasp_mjx.config import (
+from regrasp_mjx.core.config import (
     GENERAL_TASK,
     ConfigError,
     EnvConfig,
@@ -80,13 +80,13 @@ class TrainConfig:
         policy's own for the critic to rank (see experiments/RESULTS.md, "Why training decayed").
       obs_noise_mm, obs_bias_mm: domain randomisation over needle-pose noise (ours; 0 = off): in
         training rollouts the policy acts on, and the buffer stores, observations of a needle
-        estimate (:mod:`regrasp_mjx.estimates`' model) with per-step noise of sigma drawn per
+        estimate (:mod:`regrasp_mjx.envs.estimates`' model) with per-step noise of sigma drawn per
         environment and iteration from U[0, obs_noise_mm], after a bias of U[0, obs_bias_mm] mm in
         a random direction, fixed per environment and iteration (its episodes). Evaluation stays
         noise-free.
       obs_tool_noise_mm: with it (> 0) the camera sees both tools too (ours, issue 45): each
         frame's tool poses get noise of sigma_tool drawn per environment and iteration from
-        U[0, obs_tool_noise_mm] (:func:`regrasp_mjx.estimates.camera_view`).
+        U[0, obs_tool_noise_mm] (:func:`regrasp_mjx.envs.estimates.camera_view`).
       critics: 1 (the paper) or 2 (ours: TD3's clipped double Q, the target takes the minimum).
       critic_layer_norm: a layer norm after each hidden layer of the critic (ours; off by default,
         see experiments/RESULTS.md, "Table I over the paper's full 500 epochs"). The exported

@@ -16,13 +16,13 @@ from typing import Any
 import jax
 import numpy as np
 
-from regrasp_mjx import distributed
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.learner import TRANSITION, Learner, TrainingState
+from regrasp_mjx.core import distributed
 from regrasp_mjx.planning.episodes import make_replay, replay_paths
 from regrasp_mjx.planning.ompl_planner import PlannerConfig
 from regrasp_mjx.planning.pool import PlannerPool
-from regrasp_mjx.sampling import Episode
+from regrasp_mjx.world.sampling import Episode
 
 Chunk = tuple[int, dict[str, np.ndarray]]  # (member, one demo_chunk of transitions)
 

@@ -34,15 +34,15 @@ from flax import struct
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from regrasp_mjx import estimates
 from regrasp_mjx.agents.ddpg_bc import losses
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
 from regrasp_mjx.agents.ddpg_bc.placement import AXIS, Placement
 from regrasp_mjx.agents.ddpg_bc.schedules import Schedules
-from regrasp_mjx.env import RegraspEnv
-from regrasp_mjx.rollout import Rollout, record_step, rollout, start_outcome
-from regrasp_mjx.sampling import Episode
+from regrasp_mjx.envs import estimates
+from regrasp_mjx.envs.env import RegraspEnv
+from regrasp_mjx.envs.rollout import Rollout, record_step, rollout, start_outcome
+from regrasp_mjx.world.sampling import Episode
 
 TRANSITION = ("obs", "action", "reward", "next_obs", "terminal")
 
@@ -335,7 +335,7 @@ class Learner(Placement, Schedules):
 
     def _iteration(self, ts: TrainingState, random_eps: jax.Array):
         """All members' iterations as one program: ``(state, metrics[S], outcome, problems)``, ``outcome``
-        the :class:`~regrasp_mjx.rollout.Rollout` of each environment's first episode (``[S, N]``),
+        the :class:`~regrasp_mjx.envs.rollout.Rollout` of each environment's first episode (``[S, N]``),
         environments (outcomes and problems: axis 1) split over the devices; ``random_eps`` is each
         member's E_R, ``[S]`` (or one for all).
 

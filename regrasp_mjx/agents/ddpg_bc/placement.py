@@ -22,7 +22,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
-from regrasp_mjx.config import ConfigError
+from regrasp_mjx.core.config import ConfigError
 
 AXIS = "data"  # the mesh axis the environments and batches are split over
 

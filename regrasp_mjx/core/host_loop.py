@@ -1,0 +1,203 @@
+"""What the host loops of training (:mod:`regrasp_mjx.workflows.trainer`) and distillation
+(:mod:`regrasp_mjx.distill`) share: where the wall-clock time goes (:class:`Phases`), the choice of the
+exported network by validation (:class:`BestOf`), the JSONL run log with its TensorBoard mirror
+(:class:`RunLog`) and the progress line's ETA (:func:`eta`); and what every long command line shares:
+one run per output folder (:func:`folder_lock`) and Ctrl-C as one line (:func:`run_command`).
+
+One format for both: a log row per member and epoch (iteration, for distillation) holding
+``validation`` and ``test`` summaries of :func:`regrasp_mjx.envs.rollout.summarize`, the losses, and
+``timing``: seconds per phase since the row before (the profile of a run: where the host waits on
+the device, plans, evaluates and writes).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import math
+import os
+import sys
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from regrasp_mjx.core.atomic import dumps, write_text
+
+
+class Phases:
+    """Wall-clock seconds per named phase (phases may repeat): :meth:`take` gives those since the last
+    take, :meth:`totals` those of the whole run."""
+
+    def __init__(self) -> None:
+        self._seconds: dict[str, float] = defaultdict(float)
+        self._totals: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._seconds[name] += time.perf_counter() - t0
+
+    def add(self, name: str, seconds: float) -> None:
+        self._seconds[name] += seconds
+
+    def take(self) -> dict[str, float]:
+        """The sums since the last take (rounded to 0.1 ms), and a fresh start."""
+        out = {k: round(v, 4) for k, v in self._seconds.items()}
+        for k, v in self._seconds.items():
+            self._totals[k] += v
+        self._seconds.clear()
+        return out
+
+    def totals(self) -> dict[str, float]:
+        """Every phase's seconds since the start (what is not taken yet included)."""
+        self.take()
+        return {k: round(v, 4) for k, v in self._totals.items()}
+
+
+class BestOf:
+    """Per member, the best validation score so far and the step (epoch or iteration) it came at.
+
+    The lists are held, not copied, so a checkpoint's ``meta`` can own them. A score equal to the
+    best counts as better: of equal networks the later one, trained longer, is exported.
+    """
+
+    def __init__(self, score: list[float], step: list[int | None]):
+        if len(score) != len(step):
+            raise ValueError(f"BestOf: {len(score)} scores against {len(step)} steps; one of each per member")
+        self.score, self.step = score, step
+
+    @classmethod
+    def fresh(cls, members: int) -> BestOf:
+        return cls([-1.0] * members, [None] * members)
+
+    def update(self, scores: Sequence[float], step: int) -> list[int]:
+        """The members whose ``scores`` match or beat their best (recorded at ``step``)."""
+        better = [m for m, s in enumerate(scores) if s >= self.score[m]]
+        for m in better:
+            self.score[m], self.step[m] = float(scores[m]), step
+        return better
+
+
+class RunLog:
+    """A JSONL log, one object per line, appended row by row; each row's finite numbers also go to
+    its member's TensorBoard writer when one is given (``writers[i]`` for ``rows[i]``)."""
+
+    def __init__(self, path: Path, writers: Sequence[Any] = ()):
+        self.path, self.writers = path, list(writers)
+
+    def drop_after(self, key: str, last: int) -> None:
+        """Keeps the rows whose ``key`` is at most ``last`` (a resumed run writes the rest again)."""
+        if self.path.exists():
+            keep = [x for x in self.path.read_text().splitlines() if x.strip() and json.loads(x)[key] <= last]
+            write_text(self.path, "".join(x + "\n" for x in keep))
+
+    def write(self, rows: Sequence[dict[str, Any]], step_key: str = "epoch") -> None:
+        with open(self.path, "a") as f:
+            f.write("".join(dumps(r) + "\n" for r in rows))
+        for writer, row in zip(self.writers, rows):
+            if writer is None:
+                continue
+            for k, v in _scalars(row).items():
+                writer.add_scalar(k, v, row[step_key])
+            writer.flush()
+
+    def close(self) -> None:
+        for writer in self.writers:
+            if writer is not None:
+                writer.close()
+
+
+def _scalars(row: dict[str, Any], prefix: str = "") -> dict[str, float]:
+    """The row's finite numbers, nested dicts flattened as ``outer/inner``."""
+    out = {}
+    for k, v in row.items():
+        if isinstance(v, dict):
+            out.update(_scalars(v, f"{prefix}{k}/"))
+        elif isinstance(v, float) and math.isfinite(v):
+            out[prefix + k] = v
+    return out
+
+
+def tensorboard_writer(folder: Path):
+    """A TensorBoard writer in ``folder``, or None when tensorboardX is not installed (the JSONL log
+    has everything)."""
+    try:
+        from tensorboardX import SummaryWriter  # here: its import (protobuf) only for runs that log to TensorBoard
+    except ImportError:
+        return None
+    return SummaryWriter(str(folder))
+
+
+def eta(done: int, total: int, seconds: float) -> str:
+    """``ETA x.x min`` from ``done`` of ``total`` steps in ``seconds``."""
+    left = (seconds / done) * (total - done) if done else float("nan")
+    return f"ETA {left / 60:.1f} min"
+
+
+def mm(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f} mm"
+
+
+def epoch_line(epochs: int, rows: list[dict[str, Any]], demos_received: list[int], eta_text: str) -> str:
+    """A training epoch's progress line: every member's numbers (its log rows), separated by slashes."""
+    each = lambda xs, f="{:.3f}": "/".join(f.format(x) for x in xs)  # noqa: E731
+    col = lambda k, sub=None: [r[k] if sub is None else r[k][sub] for r in rows]  # noqa: E731
+    r0 = rows[0]
+    return (
+        f"epoch {r0['epoch']}/{epochs}  val success {each(col('validation', 'success_rate'))}  "
+        f"test success {each(col('test', 'success_rate'))} "
+        f"(collision {each(col('test', 'collision_rate'))}, path {'/'.join(mm(x) for x in col('test', 'path_length_mm'))})  "
+        f"return {each(col('return'), '{:+.3f}')}  critic {each(col('critic_loss'), '{:.4f}')}  "
+        f"actor {each(col('actor_loss'), '{:+.5f}')}  Q {each(col('q'), '{:+.3f}')}  "
+        f"E_R {each(col('E_R'))}  E_T {each(col('E_T'))}  demos+ {each(demos_received, '{}')}  "
+        f"{r0['env_steps_per_s']:,.0f} env-steps/s  {r0['updates_per_s']:,.0f} updates/s  {eta_text}"
+    )
+
+
+# ---- what every long command line shares: one run per folder, and Ctrl-C without a traceback -----
+
+
+class FolderInUse(RuntimeError):
+    """Another process holds the output folder's lock."""
+
+
+@contextlib.contextmanager
+def folder_lock(out: Path):
+    """Holds ``out/.lock`` (an advisory ``flock``) while a run writes into ``out``: a second run
+    into the same folder is refused while the first lives; the kernel drops the lock when its
+    process ends, however it ends, so a killed run leaves no stale lock."""
+    out.mkdir(parents=True, exist_ok=True)
+    f = open(out / ".lock", "a+")
+    try:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise FolderInUse(
+                f"--out {out} is in use by another run ({holder}); accepted: another --out, or wait for that run to end"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()}")
+        f.flush()
+        yield
+    finally:
+        f.close()
+
+
+def run_command(main: Callable[[], int], again: str) -> int:
+    """Runs a command line's ``main``; Ctrl-C prints one line saying how to go on (``again``) and
+    exits 130, never a traceback."""
+    try:
+        return main()
+    except KeyboardInterrupt:
+        print(f"interrupted; {again}", file=sys.stderr)
+        return 130
