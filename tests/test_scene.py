@@ -113,7 +113,7 @@ def test_importing_the_package_prints_nothing():
     import sys
 
     out = subprocess.run(
-        [sys.executable, "-c", "import regrasp_mjx.envs.env, regrasp_mjx.policy"],
+        [sys.executable, "-c", "import regrasp_mjx.envs.env, regrasp_mjx.inference.policy"],
         capture_output=True,
         text=True,
         check=True,
