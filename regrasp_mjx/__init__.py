@@ -51,7 +51,16 @@ def _register_gymnasium() -> None:
 
 
 _register_gymnasium()
-__all__ = ["ConfigError", "EnvConfig", "SceneConfig", "TaskConfig", "grasp_pose", "load_policy", "Policy", "__version__"]
+__all__ = [
+    "ConfigError",
+    "EnvConfig",
+    "SceneConfig",
+    "TaskConfig",
+    "grasp_pose",
+    "load_policy",
+    "Policy",
+    "__version__",
+]
 
 
 def __getattr__(name: str):

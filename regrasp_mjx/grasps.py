@@ -1,11 +1,6 @@
-"""A library of valid initial grasps, and the projection of a noisy needle pose onto the nearest.
+"""Builds the library of valid initial grasps that a noisy needle pose is checked against.
 
-A needle pose from vision carries errors of a millimetre or a few degrees; one that puts the wire
-inside a jaw, or the needle where no trained start lies, leaves the policy far from anything it
-was trained on (the paper's real-world failure, §V-C). The library holds ``n`` needle poses in the
-grasping end-effector frame e_g, each from the paper's initial-grasp distribution with a
-collision-free start and goal (``RegraspEnv.reset``'s draws). The distance is the success test's
-two terms on one scale: ``|dp| in mm + angle in degrees / 5`` (1 mm and 5 degrees weigh the same).
+What the library holds and its distance: :mod:`regrasp_mjx.inference.grasps`.
 
     python -m regrasp_mjx.grasps --n 1000 --seed 7 --out regrasp_mjx/data/grasps1000.npz
 """

@@ -1,7 +1,8 @@
 """The field's interfaces (issue 49): Playground-style ``registry.load`` and the gymnasium ids. Every
 registered environment is deterministic under a key and judges as :class:`RegraspEnv` does on the
-same actions; every gymnasium id passes ``check_env``; HER's ``compute_reward`` is the step's own
-reward; the vector env's autoreset modes do what gymnasium 1.x says they do."""
+same actions; the gymnasium ids of three kinds of observation pass ``check_env``; HER's
+``compute_reward`` is the step's own reward; the vector env's autoreset modes do what gymnasium 1.x
+says they do."""
 
 from __future__ import annotations
 
@@ -106,7 +107,10 @@ def test_registry_refuses_what_it_does_not_know():
     assert cfg.errors.needle_sigma_mm == 0.5 and cfg.env.horizon == 100
 
 
-@pytest.mark.parametrize("name", list(registry.ENVS))
+# the paper's task, the general one (another observation) and the camera's view (the needle and
+# both tools seen with error: the error views' code path); NeedleRegraspNoisy and
+# NeedleRegraspCalibration differ from these in error sizes and which tool is seen, not in spaces
+@pytest.mark.parametrize("name", ["NeedleRegrasp", "NeedleRegraspGeneral", "NeedleRegraspCamera"])
 def test_check_env_passes(name):
     env = gymnasium.make(gym_envs.gym_id(name), config_overrides={"env.horizon": 3})
     with warnings.catch_warnings():

@@ -102,11 +102,13 @@ def camera_view(key: jax.Array, needle: jax.Array, ee: jax.Array, tool_noise_mm)
 
 
 def seen_from(es, needle: jax.Array):
-    """``es`` (batched :class:`~regrasp_mjx.envs.env.EpisodeState`) as the estimate ``needle`` ``[B, 7]``
-    shows it: the needle there, and the goal end-effector with it (the goal is a grasp on the
-    needle, so a lab places it on the estimated needle; only a general task observes it)."""
-    goal = geometry.compose((needle[:, :3], needle[:, 3:]), geometry.inverse((es.goal_needle_pos, es.goal_needle_quat)))
-    return es.replace(needle_pos=needle[:, :3], needle_quat=needle[:, 3:], goal_pos=goal[0], goal_quat=goal[1])
+    """``es`` (an :class:`~regrasp_mjx.envs.env.EpisodeState`, batched or not) as the estimate
+    ``needle`` (``[..., 7]``, the state's batch shape) shows it: the needle there, and the goal
+    end-effector with it (the goal is a grasp on the needle, so a lab places it on the estimated
+    needle; only a general task observes it)."""
+    pos, quat = needle[..., :3], needle[..., 3:]
+    goal = geometry.compose((pos, quat), geometry.inverse((es.goal_needle_pos, es.goal_needle_quat)))
+    return es.replace(needle_pos=pos, needle_quat=quat, goal_pos=goal[0], goal_quat=goal[1])
 
 
 def noisy_observation(

@@ -123,10 +123,11 @@ def default_config(name: str) -> config_dict.ConfigDict:
     return config_dict.ConfigDict({"env": env, "errors": errors})
 
 
-def _flat_keys(d: dict, prefix: str = "") -> list[str]:
-    out = []
+def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    """A nested dict as one level of dotted keys (``{"env": {"horizon": 80}}`` -> ``{"env.horizon": 80}``)."""
+    out = {}
     for k, v in d.items():
-        out += _flat_keys(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}"]
+        out.update(_flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
     return out
 
 
@@ -137,9 +138,8 @@ def load(name: str, config: config_dict.ConfigDict | dict | None = None, config_
     _check_name(name)
     cfg = default_config(name)
     given = config.to_dict() if isinstance(config, config_dict.ConfigDict) else (config or {})
-    overrides = {k: given_v for k, given_v in zip(_flat_keys(given), _flat_values(given))}
-    overrides.update(config_overrides or {})
-    accepted = _flat_keys(cfg.to_dict())
+    overrides = {**_flatten(given), **(config_overrides or {})}
+    accepted = list(_flatten(cfg.to_dict()))
     for key in overrides:
         if key not in accepted:
             raise ConfigError(f"{name} has no config key {key!r}; accepted: {', '.join(accepted)}")
@@ -148,13 +148,6 @@ def load(name: str, config: config_dict.ConfigDict | dict | None = None, config_
     except (TypeError, ValueError) as err:
         raise ConfigError(f"{name}: a config value is not accepted ({err})") from err
     return RegistryEnv(name, cfg)
-
-
-def _flat_values(d: dict) -> list[Any]:
-    out = []
-    for v in d.values():
-        out += _flat_values(v) if isinstance(v, dict) else [v]
-    return out
 
 
 class RegistryEnv:
@@ -262,11 +255,8 @@ class RegistryEnv:
         obs = inner.obs
         if self.noisy:
             seen, seen_ee = self.view_of(es, inner.info)
-            batch = jax.tree.map(lambda x: x[None], es)
-            seen_es = estimates.seen_from(batch, seen[None]).replace(
-                ee_pos=seen_ee[None, :3], ee_quat=seen_ee[None, 3:]
-            )
-            obs = self.env.observe(jax.tree.map(lambda x: x[0], seen_es))
+            seen_es = estimates.seen_from(es, seen).replace(ee_pos=seen_ee[:3], ee_quat=seen_ee[3:])
+            obs = self.env.observe(seen_es)
         return State(es, obs, inner.reward, inner.done, inner.metrics, inner.info)
 
     # ---- pictures ------------------------------------------------------------------------------

@@ -221,13 +221,18 @@ def time_query(policy, joints: JointTrajectory, success: bool, camera_eg, needle
     """:func:`time_plan` of one query's ``joints`` and ``success`` (camera-frame 7-vectors)."""
     if not success:
         raise MotionRefused("the plan did not reach the goal: no motion to time")
-    if not joints.all_reachable:
-        bad = [k for k, ok in enumerate(joints.reachable) if not ok]
-        raise MotionRefused(f"poses {bad} are outside the PSM's joint limits ({', '.join(joints.violations[bad[0]])})")
+    _require_reachable(joints)
     eg_inv = np.linalg.inv(dvrk.as_matrix(camera_eg))
     base = eg_inv @ dvrk.as_matrix(psm["regrasping_base"])
     n = eg_inv @ dvrk.as_matrix(needle)
     return time_waypoints(joints.q, base, np.r_[n[:3, 3], _quat(n[:3, :3])], policy, rate_hz)
+
+
+def _require_reachable(joints: JointTrajectory) -> None:
+    """:class:`MotionRefused`, naming the poses and the first one's limits, where a pose is out of reach."""
+    if not joints.all_reachable:
+        bad = [k for k, ok in enumerate(joints.reachable) if not ok]
+        raise MotionRefused(f"poses {bad} are outside the PSM's joint limits ({', '.join(joints.violations[bad[0]])})")
 
 
 def motion_or_reason(policy, joints: JointTrajectory, success: bool, camera_eg, needle, psm: dict) -> TimedPlan:
@@ -245,9 +250,7 @@ def time_executed(policy, poses, needle_in_eg, base_in_eg, rate_hz: float = RATE
     steps the loop chose (:func:`time_waypoints`). Raises :class:`MotionRefused` where a pose is
     outside the joint limits or the motion cannot be made clear."""
     joints = psm_joints.joint_trajectory(base_in_eg, poses)
-    if not joints.all_reachable:
-        bad = [k for k, ok in enumerate(joints.reachable) if not ok]
-        raise MotionRefused(f"poses {bad} are outside the PSM's joint limits ({', '.join(joints.violations[bad[0]])})")
+    _require_reachable(joints)
     base = dvrk.as_matrix(base_in_eg)
     return time_waypoints(joints.q, base, np.asarray(needle_in_eg, np.float64), policy, rate_hz)
 
