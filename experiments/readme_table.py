@@ -6,7 +6,7 @@
 Sources: success rates from ``experiments/results/continuous/compare.json`` (``python -m
 regrasp_mjx.compare --heldout 3000:2022``), the fused closed loop at sigma 0.25 mm from
 ``experiments/results/robustness/robustness.json`` (``python -m regrasp_mjx.compare --robustness``),
-one-core planning time from ``experiments/results/continuous/bench_plan_after_pending_dev.json``
+one-core planning time from ``experiments/results/continuous/directional/bench_plan_after_dev.json``
 (``python experiments/bench_plan.py``) and BIT* (R) from ``experiments/results/planners.csv``
 (``python experiments/planners.py``); the paper's numbers are its Tables I and II.
 """
@@ -46,7 +46,7 @@ def table_lines() -> list[str]:
     """The block's lines: the table and the line under it naming where each number comes from."""
     compare = json.loads((RESULTS / "continuous" / "compare.json").read_text())["rows"]
     tables = json.loads((RESULTS / "robustness" / "robustness.json").read_text())["tables"]
-    bench = json.loads((RESULTS / "continuous" / "bench_plan_after_pending_dev.json").read_text())
+    bench = json.loads((RESULTS / "continuous" / "directional" / "bench_plan_after_dev.json").read_text())
     lean = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, lean path"))
     with open(RESULTS / "planners.csv") as f:
         bit = next(r for r in csv.DictReader(f) if r["algorithm"] == "BIT* (R)" and float(r["jaw_angle_deg"]) == 20.0)

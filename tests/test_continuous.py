@@ -153,12 +153,12 @@ def _episode_row(needle, start):
 def test_the_test_budget_and_resolution_by_hand():
     # a pair at a constant 10 um from a 1 mm/s motion needs ~50 tests and is refused by the budget;
     # at 0.2 mm it is proved by the root; the same in JAX and on the host
+    speed = np.array([1e-3, 1e-3])
     for gap, expect in ((10e-6, True), (0.2e-3, False), (-1e-6, True)):
-        dist = lambda s, reach=None, gap=gap: np.array([gap, 1.0])  # noqa: E731
-        speed = np.array([1e-3, 1e-3])
-        assert continuous.motion_collides_host(dist, speed, 0.0) == expect
-        jdist = lambda motion, s: jnp.array([motion, 1.0], jnp.float32)  # noqa: E731
-        assert bool(continuous.motion_collides(jdist, jnp.float32(gap), jnp.asarray(speed), 0.0)) == expect
+        dist = lambda s, h, reach=None, gap=gap: (np.array([gap, 1.0]), np.array([gap, 1.0]) - h * speed)  # noqa: E731
+        assert continuous.motion_collides_host(dist, speed.max(), 0.0) == expect
+        jdist = lambda motion, s, h: (jnp.array([motion, 1.0]), jnp.array([motion, 1.0]) - h * 1e-3)  # noqa: E731
+        assert bool(continuous.motion_collides(jdist, jnp.float32(gap), 1e-3, 0.0)) == expect
 
 
 @pytest.mark.parametrize("unrolled", [False, True])
@@ -176,15 +176,18 @@ def test_a_vmapped_batch_tests_its_pending_lanes_alone_with_the_same_verdicts(un
     c = rng.uniform(-5e-4, 5e-4, (n, p)).astype(np.float32)
     speed = np.abs(b) + 2 * np.abs(c) + 1e-6
 
-    def dist(motion, s):
-        a, b, c = motion
-        return a + b * s + c * s * s
+    def dist(motion, s, h):
+        a, b, c, v = motion
+        d = a + b * s + c * s * s
+        return d, d - h * v
 
     def verdict(share):
-        return lambda a, b, c, v: continuous.motion_collides(dist, (a, b, c), v, 1e-5, share=share)
+        return lambda a, b, c, v: continuous.motion_collides(dist, (a, b, c, v), v.max(), 1e-5, share=share)
 
     host = [
-        continuous.motion_collides_host(lambda s, reach, i=i: dist((a[i], b[i], c[i]), s), speed[i], 1e-5)
+        continuous.motion_collides_host(
+            lambda s, h, reach, i=i: dist((a[i], b[i], c[i], speed[i]), s, h), speed[i].max(), 1e-5
+        )
         for i in range(n)
     ]
     assert 5 < sum(host) < n - 5  # the draw has both verdicts
@@ -212,3 +215,67 @@ def test_straight_line_is_tested_whole(checker):
         host if checker == "mujoco" else LeanChecker(), NEEDLE, START, end, PlannerConfig(checker=checker)
     )
     assert not result.solved and "collision along the straight line" in result.error
+
+
+def test_interval_low_by_hand():
+    # a jaw 10 mm long (radius 0) 1 mm above a long wire axis (radius 0), the end-effector's origin
+    # at the jaw's first end point, half an interval (h = 0.5) of three motions
+    tool = np.array([[[0.0, 0.0, 1e-3], [0.01, 0.0, 1e-3]]])
+    other = np.array([[[-0.05, 0.0, 0.0], [0.05, 0.0, 0.0]]])
+    gap, d = np.array([[[0.0, 0.0, 1e-3]]]), np.array([[1e-3]])
+    origin, lever = np.zeros(3), np.array([np.hypot(0.01, 1e-3)])
+
+    def low(dp, w):
+        return float(
+            continuous.interval_low(tool, origin, other, gap, d, 0.5, np.array(dp), np.array(w), lever, xp=np)[0, 0]
+        )
+
+    # sliding 1 mm along the wire: the motion bound allows 0.5 mm of it, the plane none
+    assert low([1e-3, 0.0, 0.0], [0.0, 0.0, 0.0]) == pytest.approx(1e-3, abs=1e-15)
+    # 0.4 mm towards the wire: both give 1 - 0.2 mm
+    assert low([0.0, 0.0, -4e-4], [0.0, 0.0, 0.0]) == pytest.approx(0.8e-3, abs=1e-15)
+    # 0.1 rad about the vertical through the origin: no first-order motion along n; the far end point,
+    # 10 mm from the axis, bends 10 mm * phi^2 (1/2 + phi/6) with phi = 0.05 (the motion bound: 0.5 mm)
+    assert low([0.0, 0.0, 0.0], [0.0, 0.0, 0.1]) == pytest.approx(1e-3 - 0.01 * 0.05**2 * (0.5 + 0.05 / 6), abs=1e-15)
+
+
+def test_interval_low_holds_along_random_motions():
+    # random capsule pairs, poses and motions up to 1.5 times a step's largest: no pose within the
+    # interval is closer than the bound (float64, 401 poses each); the directional bound is the
+    # larger one in a good share of them
+    from regrasp_mjx.core import geometry
+
+    rng = np.random.default_rng(11)
+    tighter = 0
+    with jax.enable_x64(True):
+        for _ in range(200):
+            local = rng.uniform(-0.01, 0.01, (2, 2, 3))
+            other = rng.uniform(-0.01, 0.01, (3, 2, 3)) + rng.uniform(-0.004, 0.004, 3)
+            radii = rng.uniform(0.0, 1e-3, (2, 3))
+            p, q = rng.normal(scale=2e-3, size=3), rng.normal(size=4)
+            q /= np.linalg.norm(q)
+            dp, w = rng.uniform(-1.3e-3, 1.3e-3, 3), rng.uniform(-0.08, 0.08, 3)
+            h, s = 0.5 ** rng.integers(1, 6), rng.uniform(0.3, 0.7)
+            levers = continuous.levers(local)
+
+            def pose_at(u, p=p, q=q, dp=dp, w=w, local=local):  # u [U] -> origins, tool end points [U, 2, 2, 3]
+                quat = geometry.quat_mul(geometry.quat_from_rotvec(u[:, None] * w), q)
+                m = np.asarray(geometry.rotation_matrix(quat))
+                origin = p + u[:, None] * dp
+                return origin, np.einsum("uij,tkj->utki", m, local) + origin[:, None, None]
+
+            origin, tool = (x[0] for x in pose_at(np.array([s])))
+            gap = np.asarray(
+                geometry.segment_gap(tool[:, None, 0], tool[:, None, 1], other[None, :, 0], other[None, :, 1])
+            )
+            d = np.linalg.norm(gap, axis=-1) - radii
+            low = continuous.interval_low(tool, origin, other, gap, d, h, dp, w, levers, xp=np)
+            moved = d - h * (np.linalg.norm(dp) + np.linalg.norm(w) * levers)[:, None]
+            tighter += int(np.sum(low > moved + 1e-9))
+            _, at = pose_at(np.linspace(s - h, s + h, 401))
+            o = other[None, None]
+            true = np.asarray(
+                geometry.segment_distance(at[:, :, None, 0], at[:, :, None, 1], o[..., 0, :], o[..., 1, :])
+            )
+            assert np.all(true - radii >= low - 1e-12)
+    assert tighter > 300  # of 1,200 pairs

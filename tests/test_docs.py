@@ -68,7 +68,7 @@ def test_the_shipped_networks_table_is_the_comparison_file():
     rows = json.loads((ROOT / "experiments" / "results" / "continuous" / "compare.json").read_text())["rows"]
     success = {(r["policy"], r["testset"].split(" (")[0], r["rollout"]): r["success_rate"] for r in rows}
     bench = json.loads(
-        (ROOT / "experiments" / "results" / "continuous" / "bench_plan_after_pending_dev.json").read_text()
+        (ROOT / "experiments" / "results" / "continuous" / "directional" / "bench_plan_after_dev.json").read_text()
     )
     lean = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, lean path"))
     names = {"shipped default": "default"}
@@ -129,3 +129,6 @@ def test_the_environment_speed_in_the_docs_is_the_benchmark_file():
         f"the same verdicts): {now[32768]} env-steps/s at 32,768 on one H100, against {before[32768][:2]} M"
         in environment
     )
+    train = json.loads((folder / "directional" / "bench_train_final_h100.json").read_text())["rows"]
+    at_512 = next(r for r in train if r["num_envs"] == 512)
+    assert f"a training iteration at 512 environments takes {at_512['iteration_ms']:.1f} ms" in environment

@@ -180,30 +180,32 @@ def test_a_single_query_names_its_bad_pose_as_a_batch_does():
 
 
 def test_a_motion_proved_clear_is_clear_all_along_it():
-    """lean_collision.collides with a motion bound: its verdict is that of each tool capsule's closest pair against its own
-    raised threshold (threshold + shift + turn * reach), and where it finds a step's end pose clear
-    so is every pose along the step (sampled far finer than the sub-steps), as the planner's step
-    relies on it to test one pose instead of each sub-step."""
+    """lean_collision.interval_collides: its verdict is that of the pairs' lower bounds over the
+    interval (continuous.interval_low, float64), exact to 1e-9 m either side of the threshold, and
+    where it proves an interval clear, every pose of the interval is (sampled far finer)."""
+    from regrasp_mjx.world import continuous
+
     policy = load_policy("general")
     planner = policy.lean(True)
     geo, max_dp, max_drot = planner.geo, planner.consts[0], planner.consts[1]
     needle, start, _ = episode_poses(load_testset("general1000")[0])
     rng = np.random.default_rng(11)
     tool, tool_mid = np.empty_like(geo.tool_local), np.empty((len(geo.tool_local), 3))
+    levers = continuous.levers(geo.tool_local)
 
-    def closest(fixed, p, q):  # [T]: each tool capsule's smallest signed distance over its pairs
-        placed = p + geo.tool_local @ np.array(lean_geometry.matrix(tuple(q))).reshape(3, 3).T
-        return np.array(
+    def place(p, q):
+        return p + geo.tool_local @ np.array(lean_geometry.matrix(tuple(q))).reshape(3, 3).T
+
+    def pairs(fixed, placed):  # [T, O, 3] closest-point vectors and [T, O] signed distances
+        gap = np.array(
             [
-                min(
-                    lean_collision.segment_distance(placed, t, fixed.other, o) - fixed.sums[geo.pair_index[t, o]]
-                    for o in range(len(fixed.other))
-                )
+                [lean_geometry.segment_gap(placed, t, fixed.other, o) for o in range(len(fixed.other))]
                 for t in range(len(placed))
             ]
         )
+        return gap, np.linalg.norm(gap, axis=-1) - fixed.sums[geo.pair_index]
 
-    proved = 0
+    proved = directional = 0
     for i in range(30):
         radius, wire = rng.uniform(0.004, 0.012), rng.uniform(0.00015, 0.00035)
         n = needle[i] / np.r_[1, 1, 1, [np.linalg.norm(needle[i, 3:])] * 4]
@@ -212,24 +214,26 @@ def test_a_motion_proved_clear_is_clear_all_along_it():
             p0 = start[i, :3] + rng.normal(0, 1.5e-3, 3)
             q0 = start[i, 3:] / np.linalg.norm(start[i, 3:])
             dp, w = rng.uniform(-1, 1, 3) * max_dp, rng.uniform(-1, 1, 3) * max_drot
-            end_q = lean_geometry.qmul(lean_geometry.qexp(*w), tuple(q0))
-            shift, turn = 0.5 * np.linalg.norm(dp), 0.5 * np.linalg.norm(w)  # from the halfway sub-step on
-            d = closest(fixed, p0 + dp, end_q)
-            threshold = float(np.sort(d)[0]) - rng.uniform(0, 3e-3)  # near the margin: both verdicts occur
-            raised = threshold + shift + turn * np.linalg.norm(geo.tool_local, axis=-1).max(axis=1)
-            for bump, expected in ((-1e-9, False), (1e-9, True)):  # exact at each capsule's own margin
-                t = int(np.argmin(d - raised))
-                got = lean_collision.collides(
-                    geo, fixed, tuple(p0 + dp), end_q, tool, tool_mid, threshold + (d - raised)[t] + bump, shift, turn
-                )
+            h, s = 0.5 ** rng.integers(1, 4), 0.5
+            at_q = lean_geometry.qmul(lean_geometry.qexp(*(s * w)), tuple(q0))
+            placed = place(p0 + s * dp, at_q)
+            gap, d = pairs(fixed, placed)
+            low = continuous.interval_low(placed, p0 + s * dp, fixed.other, gap, d, h, dp, w, levers, xp=np)
+            moved = d - h * (np.linalg.norm(dp) + np.linalg.norm(w) * levers)[:, None]
+            directional += int(low.min() > moved.min() + 1e-12)  # the directional bound decided
+            edge = float(low.min()) - continuous.SLACK
+            threshold = edge - rng.uniform(0, 3e-3)  # near the margin: both verdicts occur
+            args = (tuple(p0 + s * dp), at_q, tool, tool_mid)
+            for bump, expected in ((-1e-9, False), (1e-9, True)):  # exact at the bounds' margin
+                got = lean_collision.interval_collides(geo, fixed, *args, edge + bump, h, tuple(dp), tuple(w))
                 assert got == expected, (i, bump)
-            if lean_collision.collides(geo, fixed, tuple(p0 + dp), end_q, tool, tool_mid, threshold, shift, turn):
+            if lean_collision.interval_collides(geo, fixed, *args, threshold, h, tuple(dp), tuple(w)):
                 continue
             proved += 1
-            for s in np.linspace(0.5, 1.0, 26):
-                q = lean_geometry.qmul(lean_geometry.qexp(*(s * w)), tuple(q0))
-                assert closest(fixed, p0 + s * dp, q).min() >= threshold, (i, s)
-    assert proved >= 30
+            for u in np.linspace(s - h, s + h, 33):
+                q = lean_geometry.qmul(lean_geometry.qexp(*(u * w)), tuple(q0))
+                assert pairs(fixed, place(p0 + u * dp, q))[1].min() >= threshold, (i, u)
+    assert proved >= 30 and directional >= 10
 
 
 def test_a_querys_task_keywords_are_checked_once_and_kept():

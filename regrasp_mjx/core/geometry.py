@@ -213,22 +213,33 @@ def pose_error(current: Pose, goal: Pose) -> tuple[Array, Array]:
     return jnp.linalg.norm(goal[0] - current[0], axis=-1), quat_angle(goal[1], current[1])
 
 
-def segment_distance(a0: Array, a1: Array, b0: Array, b1: Array) -> Array:
-    """Exact distance between segments ``[a0, a1]`` and ``[b0, b1]`` (batched over leading axes).
+def dot3(a: Array, b: Array) -> Array:
+    """``sum(a * b, -1)`` over a last axis of 3, written as three products and two sums: elementwise
+    arithmetic that XLA fuses with its neighbours, where a reduction ends a fused kernel (and writes
+    its result to memory) on a GPU; any array module."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def segment_gap(a0: Array, a1: Array, b0: Array, b1: Array) -> Array:
+    """The vector from the closest point of segment ``[b0, b1]`` to that of ``[a0, a1]`` (batched over
+    leading axes): its length is their distance, its direction the separating plane's normal.
 
     Ericson, Real-Time Collision Detection, §5.1.9: minimise over s for the unclamped t, clamp t to
     [0, 1] and re-solve s for a clamped t. Both segments must have non-zero length (capsules do).
     """
     d1, d2, r = a1 - a0, b1 - b0, a0 - b0
-    a = jnp.sum(d1 * d1, -1)
-    e = jnp.sum(d2 * d2, -1)
-    b = jnp.sum(d1 * d2, -1)
-    c = jnp.sum(d1 * r, -1)
-    f = jnp.sum(d2 * r, -1)
+    a, e, b, c, f = dot3(d1, d1), dot3(d2, d2), dot3(d1, d2), dot3(d1, r), dot3(d2, r)
     denom = a * e - b * b
     # Parallel segments (denom ~ 0): any s works; s = 0 and the clamps below give the distance.
     s = jnp.where(denom > 1e-9 * a * e, jnp.clip((b * f - c * e) / jnp.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
     t = (b * s + f) / e
     s = jnp.where(t < 0.0, jnp.clip(-c / a, 0.0, 1.0), jnp.where(t > 1.0, jnp.clip((b - c) / a, 0.0, 1.0), s))
     t = jnp.clip(t, 0.0, 1.0)
-    return jnp.linalg.norm(a0 + d1 * s[..., None] - (b0 + d2 * t[..., None]), axis=-1)
+    return a0 + d1 * s[..., None] - (b0 + d2 * t[..., None])
+
+
+def segment_distance(a0: Array, a1: Array, b0: Array, b1: Array) -> Array:
+    """Exact distance between segments ``[a0, a1]`` and ``[b0, b1]`` (batched over leading axes): the
+    length of :func:`segment_gap`."""
+    gap = segment_gap(a0, a1, b0, b1)
+    return jnp.sqrt(dot3(gap, gap))

@@ -112,9 +112,8 @@ class RegraspEnv(Env):
         frames = self.scene.capsule_frames
         levers = continuous.levers(frames.tool_ends)
         self.levers = jnp.asarray(levers, jnp.float32)
-        self.others = len(frames.other_ends)
         self.distances = self.scene.distance_fn()
-        self._place_others, self._gaps = self.scene.motion_distance_fn()
+        self._place_others, self._gaps, self._interval = self.scene.motion_distance_fn()
         # what the validity tests use: clearances less the margin (negative = colliding)
         distances, margin = self.distances, self.clearance
         self._free_distances = distances if margin == 0.0 else (lambda *pose: distances(*pose) - margin)
@@ -236,11 +235,10 @@ class RegraspEnv(Env):
         placed = self._place_others(es.needle_pos, es.needle_quat, *needle)  # once for the step's poses
         end = self._gaps(placed, end_pos, end_quat)
 
-        speed = jnp.repeat(jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * self.levers, self.others)
+        fastest = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * jnp.max(self.levers)
         motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec)
-        collision = jnp.any(end < self.clearance) | continuous.motion_collides(
-            self._gaps_along, motion, speed, self.clearance
-        )
+        ends_in = jnp.any(end < self.clearance)  # a collision whatever the motion before: not walked
+        collision = continuous.motion_collides(self._bounds_along, motion, fastest, self.clearance, known=ends_in)
 
         es = es.replace(
             ee_pos=end_pos,
@@ -273,11 +271,12 @@ class RegraspEnv(Env):
             info=info,
         )
 
-    def _gaps_along(self, motion, s) -> jax.Array:
-        """The counted pairs' signed distances at the pose s of a step's motion (:meth:`move`)."""
+    def _bounds_along(self, motion, s, h) -> tuple[jax.Array, jax.Array]:
+        """The counted pairs' signed distances at the pose s of a step's motion (:meth:`move`) and
+        their lower bounds over the interval of half-width h about it."""
         placed, pos, quat, dp, rotvec = motion
         at = geometry.quat_mul(geometry.quat_from_rotvec(s * rotvec), quat)
-        return self._gaps(placed, pos + s * dp, at)
+        return self._interval(placed, pos + s * dp, at, dp, rotvec, h)
 
     # ---- reward terms and observation ---------------------------------------------------------
     def _goal_error(self, es: EpisodeState) -> tuple[jax.Array, jax.Array]:

@@ -82,7 +82,10 @@ class HostChecker:
         self.data = mujoco.MjData(self.model)
         self.clearance_mm = float(clearance_mm)
         self.margin = self.clearance_mm * 1e-3
-        self.levers = continuous.levers(self.scene.capsule_frames.tool_ends)  # for motion_collides
+        # for motion_collides: each tool capsule's lever; the pairs' geoms, tool by tool
+        frames = self.scene.capsule_frames
+        self.levers = continuous.levers(frames.tool_ends)
+        self._tool_geoms, self._other_geoms = np.array(frames.tool_ids), np.array(frames.other_ids)
 
     def for_needle(self, radius: float | None, wire: float | None) -> HostChecker:
         """A checker of the same margin around another needle (radius and wire radius [m]; None
@@ -124,13 +127,46 @@ class HostChecker:
         pos, quat = np.asarray(pos, float), np.asarray(quat, float)
         dp, rotvec = np.asarray(dp, float), np.asarray(rotvec, float)
         per_tool = np.linalg.norm(dp) + np.linalg.norm(rotvec) * self.levers
-        speed = np.repeat(per_tool, len(self.scene.pairs) // len(self.levers))
+        speed = np.repeat(per_tool, len(self._other_geoms))  # each pair's: its tool capsule's
 
-        def dist_at(s: float, reach: float) -> np.ndarray:
-            at = quat_mul(quat_from_rotvec(s * rotvec), quat)
-            return self.distances(needle_pos, needle_quat, pos + s * dp, at, reach)
+        def bound_at(s: float, h: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
+            at = pos + s * dp
+            self._set(needle_pos, needle_quat, at, quat_mul(quat_from_rotvec(s * rotvec), quat))
+            d = np.array(
+                [mujoco.mj_geomDistance(self.model, self.data, *pair, reach, None) for pair in self.scene.pairs]
+            )
+            moved = d - h * speed  # the motion bound: where it proves every pair, or the pose collides,
+            if np.all(moved - self.margin >= continuous.SLACK) or np.any(d < self.margin):  # it decides
+                return d, moved
+            d, gap = self._pair_gaps(reach)
+            tool, other = self._capsule_ends(self._tool_geoms), self._capsule_ends(self._other_geoms)
+            low = continuous.interval_low(tool, at, other, gap, d, h, dp, rotvec, self.levers, xp=np)
+            far = d >= reach  # reported at reach: proved by the motion bound alone
+            return d.ravel(), np.where(far, d, low).ravel()
 
-        return continuous.motion_collides_host(dist_at, speed, self.margin)
+        return continuous.motion_collides_host(bound_at, per_tool.max(), self.margin)
+
+    def _pair_gaps(self, reach: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every pair's signed distance ``[T, O]`` at the pose set (``mj_geomDistance``, capped at
+        ``reach``) and its axes' closest-point vector ``[T, O, 3]`` (from the surface points MuJoCo
+        reports: the same direction, the length plus both radii; zero where capped)."""
+        shape = (len(self._tool_geoms), len(self._other_geoms))
+        d, gap, fromto = np.empty(len(self.scene.pairs)), np.zeros((len(self.scene.pairs), 3)), np.zeros(6)
+        size = self.model.geom_size
+        for k, (g1, g2) in enumerate(self.scene.pairs):
+            fromto[:] = 0.0
+            d[k] = mujoco.mj_geomDistance(self.model, self.data, g1, g2, reach, fromto)
+            v = fromto[:3] - fromto[3:]
+            length = float(np.linalg.norm(v))
+            if d[k] < reach and length > 0.0:
+                gap[k] = v * ((d[k] + size[g1, 0] + size[g2, 0]) / length)
+        return d.reshape(shape), gap.reshape(*shape, 3)
+
+    def _capsule_ends(self, geoms: np.ndarray) -> np.ndarray:
+        """The capsules ``geoms``' axis end points ``[G, 2, 3]`` at the pose set."""
+        axis = self.data.geom_xmat[geoms].reshape(-1, 3, 3)[:, :, 2] * self.model.geom_size[geoms, 1][:, None]
+        centre = self.data.geom_xpos[geoms]
+        return np.stack([centre - axis, centre + axis], axis=1)
 
     def motion_collides_between(self, needle: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
         """Whether a planner's motion from pose ``a`` to pose ``b`` (7-vectors; position linear,

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit, types
 from numba.experimental import structref
 
-from regrasp_mjx.envs.lean_geometry import matrix, qexp, qmul, rotate
+from regrasp_mjx.envs.lean_geometry import matrix, point_distance, qexp, qmul, rotate, segment_distance, segment_gap
 from regrasp_mjx.world.continuous import MAX_TESTS, RESOLUTION
 from regrasp_mjx.world.continuous import SLACK as MOTION_SLACK
 
@@ -29,47 +29,6 @@ CHORD_GROUP = 7
 # lower bounds are computed in floating point: this much is taken off them against rounding, so a
 # bound never skips a pair whose exact distance is below the threshold
 BOUND_SLACK = 1e-12
-
-# ---- distances -----------------------------------------------------------------------------------
-
-
-@njit(cache=True)
-def segment_distance(e, i, f, j):
-    """Ericson's closest points of segments ``e[i]`` and ``f[j]`` (``[., 2, 3]`` end points), as
-    :func:`regrasp_mjx.core.geometry.segment_distance`; scalar code, nothing allocated."""
-    d1x, d1y, d1z = e[i, 1, 0] - e[i, 0, 0], e[i, 1, 1] - e[i, 0, 1], e[i, 1, 2] - e[i, 0, 2]
-    d2x, d2y, d2z = f[j, 1, 0] - f[j, 0, 0], f[j, 1, 1] - f[j, 0, 1], f[j, 1, 2] - f[j, 0, 2]
-    rx, ry, rz = e[i, 0, 0] - f[j, 0, 0], e[i, 0, 1] - f[j, 0, 1], e[i, 0, 2] - f[j, 0, 2]
-    a = d1x * d1x + d1y * d1y + d1z * d1z
-    ee = d2x * d2x + d2y * d2y + d2z * d2z
-    b = d1x * d2x + d1y * d2y + d1z * d2z
-    c = d1x * rx + d1y * ry + d1z * rz
-    ff = d2x * rx + d2y * ry + d2z * rz
-    denom = a * ee - b * b
-    s = 0.0
-    if denom > 1e-9 * a * ee:
-        s = min(max((b * ff - c * ee) / denom, 0.0), 1.0)
-    t = (b * s + ff) / ee
-    if t < 0.0:
-        s = min(max(-c / a, 0.0), 1.0)
-        t = 0.0
-    elif t > 1.0:
-        s = min(max((b - c) / a, 0.0), 1.0)
-        t = 1.0
-    x = rx + d1x * s - d2x * t
-    y = ry + d1y * s - d2y * t
-    z = rz + d1z * s - d2z * t
-    return math.sqrt(x * x + y * y + z * z)
-
-
-@njit(cache=True)
-def point_distance(seg, i, px, py, pz):
-    """Distance of the point ``(px, py, pz)`` to the segment ``seg[i]`` (scalar code)."""
-    dx, dy, dz = seg[i, 1, 0] - seg[i, 0, 0], seg[i, 1, 1] - seg[i, 0, 1], seg[i, 1, 2] - seg[i, 0, 2]
-    px, py, pz = px - seg[i, 0, 0], py - seg[i, 0, 1], pz - seg[i, 0, 2]
-    s = min(max((px * dx + py * dy + pz * dz) / (dx * dx + dy * dy + dz * dz), 0.0), 1.0)
-    x, y, z = px - s * dx, py - s * dy, pz - s * dz
-    return math.sqrt(x * x + y * y + z * z)
 
 
 @njit(cache=True)
@@ -228,7 +187,7 @@ def fixed_ends(geo, varies, needle_p, needle_q, radius, wire):
 
 
 @njit(cache=True)
-def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=0.0):
+def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold):
     """Whether the smallest signed distance over the counted pairs is below ``threshold`` for one
     end-effector pose (``ee_p`` a 3-tuple, ``ee_q`` a unit 4-tuple; ``tool`` ``[T, 2, 3]`` and
     ``tool_mid`` ``[T, 3]``: scratch space for the regrasping tool's end points and midpoints).
@@ -236,13 +195,18 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=
     The same verdict as comparing the minimum over every pair, found with less work: a pair is
     skipped when its bounding spheres keep it at least ``threshold`` apart; the needle's chords
     when a sphere holding them all does, then group by group by a sphere and a bounding capsule;
-    the first pair below the threshold ends the search.
+    the first pair below the threshold ends the search."""
+    return interval_collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
-    ``shift`` and ``turn`` raise each tool capsule t's threshold by ``shift + turn * r_t`` [m], r_t
-    its end points' largest distance from the end-effector's origin. False then proves that no
-    pose whose tool points each lie within that distance of this pose's (a translation by at most
-    ``shift`` and a rotation by at most ``turn`` rad about the end-effector's origin) collides at
-    ``threshold``."""
+
+@njit(cache=True)
+def interval_collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, h, dp, w):
+    """:func:`collides` of the interval of half-width ``h`` about the pose (``h`` 0: the pose
+    alone) of the motion ``(dp, w)`` (per unit s): False proves every pair at or above ``threshold``
+    over the whole interval by :func:`regrasp_mjx.world.continuous.interval_low`'s bounds (its
+    verdict): the motion bound culls (each tool capsule t's threshold raised by ``h (|dp| + |w|
+    L_t)``, what the bounding spheres test), the directional bound decides a pair the motion bound
+    leaves below."""
     f = fixed
     m = matrix(ee_q)
     n_tools = geo.tool_local.shape[0]
@@ -250,17 +214,22 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=
         _place(geo.tool_local, t, ee_p, m, 1.0, tool)
         for r in range(3):
             tool_mid[t, r] = 0.5 * (tool[t, 0, r] + tool[t, 1, r])
+    move = math.sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2])
+    turn = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     for t in range(n_tools):
-        below = threshold + shift
-        if turn > 0.0:  # its end point farthest from the end-effector's origin moves the most
-            below += turn * max(_norm(geo.tool_local, t, 0), _norm(geo.tool_local, t, 1))
+        below = threshold
+        bend = 0.0
+        if h > 0.0:  # its end point farthest from the end-effector's origin moves the most
+            lever = max(_norm(geo.tool_local, t, 0), _norm(geo.tool_local, t, 1))
+            below += h * (move + turn * lever) + MOTION_SLACK
+            bend = _bend(tool, t, ee_p, w, turn, h)
         clear = geo.tool_half[t] + below + BOUND_SLACK  # a pair whose bound reaches this is clear
         for o in geo.plain:
             k = geo.pair_index[t, o]
             gap = _sphere_gap(tool_mid, t, f.other_mid[o, 0], f.other_mid[o, 1], f.other_mid[o, 2])
             if gap - f.other_half[o] - f.sums[k] >= clear:
                 continue
-            if segment_distance(tool, t, f.other, o) - f.sums[k] < below:
+            if _pair_below(tool, t, f.other, o, f.sums[k], below, threshold, ee_p, h, dp, w, bend):
                 return True
         if _sphere_gap(tool_mid, t, f.needle[0], f.needle[1], f.needle[2]) - f.needle[3] - f.needle_sums[t] >= clear:
             continue
@@ -272,9 +241,53 @@ def collides(geo, fixed, ee_p, ee_q, tool, tool_mid, threshold, shift=0.0, turn=
                 continue
             for c in range(g * geo.group_size, min((g + 1) * geo.group_size, geo.chords.shape[0])):
                 o = geo.chords[c]
-                if segment_distance(tool, t, f.other, o) - f.sums[geo.pair_index[t, o]] < below:
+                k = geo.pair_index[t, o]
+                if _pair_below(tool, t, f.other, o, f.sums[k], below, threshold, ee_p, h, dp, w, bend):
                     return True
     return False
+
+
+@njit(cache=True)
+def _bend(tool, t, ee_p, w, turn, h):
+    """The second-order part of the directional bound for tool capsule t: its end points' largest
+    distance from the rotation axis through ``ee_p``, times ``phi^2 (1/2 + phi/6)``, phi = h |w|."""
+    if turn == 0.0:
+        return 0.0
+    ax, ay, az = w[0] / turn, w[1] / turn, w[2] / turn
+    rho = 0.0
+    for k in range(2):
+        rx, ry, rz = tool[t, k, 0] - ee_p[0], tool[t, k, 1] - ee_p[1], tool[t, k, 2] - ee_p[2]
+        c = rx * ax + ry * ay + rz * az
+        rx, ry, rz = rx - c * ax, ry - c * ay, rz - c * az
+        rho = max(rho, math.sqrt(rx * rx + ry * ry + rz * rz))
+    phi = h * turn
+    return rho * phi * phi * (0.5 + phi / 6.0)
+
+
+@njit(cache=True)
+def _pair_below(tool, t, other, o, sums, below, threshold, ee_p, h, dp, w, bend):
+    """Whether pair (t, o) is not proved at or above ``threshold``: its distance below ``below``
+    (the motion bound's raised threshold) and, over an interval (``h`` > 0), its directional bound
+    too (:func:`regrasp_mjx.world.continuous.interval_low`)."""
+    x, y, z = segment_gap(tool, t, other, o)
+    length = math.sqrt(x * x + y * y + z * z)
+    if length - sums >= below:
+        return False
+    if h == 0.0 or length == 0.0:
+        return True
+    nx, ny, nz = x / length, y / length, z / length
+    a0 = tool[t, 0, 0] * nx + tool[t, 0, 1] * ny + tool[t, 0, 2] * nz
+    a1 = tool[t, 1, 0] * nx + tool[t, 1, 1] * ny + tool[t, 1, 2] * nz
+    b0 = other[o, 0, 0] * nx + other[o, 0, 1] * ny + other[o, 0, 2] * nz
+    b1 = other[o, 1, 0] * nx + other[o, 1, 1] * ny + other[o, 1, 2] * nz
+    fall = 0.0
+    for k in range(2):
+        rx, ry, rz = tool[t, k, 0] - ee_p[0], tool[t, k, 1] - ee_p[1], tool[t, k, 2] - ee_p[2]
+        vx = dp[0] + w[1] * rz - w[2] * ry
+        vy = dp[1] + w[2] * rx - w[0] * rz
+        vz = dp[2] + w[0] * ry - w[1] * rx
+        fall = max(fall, abs(vx * nx + vy * ny + vz * nz))
+    return min(a0, a1) - max(b0, b1) - sums - h * fall - bend - threshold < MOTION_SLACK
 
 
 @njit(cache=True)
@@ -315,9 +328,8 @@ def hold(state):
 def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack):
     """Whether the motion ``(p0 + s dp, exp(s w) q0)``, s in [0, 1] (tuples; ``q0`` unit), comes
     below ``threshold`` anywhere: :func:`regrasp_mjx.world.continuous.motion_collides`' verdict, each
-    interval proved by one :func:`collides` at its midpoint with the thresholds raised by how far
-    the tool moves within it (``stack``: ``[64, 2]`` int64 scratch): the root's midpoint first,
-    which proves most steps in one test; where it does not, the end pose is tested for a collision
+    interval proved by one :func:`interval_collides` at its midpoint (``stack``: ``[64, 2]`` int64
+    scratch): the root's midpoint first, which proves most steps in one test; where it does not, the end pose is tested for a collision
     before the halves (a step into the needle usually ends in it)."""
     move, turn = (
         math.sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]),
@@ -337,7 +349,7 @@ def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack)
         s = (2 * i + 1) * h
         at = (p0[0] + s * dp[0], p0[1] + s * dp[1], p0[2] + s * dp[2])
         at_q = qmul(qexp(s * w[0], s * w[1], s * w[2]), q0)
-        if not collides(geo, fixed, at, at_q, tool, tool_mid, threshold, h * move + MOTION_SLACK, h * turn):
+        if not interval_collides(geo, fixed, at, at_q, tool, tool_mid, threshold, h, dp, w):
             continue
         if h * fastest <= RESOLUTION or tests >= MAX_TESTS or n + 2 > stack.shape[0]:
             return True

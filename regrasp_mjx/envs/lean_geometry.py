@@ -1,6 +1,6 @@
 """Pose algebra for one query, compiled with numba (the lean planner's): the quantities of
-:mod:`regrasp_mjx.core.geometry` for one pose at a time, the goal pose of a goal grasp, and the distance
-to the nearest pose of the grasp library.
+:mod:`regrasp_mjx.core.geometry` for one pose at a time, the goal pose of a goal grasp, the distance
+to the nearest pose of the grasp library, and the capsules' segment distances.
 
 3-vectors and wxyz quaternions are tuples of floats and rotation matrices tuples of nine
 (row-major), so the per-step work allocates nothing on the heap (an array of four floats costs more
@@ -193,3 +193,50 @@ def nearest_grasp(library_p, library_q, columns, needle):
         if bound[i] < best and i != first:
             best = min(best, _grasp_distance(library_p, library_q, needle, i))
     return best
+
+
+# ---- distances -----------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def segment_gap(e, i, f, j):
+    """Ericson's closest points of segments ``e[i]`` and ``f[j]`` (``[., 2, 3]`` end points): the
+    vector from ``f[j]``'s to ``e[i]``'s, as :func:`regrasp_mjx.core.geometry.segment_gap`; scalar
+    code, nothing allocated."""
+    d1x, d1y, d1z = e[i, 1, 0] - e[i, 0, 0], e[i, 1, 1] - e[i, 0, 1], e[i, 1, 2] - e[i, 0, 2]
+    d2x, d2y, d2z = f[j, 1, 0] - f[j, 0, 0], f[j, 1, 1] - f[j, 0, 1], f[j, 1, 2] - f[j, 0, 2]
+    rx, ry, rz = e[i, 0, 0] - f[j, 0, 0], e[i, 0, 1] - f[j, 0, 1], e[i, 0, 2] - f[j, 0, 2]
+    a = d1x * d1x + d1y * d1y + d1z * d1z
+    ee = d2x * d2x + d2y * d2y + d2z * d2z
+    b = d1x * d2x + d1y * d2y + d1z * d2z
+    c = d1x * rx + d1y * ry + d1z * rz
+    ff = d2x * rx + d2y * ry + d2z * rz
+    denom = a * ee - b * b
+    s = 0.0
+    if denom > 1e-9 * a * ee:
+        s = min(max((b * ff - c * ee) / denom, 0.0), 1.0)
+    t = (b * s + ff) / ee
+    if t < 0.0:
+        s = min(max(-c / a, 0.0), 1.0)
+        t = 0.0
+    elif t > 1.0:
+        s = min(max((b - c) / a, 0.0), 1.0)
+        t = 1.0
+    return rx + d1x * s - d2x * t, ry + d1y * s - d2y * t, rz + d1z * s - d2z * t
+
+
+@njit(cache=True)
+def segment_distance(e, i, f, j):
+    """The distance of segments ``e[i]`` and ``f[j]``: the length of :func:`segment_gap`."""
+    x, y, z = segment_gap(e, i, f, j)
+    return math.sqrt(x * x + y * y + z * z)
+
+
+@njit(cache=True)
+def point_distance(seg, i, px, py, pz):
+    """Distance of the point ``(px, py, pz)`` to the segment ``seg[i]`` (scalar code)."""
+    dx, dy, dz = seg[i, 1, 0] - seg[i, 0, 0], seg[i, 1, 1] - seg[i, 0, 1], seg[i, 1, 2] - seg[i, 0, 2]
+    px, py, pz = px - seg[i, 0, 0], py - seg[i, 0, 1], pz - seg[i, 0, 2]
+    s = min(max((px * dx + py * dy + pz * dz) / (dx * dx + dy * dy + dz * dz), 0.0), 1.0)
+    x, y, z = px - s * dx, py - s * dy, pz - s * dz
+    return math.sqrt(x * x + y * y + z * z)

@@ -3,31 +3,43 @@
 A motion moves the regrasping end-effector from ``(p0, q0)`` along ``p(s) = p0 + s dp``,
 ``q(s) = exp(s w) q0``, s in [0, 1] (an environment step; and OMPL's interpolation, position linear
 and orientation slerped, is the same curve with ``w`` the shortest rotation vector of ``q1 q0^-1``).
-A point of tool capsule t at ``x`` in the end-effector frame moves at most
-``v_t = |dp| + |w| L_t`` per unit s, ``L_t`` the farthest end point of t from the end-effector's
-origin (:func:`levers`), so every counted pair's signed distance d(s) is v_t-Lipschitz in s.
 
 Conservative advancement by bisection (the standard continuous test, as FCL's): an interval of
-half-width h about s_m is clear when every pair keeps ``d(s_m) >= m + h v_t`` (m the clearance
-margin; one pose test with each tool capsule's threshold raised). Otherwise the pose at s_m is
-tested at m itself (below: a pose collides, the motion collides) and the interval is halved, down
-to the size where no tool point moves more than :data:`RESOLUTION` within half an interval, depth
-first, left half first; an interval not proved clear there, or a step not proved clear within
-:data:`MAX_TESTS` interval tests, is reported colliding (a planner's longer motion: each of the
-steps that replay it, :func:`pieces`). So:
+half-width h about s_m is proved clear when every pair's distance has a lower bound over the whole
+interval, from its pose at s_m alone, of at least the clearance margin m (:func:`interval_low`, two
+bounds, the larger taken):
+
+- the motion bound: a point of tool capsule t at ``x`` in the end-effector frame moves at most
+  ``v_t = |dp| + |w| L_t`` per unit s (``L_t`` its farthest end point from the end-effector's origin,
+  :func:`levers`), so the pair's distance falls by at most ``h v_t``;
+- the directional bound (a separating plane, second order in h): with ``n`` the unit vector between
+  the pair's closest points, the capsules are at least ``sep`` apart along n (support functions of
+  their segments, less the radii; ``sep`` = the distance where n is exact, a lower bound for any n),
+  and a point ``r`` from the end-effector's origin at s_m moves along n by at most
+  ``h |(dp + w x r) . n| + rho (phi^2 / 2 + phi^3 / 6)`` within the interval (``phi = h |w|``,
+  ``rho`` its distance from the rotation axis; Rodrigues' formula: the first-order term exact, the
+  rest bounded), largest at a segment's end point. A jaw sliding along the wire, which the motion
+  bound proves only in tests of ~ (clearance / v_t) of the step each, is proved by one.
+
+Otherwise the pose at s_m is tested at m itself (below: a pose collides, the motion collides) and the
+interval is halved, down to the size where no tool point moves more than :data:`RESOLUTION` within
+half an interval, depth first, left half first; an interval not proved clear there, or a step not
+proved clear within :data:`MAX_TESTS` interval tests, is reported colliding (a planner's longer
+motion: each of the steps that replay it, :func:`pieces`). So:
 
 - a motion reported free keeps every pair at >= m along all of it (within the capsule model,
   which holds the true wire: ``Scene.needle_error_bound``);
 - a motion is reported colliding where some pose along it comes within RESOLUTION of m, or where
-  it stays so close to m for so long that MAX_TESTS tests cannot prove it (conservative: at full
-  speed, a jaw sliding along the wire closer than about 0.05 mm for a whole step).
+  it stays so close to m, moving towards or turning about the wire, that MAX_TESTS tests cannot
+  prove it (conservative).
 
 The verdict is a function of the motion alone (the intervals are visited in one fixed order), so the MJX
 environment (:func:`motion_collides`, here), the host checker
 (:meth:`regrasp_mjx.envs.host.HostChecker.motion_collides`) and the compiled one
 (:func:`regrasp_mjx.envs.lean_collision.motion_collides`) give the same verdicts. A test that proves
 more than the root interval's (e.g. the end pose clear by ``v_t``, which implies the midpoint
-clear by ``v_t / 2``) may stand in for it.
+clear by ``v_t / 2``) may stand in for it; a pair culled by the motion bound alone (the compiled
+test's bounding spheres) is proved as both bounds would prove it.
 
 Intervals are named by ``(k, i)``: level k, ``[i / 2^k, (i + 1) / 2^k]``, midpoint
 ``(2 i + 1) / 2^(k + 1)`` and half-width ``1 / 2^(k + 1)``, exact in floating point.
@@ -42,6 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.config import EnvConfig
+from regrasp_mjx.core.geometry import dot3
 
 # the finest a motion is cut: no tool point moves more than this within half an interval [m]
 RESOLUTION = 1e-6
@@ -50,7 +63,7 @@ RESOLUTION = 1e-6
 SLACK = 1e-9
 
 # the most interval tests a motion may take to be proved clear; one that needs more (a motion that
-# stays within about v / (2 MAX_TESTS) of the margin for much of its length) is reported colliding.
+# stays within a few microns of the margin, moving towards or turning about it) is reported colliding.
 # It bounds the batched test's work: a vmapped while loop runs as long as its slowest lane.
 MAX_TESTS = 32
 
@@ -62,7 +75,7 @@ PENDING_SHARE = 1 / 16
 # whether a vmapped batch's walk takes WALK_CHUNK steps a loop iteration (:func:`_halves`); None:
 # where a loop iteration's test waits for an accelerator (not on a CPU, which loops step by step)
 UNROLLED: bool | None = None
-WALK_CHUNK = 8
+WALK_CHUNK = 4  # best of 2, 4 and 8 at 512 and 32,768 lanes on an H100 (issue 44, fifteenth session)
 
 
 # a planner's motion between two states (OMPL's edges, the straight line) is tested as the
@@ -86,41 +99,79 @@ def levers(tool_ends: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.asarray(tool_ends, np.float64), axis=-1).max(axis=-1)
 
 
-def motion_collides(dist_fn, motion, speed: jax.Array, margin: float, share: float | None = None) -> jax.Array:
+def interval_low(tool, origin, other, gap, d, h, dp, rotvec, levers, xp=jnp):
+    """The least each pair's signed distance can be anywhere in the interval of half-width ``h``
+    about a pose of a motion (module docstring: the larger of the motion and the directional
+    bounds), from the pose's capsules: ``tool [T, 2, 3]`` the tool capsules' end points and
+    ``origin [3]`` the end-effector's origin there, ``other [O, 2, 3]`` the counted capsules'
+    end points, ``gap [T, O, 3]`` each pair's closest-point vector (tool side minus other side,
+    :func:`regrasp_mjx.core.geometry.segment_gap`) and ``d [T, O]`` its signed distance (the gap's
+    length less both radii); ``dp``, ``rotvec`` the motion (per unit s), ``levers [T]``.
+
+    ``xp``: ``jax.numpy`` (traced, float32) or ``numpy`` (float64, the host checker). Elementwise
+    arithmetic only (:func:`~regrasp_mjx.core.geometry.dot3`, no reductions over pairs): on a GPU
+    it fuses into the kernel that computes the distances, and no float32 contraction runs in TF32."""
+    length = xp.sqrt(dot3(gap, gap))
+    moved = d - h * (xp.sqrt(dot3(dp, dp)) + xp.sqrt(dot3(rotvec, rotvec)) * levers)[:, None]
+    n = gap / xp.maximum(length, 1e-30)[..., None]  # any unit vector gives a valid bound; 0 none
+    along = lambda tool_side: (dot3(tool_side[:, None, 0], n), dot3(tool_side[:, None, 1], n))  # noqa: E731  [T, O]
+    t0, t1 = along(tool)
+    o0, o1 = dot3(other[None, :, 0], n), dot3(other[None, :, 1], n)
+    sep = xp.minimum(t0, t1) - xp.maximum(o0, o1) - (length - d)
+    r = tool - origin  # [T, 2, 3] from the end-effector's origin
+    v0, v1 = along(dp + xp.cross(rotvec, r))
+    turn = xp.sqrt(dot3(rotvec, rotvec))
+    axis = rotvec / xp.maximum(turn, 1e-30)
+    off = r - dot3(r, axis)[..., None] * axis  # [T, 2, 3] off the rotation axis
+    rho = xp.sqrt(xp.maximum(dot3(off[:, 0], off[:, 0]), dot3(off[:, 1], off[:, 1])))  # [T]
+    phi = h * turn
+    bend = rho * phi * phi * (0.5 + phi / 6.0)
+    return xp.maximum(moved, sep - h * xp.maximum(xp.abs(v0), xp.abs(v1)) - bend[:, None])
+
+
+def motion_collides(
+    bound_fn, motion, fastest: jax.Array, margin: float, share: float | None = None, known: jax.Array | None = None
+) -> jax.Array:
     """Whether the motion collides (module docstring), in JAX: one lane's test, jit/vmap-able.
 
-    ``dist_fn(motion, s) -> [P]``: every counted pair's signed distance at the pose s of the motion
-    ``motion`` (a pytree of arrays: the lane's poses and placed capsules); ``speed [P]``: each pair's
-    ``v_t`` (its tool capsule's). The root interval is tested for every lane; its halves only where
-    it is not proved, walked depth first (:func:`_halves`).
+    ``bound_fn(motion, s, h) -> (d [P], low [P])``: every counted pair's signed distance at the pose
+    s of the motion ``motion`` (a pytree of arrays: the lane's poses and placed capsules) and its
+    lower bound over the interval of half-width h about it (:func:`interval_low`); ``fastest``: the
+    largest ``v_t``. The root interval is tested for every lane; its halves only where it is not
+    proved, walked depth first (:func:`_halves`).
 
     Vmapped, the halves run on the lanes the root left pending alone, gathered ``share`` of the
     batch at a time (:func:`_pending_lanes`): a vmapped loop runs as many iterations as its slowest
     lane, and every lane would pay for the few that graze the wire (``share`` None:
-    :data:`PENDING_SHARE`, read when traced). The verdicts are those of the lane-by-lane test."""
+    :data:`PENDING_SHARE`, read when traced). The verdicts are those of the lane-by-lane test.
+
+    ``known``: True where the motion is already known to collide (its end pose does, say): the
+    verdict then, and its halves are not walked (a step into the wire is what takes the most tests:
+    its approach proved interval by interval up to where it collides)."""
     share = PENDING_SHARE if share is None else share
-    speed = jnp.asarray(speed, jnp.float32)
-    fastest = jnp.max(speed)
+    fastest = jnp.asarray(fastest, jnp.float32)
+    known = jnp.bool_(False) if known is None else known
     h0 = jnp.float32(0.5)
-    proved, stop = _verdict(dist_fn(motion, h0), h0, speed, fastest, margin)
-    halves = _halves_fn(dist_fn, margin, share)
-    return (~proved & stop) | halves(motion, speed, fastest, ~proved & ~stop)
+    proved, stop = _verdict(*bound_fn(motion, h0, h0), h0, fastest, margin)
+    halves = _halves_fn(bound_fn, margin, share)
+    return known | (~proved & stop) | halves(motion, fastest, ~proved & ~stop & ~known)
 
 
-def _verdict(d, h, v, fastest, margin):
-    """An interval of half-width h whose midpoint has distances d: proved clear, or to stop at."""
-    proved = jnp.all(d - margin >= h * v + SLACK)
+def _verdict(d, low, h, fastest, margin):
+    """An interval of half-width h whose midpoint has distances d and lower bound low: proved clear,
+    or to stop at."""
+    proved = jnp.all(low - margin >= SLACK)
     stop = jnp.any(d < margin) | (h * fastest <= RESOLUTION)
     return proved, stop
 
 
-def _halves_fn(dist_fn, margin: float, share: float):
-    """``halves(motion, speed, fastest, pending)``: whether the root's halves, tested depth first
-    where ``pending``, fail to be proved; vmapped, on the pending lanes alone."""
+def _halves_fn(bound_fn, margin: float, share: float):
+    """``halves(motion, fastest, pending)``: whether the root's halves, tested depth first where
+    ``pending``, fail to be proved; vmapped, on the pending lanes alone."""
 
     def lane(batched: bool):
-        def one(motion, speed, fastest, pending):
-            return _halves(lambda s: dist_fn(motion, s), speed, fastest, margin, pending, batched)
+        def one(motion, fastest, pending):
+            return _halves(lambda s, h: bound_fn(motion, s, h), fastest, margin, pending, batched)
 
         return one
 
@@ -160,7 +211,7 @@ def _pending_lanes(batched, args, size: int, share: float) -> jax.Array:
     return jax.lax.while_loop(lambda c: c[0] * lanes < count, body, init)[1]
 
 
-def _halves(dist_at, speed, fastest, margin: float, pending: jax.Array, batched: bool = False) -> jax.Array:
+def _halves(bound_at, fastest, margin: float, pending: jax.Array, batched: bool = False) -> jax.Array:
     """Whether the root's halves, tested depth first where ``pending``, fail to be proved: the walk
     of :func:`motion_collides_host` without its stack (:func:`_advance`), an interval a step.
     ``batched``: :data:`WALK_CHUNK` steps a loop iteration, unrolled (on a GPU each iteration's test
@@ -168,7 +219,7 @@ def _halves(dist_at, speed, fastest, margin: float, pending: jax.Array, batched:
 
     def step(c):
         h = jnp.ldexp(jnp.float32(1.0), -(c[0] + 1))
-        proved, stop = _verdict(dist_at((2 * c[1] + 1).astype(jnp.float32) * h), h, speed, fastest, margin)
+        proved, stop = _verdict(*bound_at((2 * c[1] + 1).astype(jnp.float32) * h, h), h, fastest, margin)
         return _advance(c, c[4], proved, stop)
 
     def chunk(c):
@@ -196,21 +247,21 @@ def _advance(c, go, proved, stop):
     return jnp.where(go, k_next, k), jnp.where(go, i_next, i), tests, collision, active & ~finished
 
 
-def motion_collides_host(dist_at, speed: np.ndarray, margin: float) -> bool:
-    """:func:`motion_collides` in plain Python (float64), for the host checker: ``dist_at(s, reach)``
-    returns every pair's signed distance at pose s, where pairs farther than ``reach`` [m] may be
-    reported at ``reach`` (a distance query may stop there)."""
-    speed = np.asarray(speed, np.float64)
-    fastest = float(speed.max()) if speed.size else 0.0
+def motion_collides_host(bound_at, fastest: float, margin: float) -> bool:
+    """:func:`motion_collides` in plain Python (float64), for the host checker: ``bound_at(s, h,
+    reach)`` returns every pair's signed distance at pose s and its lower bound over the interval of
+    half-width h (:func:`interval_low`), where pairs farther than ``reach`` [m] may be reported at
+    ``reach`` for both (a distance query may stop there: ``reach`` exceeds m by the motion bound)."""
+    fastest = float(fastest)
     stack, tests = [(0, 0)], 0
     while stack:
         k, i = stack.pop()
         tests += 1
         h = math.ldexp(1.0, -(k + 1))
-        d = np.asarray(dist_at((2 * i + 1) * h, margin + h * fastest + 2 * SLACK))
-        if np.all(d - margin >= h * speed + SLACK):
+        d, low = bound_at((2 * i + 1) * h, h, margin + h * fastest + 2 * SLACK)
+        if np.all(np.asarray(low) - margin >= SLACK):
             continue
-        if np.any(d < margin) or h * fastest <= RESOLUTION or tests >= MAX_TESTS:
+        if np.any(np.asarray(d) < margin) or h * fastest <= RESOLUTION or tests >= MAX_TESTS:
             return True
         stack += [(k + 1, 2 * i + 1), (k + 1, 2 * i)]
     return False

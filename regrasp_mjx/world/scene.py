@@ -24,9 +24,12 @@ from mujoco import mjx
 
 from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.core.geometry import (
+    dot3,
     rotation_matrix,
     segment_distance,
+    segment_gap,
 )  # segment_distance re-exported: the capsule distance lives with the other geometry
+from regrasp_mjx.world import continuous
 
 MJCF_PATH = Path(__file__).resolve().parents[1] / "models" / "regrasp_scene.xml"  # package data
 
@@ -204,12 +207,15 @@ class Scene:
 
         return distances
 
-    def motion_distance_fn(self) -> tuple[Callable, Callable]:
-        """:meth:`distance_fn` cut in two for the many poses of one motion (the continuous test):
+    def motion_distance_fn(self) -> tuple[Callable, Callable, Callable]:
+        """:meth:`distance_fn` cut in parts for the many poses of one motion (the continuous test):
         ``others(needle_pos, needle_quat[, radius, wire]) -> (ends [1, O, 2, 3], radii [O])``, the
-        counted capsules placed once, and ``gaps(others, ee_pos, ee_quat) -> [npairs]``, the
-        signed distances for one end-effector pose; the bodies posed from their quaternions directly (the
-        same frames ``mjx.kinematics`` computes, without its per-call work)."""
+        counted capsules placed once; ``gaps(others, ee_pos, ee_quat) -> [npairs]``, the signed
+        distances for one end-effector pose; and ``interval(others, ee_pos, ee_quat, dp, rotvec, h)
+        -> (gaps, low)``, those and their lower bounds over the interval of half-width h about the
+        pose of the motion ``(dp, rotvec)`` (:func:`regrasp_mjx.world.continuous.interval_low`). The
+        bodies are posed from their quaternions directly (the same frames ``mjx.kinematics``
+        computes, without its per-call work)."""
         f = self.capsule_frames
         tool_ends = jnp.asarray(f.tool_ends, jnp.float32)
         other_ends = jnp.asarray(f.other_ends, jnp.float32)
@@ -218,6 +224,7 @@ class Scene:
         other_radii = jnp.asarray(f.other_radii, jnp.float32)
         inflation0 = jnp.asarray(f.inflation, jnp.float32)
         radius0 = self.config.needle_radius_mm * 1e-3
+        levers = jnp.asarray(continuous.levers(f.tool_ends), jnp.float32)
 
         def place(ends, pos, quat):
             # products and sums, not a matmul (TF32 on a GPU; see distance_fn)
@@ -230,14 +237,24 @@ class Scene:
             radii = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
             return ends, radii
 
+        def pose(placed, ee_pos, ee_quat):
+            ends, radii = placed
+            tool = place(tool_ends, ee_pos, ee_quat)  # [T, 2, 3]
+            t = tool[:, None]
+            gap = segment_gap(t[..., 0, :], t[..., 1, :], ends[..., 0, :], ends[..., 1, :])  # [T, O, 3]
+            return tool, gap, jnp.sqrt(dot3(gap, gap)) - tool_radii - radii
+
         def gaps(placed, ee_pos, ee_quat):
             """Every pair's signed distance."""
-            ends, radii = placed
-            tool = place(tool_ends, ee_pos, ee_quat)[:, None]
-            gap = segment_distance(tool[..., 0, :], tool[..., 1, :], ends[..., 0, :], ends[..., 1, :])
-            return (gap - tool_radii - radii).reshape(-1)
+            return pose(placed, ee_pos, ee_quat)[2].reshape(-1)
 
-        return others, gaps
+        def interval(placed, ee_pos, ee_quat, dp, rotvec, h):
+            """Every pair's signed distance and its lower bound over the interval."""
+            tool, gap, d = pose(placed, ee_pos, ee_quat)
+            low = continuous.interval_low(tool, ee_pos, placed[0][0], gap, d, h, dp, rotvec, levers)
+            return d.reshape(-1), low.reshape(-1)
+
+        return others, gaps, interval
 
 
 @dataclasses.dataclass(frozen=True)
