@@ -220,9 +220,10 @@ def dot3(a: Array, b: Array) -> Array:
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
-def segment_gap(a0: Array, a1: Array, b0: Array, b1: Array) -> Array:
+def segment_gap(a0: Array, a1: Array, b0: Array, b1: Array, xp=jnp) -> Array:
     """The vector from the closest point of segment ``[b0, b1]`` to that of ``[a0, a1]`` (batched over
     leading axes): its length is their distance, its direction the separating plane's normal.
+    ``xp``: ``jax.numpy`` or ``numpy`` (float64: the host checker's).
 
     Ericson, Real-Time Collision Detection, §5.1.9: minimise over s for the unclamped t, clamp t to
     [0, 1] and re-solve s for a clamped t. Both segments must have non-zero length (capsules do).
@@ -231,10 +232,10 @@ def segment_gap(a0: Array, a1: Array, b0: Array, b1: Array) -> Array:
     a, e, b, c, f = dot3(d1, d1), dot3(d2, d2), dot3(d1, d2), dot3(d1, r), dot3(d2, r)
     denom = a * e - b * b
     # Parallel segments (denom ~ 0): any s works; s = 0 and the clamps below give the distance.
-    s = jnp.where(denom > 1e-9 * a * e, jnp.clip((b * f - c * e) / jnp.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
+    s = xp.where(denom > 1e-9 * a * e, xp.clip((b * f - c * e) / xp.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
     t = (b * s + f) / e
-    s = jnp.where(t < 0.0, jnp.clip(-c / a, 0.0, 1.0), jnp.where(t > 1.0, jnp.clip((b - c) / a, 0.0, 1.0), s))
-    t = jnp.clip(t, 0.0, 1.0)
+    s = xp.where(t < 0.0, xp.clip(-c / a, 0.0, 1.0), xp.where(t > 1.0, xp.clip((b - c) / a, 0.0, 1.0), s))
+    t = xp.clip(t, 0.0, 1.0)
     return a0 + d1 * s[..., None] - (b0 + d2 * t[..., None])
 
 

@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 
 from regrasp_mjx.core.config import EnvConfig, is_number, require
+from regrasp_mjx.core.geometry import segment_gap
 from regrasp_mjx.world import continuous
 from regrasp_mjx.world.scene import Scene, load_scene, needle_scene
 
@@ -138,29 +139,15 @@ class HostChecker:
             moved = d - h * speed  # the motion bound: where it proves every pair, or the pose collides,
             if np.all(moved - self.margin >= continuous.SLACK) or np.any(d < self.margin):  # it decides
                 return d, moved
-            d, gap = self._pair_gaps(reach)
             tool, other = self._capsule_ends(self._tool_geoms), self._capsule_ends(self._other_geoms)
+            # the closest-point direction from the capsules' axes, as the other engines compute it
+            gap = segment_gap(tool[:, None, 0], tool[:, None, 1], other[None, :, 0], other[None, :, 1], xp=np)
+            d = d.reshape(gap.shape[:2])
             low = continuous.interval_low(tool, at, other, gap, d, h, dp, rotvec, self.levers, xp=np)
             far = d >= reach  # reported at reach: proved by the motion bound alone
             return d.ravel(), np.where(far, d, low).ravel()
 
         return continuous.motion_collides_host(bound_at, per_tool.max(), self.margin)
-
-    def _pair_gaps(self, reach: float) -> tuple[np.ndarray, np.ndarray]:
-        """Every pair's signed distance ``[T, O]`` at the pose set (``mj_geomDistance``, capped at
-        ``reach``) and its axes' closest-point vector ``[T, O, 3]`` (from the surface points MuJoCo
-        reports: the same direction, the length plus both radii; zero where capped)."""
-        shape = (len(self._tool_geoms), len(self._other_geoms))
-        d, gap, fromto = np.empty(len(self.scene.pairs)), np.zeros((len(self.scene.pairs), 3)), np.zeros(6)
-        size = self.model.geom_size
-        for k, (g1, g2) in enumerate(self.scene.pairs):
-            fromto[:] = 0.0
-            d[k] = mujoco.mj_geomDistance(self.model, self.data, g1, g2, reach, fromto)
-            v = fromto[:3] - fromto[3:]
-            length = float(np.linalg.norm(v))
-            if d[k] < reach and length > 0.0:
-                gap[k] = v * ((d[k] + size[g1, 0] + size[g2, 0]) / length)
-        return d.reshape(shape), gap.reshape(*shape, 3)
 
     def _capsule_ends(self, geoms: np.ndarray) -> np.ndarray:
         """The capsules ``geoms``' axis end points ``[G, 2, 3]`` at the pose set."""
