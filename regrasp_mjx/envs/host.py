@@ -132,10 +132,7 @@ class HostChecker:
 
         def bound_at(s: float, h: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
             at = pos + s * dp
-            self._set(needle_pos, needle_quat, at, quat_mul(quat_from_rotvec(s * rotvec), quat))
-            d = np.array(
-                [mujoco.mj_geomDistance(self.model, self.data, *pair, reach, None) for pair in self.scene.pairs]
-            )
+            d = self.distances(needle_pos, needle_quat, at, quat_mul(quat_from_rotvec(s * rotvec), quat), reach)
             moved = d - h * speed  # the motion bound: where it proves every pair, or the pose collides,
             if np.all(moved - self.margin >= continuous.SLACK) or np.any(d < self.margin):  # it decides
                 return d, moved
