@@ -8,8 +8,8 @@ policy out, as training evaluates it). Success, collision and time-out rates of 
 test set (no retries); planning time of
 one query at a time (compiled and warmed up first; the wall time from the poses to the whole
 trajectory, numpy in and out; on the CPU ``Policy.plan``'s lean numba path, on a GPU the JAX
-program), mean and median; batched throughput (all queries in one call,
-repeated, plans/s); path length in mm over the successes; starts that collide before any step
+program), mean and median; batched throughput (``batch_size`` queries in one call, or
+in equal chunks of at most :data:`BATCH_CHUNK` one after the other, repeated, plans/s); path length in mm over the successes; starts that collide before any step
 (``invalid_starts``) and starts implausibly far from their needle (``far_starts``: beyond
 ``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about. Planning runs on JAX's default device:
 ``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate`` times one CPU core.
@@ -54,6 +54,11 @@ from regrasp_mjx.world.sampling import PAPER300, TESTSETS, TestsetError, episode
 
 DEFAULT_TESTSET = PAPER300
 
+# the most queries one batched call plans: larger --batch-size values run as equal chunks of at most
+# this many, one after the other (65,536 shielded queries fit one H100 with room to spare,
+# docs/results.md; a million at once ran out of memory on a 2-core machine, issue 46)
+BATCH_CHUNK = 65536
+
 
 def evaluate(
     policy,
@@ -75,15 +80,20 @@ def evaluate(
         return policy.plan(needle, start, goal, check_grasp=False, shield=shield, **kw)
 
     plan = run(needle, start, goal)
-    rows = np.arange(batch_size or n) % n
-    big = (needle[rows], start[rows], goal[rows], rows)
+    size = batch_size or n
+    # a batch larger than BATCH_CHUNK runs as equal chunks of at most that many (one compiled size)
+    chunks = -(-size // BATCH_CHUNK)
+    chunk = -(-size // chunks)
+    rows = np.arange(chunks * chunk) % n  # a few more than asked where chunks do not divide it evenly
+    big = [(needle[r], start[r], goal[r], r) for r in rows.reshape(chunks, chunk)]
     batch_s = float("nan")
     if batch_repeats:
-        if len(rows) != n:
-            run(*big)  # compiles the batched program (the test-set pass above compiled its own size)
+        if chunk != n:
+            run(*big[0])  # compiles the batched program (the test-set pass above compiled its own size)
         t0 = time.perf_counter()
         for _ in range(batch_repeats):
-            run(*big)
+            for part in big:
+                run(*part)
         batch_s = (time.perf_counter() - t0) / batch_repeats
     times = []
     if timed_queries != 0:
@@ -108,6 +118,7 @@ def evaluate(
         "single_query_engine": auto_engine(1),  # what Policy.plan ran the timed queries with
         "batch_plans_per_s": len(rows) / batch_s,
         "batch_size": len(rows),
+        "batch_chunk": chunk,
         "ensemble": policy.members,
         "shield": shield,
         "device": str(jax.devices()[0].device_kind),
@@ -194,7 +205,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--queries", type=int, default=None, help="time only the first N single queries (0: none)")
     p.add_argument("--repeats", type=int, default=5, help="repeats of the batched call (0: no throughput timing)")
     p.add_argument(
-        "--batch-size", type=int, default=None, help="queries per batched call (test set repeated; default its size)"
+        "--batch-size",
+        type=int,
+        default=None,
+        help="queries of the throughput batch (test set repeated; default its size); more than 65536 run as equal chunks of at most that many, one after the other",
     )
     p.add_argument("--no-shield", action="store_true", help="roll the bare policy out (no collision shield)")
     p.add_argument(
@@ -360,7 +374,13 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
             if r["timed_queries"]
             else ""
         )
-        + (f"  batched: {r['batch_plans_per_s']:,.0f} plans/s (batch {r['batch_size']})\n" if args.repeats else "")
+        + (
+            f"  batched: {r['batch_plans_per_s']:,.0f} plans/s (batch {r['batch_size']}"
+            + (f" in chunks of {r['batch_chunk']}" if r["batch_chunk"] < r["batch_size"] else "")
+            + ")\n"
+            if args.repeats
+            else ""
+        )
         + f"  path length {path}"
         + (
             f"\n  warning: {r['far_starts']} starts lie beyond {START_WARN_MM:g} mm of their needle (no start was trained "

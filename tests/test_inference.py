@@ -215,6 +215,27 @@ def test_evaluate_cli_json(tmp_path, capsys):
     assert "test-set file not found" in capsys.readouterr().err
 
 
+def test_evaluate_runs_a_batch_larger_than_a_chunk_in_chunks(tmp_path, capsys, monkeypatch):
+    """A --batch-size beyond BATCH_CHUNK (a million ran out of memory, issue 46) is planned as equal
+    chunks of at most that many queries, one call each, and its throughput counts every query."""
+    from regrasp_mjx import evaluate
+    from regrasp_mjx.inference.policy import Policy
+    from regrasp_mjx.world.sampling import save_testset
+    from regrasp_mjx.world.testsets import make_testset
+
+    save_testset(tmp_path / "t.npz", make_testset(12, 5), {"seed": 5})
+    sizes, plan = [], Policy.plan
+    monkeypatch.setattr(
+        Policy, "plan", lambda self, n, *a, **k: sizes.append(len(np.atleast_2d(n))) or plan(self, n, *a, **k)
+    )
+    monkeypatch.setattr(evaluate, "BATCH_CHUNK", 12)
+    argv = ["--testset", str(tmp_path / "t.npz"), "--json", "--queries", "0", "--repeats", "1", "--batch-size", "36"]
+    assert evaluate.main(argv) == 0
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert (r["batch_size"], r["batch_chunk"]) == (36, 12) and r["batch_plans_per_s"] > 0
+    assert sizes == [12, 12, 12, 12]  # the test set's pass, then the batch in three calls of 12
+
+
 def test_policy_file_versions_and_missing_arrays(tmp_path, policy):
     import shutil
 
