@@ -208,9 +208,8 @@ def main(argv: list[str] | None = None) -> int:
             out.mkdir(parents=True, exist_ok=True)
             if jax.default_backend() == "cpu" and args.preset != "smoke":
                 warnings.warn("training on the CPU: no GPU is visible to JAX; this preset expects one", stacklevel=1)
-            if jax.default_backend() != "cpu":  # XLA:CPU's (de)serialisation crashed in CI (tests/conftest.py)
-                cache = Path(os.environ.get("REGRASP_JAX_CACHE", Path.home() / ".cache" / "regrasp_mjx" / "jax"))
-                jax.config.update("jax_compilation_cache_dir", str(cache))
+            cache = Path(os.environ.get("REGRASP_JAX_CACHE", Path.home() / ".cache" / "regrasp_mjx" / "jax"))
+            jax.config.update("jax_compilation_cache_dir", str(cache))
             run = Run(cfg, out, Path(args.demos) if args.demos else None, Path(args.testset), args.quiet)
             final = run.train(resume=args.resume)
     except (ConfigError, DemosError, TestsetError, FolderInUse) as err:

@@ -2,13 +2,15 @@
 MJX programs on a 2-core CPU takes seconds; doing it once keeps the suite fast).
 
 The suite runs on two pytest-xdist workers, one test file each (``-n 2 --dist loadfile`` in
-pyproject.toml); the :func:`alone` fixture runs a test's part while no other test runs.
+pyproject.toml), sharing one persistent compilation cache; the :func:`alone` fixture runs a
+test's part while no other test runs.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import gc
 import os
 import shutil
 import tempfile
@@ -24,13 +26,15 @@ SHARED = Path(os.environ.setdefault("REGRASP_MJX_TEST_SHARED", tempfile.mkdtemp(
 # vector width), so another CPU rounds a few ulps differently (seen: 7e-9 m, 2.4e-7 in a quaternion).
 REGENERATION_ATOL = 1e-6
 
-# No persistent compilation cache: XLA:CPU's executable (de)serialisation (jaxlib 0.10.2) killed a
-# worker three times in CI, a segfault in `executable.serialize()` while writing an entry and an abort
-# in `deserialize_executable` while reading one, both on the environment step with the continuous
-# collision test inside a shield's `lax.cond`; neither reproduced alone. Each process compiles for
-# itself (a few minutes more on two cores), and the CLIs the tests start inherit no cache either.
+# One persistent compilation cache for the whole run, set in the environment so that the workers,
+# the CLIs and training children the tests start, and the notebooks' kernels all read and write
+# it: programs built anew (a run and its resumed copy, a learner per test, a notebook planning
+# with a shipped policy) load instead of compiling again. A size limit turns on the cache's file
+# lock, which makes writes from several processes at once safe.
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(SHARED / "jax_cache"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(8 << 30))
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -76,6 +80,24 @@ def pytest_runtest_protocol(item, nextitem):
         fcntl.flock(f, fcntl.LOCK_SH)
         _LOCK["file"] = f
         yield
+    release_programs(MAPS_HIGH)
+
+
+# A worker runs many test files in one process, and every program XLA:CPU compiles keeps its code
+# in memory maps of its own (about 900 for the shielded environment step; two test files reach
+# 20,000). At Linux's default limit of 65,530 maps a process's next mmap fails, and XLA crashes
+# where it maps: a segfault while compiling or serialising, an abort while loading a cached
+# program (three CI runs lost a worker so, and xdist then waited forever for it). Above this many
+# maps, the compiled programs are dropped after the test (the next test compiles what it uses).
+MAPS_HIGH = 30_000
+
+
+def release_programs(high: int) -> None:
+    """``jax.clear_caches()`` when this process holds more than ``high`` memory maps."""
+    with open("/proc/self/maps") as f:
+        if sum(1 for _ in f) > high:
+            jax.clear_caches()
+            gc.collect()
 
 
 @pytest.fixture
