@@ -38,7 +38,7 @@ import numpy as np
 
 from regrasp_mjx.core.atomic import dumps, machine, output_folder_problem, write_results
 from regrasp_mjx.core.config import ConfigError, parse_overrides
-from regrasp_mjx.core.host_loop import run_command
+from regrasp_mjx.core.host_loop import release_programs, run_command
 from regrasp_mjx.envs.rollout import summarize
 from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy import PolicyError, load_policy, shipped_policies
@@ -127,6 +127,7 @@ def outcomes(policies: dict, args: argparse.Namespace, changes: dict) -> tuple[l
                 print(dumps(rows[-1]), flush=True)
                 if sname == "general1000" and policy.general and not shield:
                     per_problem[name], general = np.asarray(plan.success, bool), episodes
+        release_programs()  # policies of other shapes compile programs of their own
     where = machine()
     lines = [f"Machine: {where}; planned through Policy.plan" + (f"; environment {changes}" if changes else ""), ""]
     lines.append(markdown_table(rows, OUTCOME_COLUMNS))
@@ -154,6 +155,7 @@ def tables(policies: dict, args: argparse.Namespace) -> None:
         )  # fmt: skip
         lines += robustness.title(found[-1]) + robustness.markdown(rows, modes) + [""]
         write_results(args.out, args.name, lines, {**meta, "tables": found})
+        release_programs()
     print("\n".join(lines))
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import gc
 import os
 import shutil
 import tempfile
@@ -42,6 +41,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from regrasp_mjx.core.config import EnvConfig  # noqa: E402
+from regrasp_mjx.core.host_loop import release_programs  # noqa: E402
 from regrasp_mjx.envs.env import RegraspEnv  # noqa: E402
 from regrasp_mjx.world.sampling import load_testset  # noqa: E402
 from regrasp_mjx.world.scene import load_scene  # noqa: E402
@@ -80,24 +80,9 @@ def pytest_runtest_protocol(item, nextitem):
         fcntl.flock(f, fcntl.LOCK_SH)
         _LOCK["file"] = f
         yield
-    release_programs(MAPS_HIGH)
-
-
-# A worker runs many test files in one process, and every program XLA:CPU compiles keeps its code
-# in memory maps of its own (about 900 for the shielded environment step; two test files reach
-# 20,000). At Linux's default limit of 65,530 maps a process's next mmap fails, and XLA crashes
-# where it maps: a segfault while compiling or serialising, an abort while loading a cached
-# program (three CI runs lost a worker so, and xdist then waited forever for it). Above this many
-# maps, the compiled programs are dropped after the test (the next test compiles what it uses).
-MAPS_HIGH = 30_000
-
-
-def release_programs(high: int) -> None:
-    """``jax.clear_caches()`` when this process holds more than ``high`` memory maps."""
-    with open("/proc/self/maps") as f:
-        if sum(1 for _ in f) > high:
-            jax.clear_caches()
-            gc.collect()
+    # a worker runs many test files in one process: bound its memory maps (three CI runs lost a
+    # worker at Linux's 65,530, and xdist then waited forever for it)
+    release_programs()
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx.agents.ddpg_bc import checkpoint
-from regrasp_mjx.core.host_loop import BestOf, Phases, RunLog, eta
+from regrasp_mjx.core.host_loop import BestOf, Phases, RunLog, eta, release_programs
 
 
 def test_phases_sum_repeats_and_start_anew():
@@ -95,3 +95,17 @@ def test_resume_trusts_the_state_files_own_metadata(tmp_path):
     (tmp_path / "meta.json").write_text(json.dumps({"epoch": 2, "config": checkpoint.config_json(cfg)}))
     _, meta = checkpoint.load(tmp_path, state, cfg)
     assert meta["epoch"] == 3
+
+
+def test_release_programs_drops_compiled_programs_only_above_the_bound():
+    """Compiled programs are dropped (a jitted function's cache emptied) only when the process holds
+    more memory maps than the bound: never at a bound no process reaches, always at 0."""
+    import jax
+    import jax.numpy as jnp
+
+    f = jax.jit(lambda x: jnp.sin(x) * 3.0)
+    f(jnp.ones(3))
+    assert f._cache_size() == 1
+    assert release_programs(10**9) is False and f._cache_size() == 1
+    assert release_programs(0) is True and f._cache_size() == 0
+    assert float(f(jnp.zeros(3))[0]) == 0.0  # compiles again where used

@@ -2,7 +2,8 @@
 (:mod:`regrasp_mjx.distill`) share: where the wall-clock time goes (:class:`Phases`), the choice of the
 exported network by validation (:class:`BestOf`), the JSONL run log with its TensorBoard mirror
 (:class:`RunLog`) and the progress line's ETA (:func:`eta`); and what every long command line shares:
-one run per output folder (:func:`folder_lock`) and Ctrl-C as one line (:func:`run_command`).
+one run per output folder (:func:`folder_lock`), Ctrl-C as one line (:func:`run_command`) and a
+bound on the compiled programs one long process keeps (:func:`release_programs`).
 
 One format for both: a log row per member and epoch (iteration, for distillation) holding
 ``validation`` and ``test`` summaries of :func:`regrasp_mjx.envs.rollout.summarize`, the losses, and
@@ -201,3 +202,30 @@ def run_command(main: Callable[[], int], again: str) -> int:
     except KeyboardInterrupt:
         print(f"interrupted; {again}", file=sys.stderr)
         return 130
+
+
+# Every program XLA:CPU compiles keeps its code in memory maps of its own (about 900 for the shielded
+# environment step, thousands for a closed loop), and Linux refuses a process more than
+# vm.max_map_count (65,530 by default): the next mmap fails and XLA crashes where it maps, a
+# segfault while compiling or an abort while loading a cached program. One process that compiles
+# many policies' programs (``compare`` over every shipped policy, a test worker) crosses it.
+MAPS_HIGH = 30_000
+
+
+def release_programs(high: int = MAPS_HIGH) -> bool:
+    """Drops every compiled program (``jax.clear_caches()``; what is used again compiles again)
+    when this process holds more than ``high`` memory maps; whether it did. Not on Linux: never."""
+    try:
+        with open("/proc/self/maps") as f:
+            count = sum(1 for _ in f)
+    except OSError:
+        return False
+    if count <= high:
+        return False
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+    return True
