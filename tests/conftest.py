@@ -53,6 +53,7 @@ from regrasp_mjx.world.scene import load_scene  # noqa: E402
 SLOW_FIRST = (
     "tests/test_multihost.py",  # ~140
     "tests/test_learner.py",  # ~430
+    "tests/test_recipe.py",  # ~500 (one test: the smoke recipe's stages as CLIs, killed and resumed)
     "tests/test_distill.py",  # ~180
     "tests/test_sharding.py",  # ~130
     "notebooks/01_environment.ipynb",  # ~85
