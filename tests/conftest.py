@@ -3,7 +3,9 @@ MJX programs on a 2-core CPU takes seconds; doing it once keeps the suite fast).
 
 The suite runs on two pytest-xdist workers, one test file each (``-n 2 --dist loadfile`` in
 pyproject.toml), sharing one persistent compilation cache; the :func:`alone` fixture runs a
-test's part while no other test runs.
+test's part while no other test runs. A worker that crashes is not replaced
+(``--max-worker-restart=0``): its test fails as "worker crashed while running ..." at once, where a
+replaced worker once left the run waiting until CI's time limit.
 """
 
 from __future__ import annotations
