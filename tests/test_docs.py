@@ -132,3 +132,41 @@ def test_the_environment_speed_in_the_docs_is_the_benchmark_file():
     train = json.loads((folder / "directional" / "bench_train_final_h100.json").read_text())["rows"]
     at_512 = next(r for r in train if r["num_envs"] == 512)
     assert f"a training iteration at 512 environments takes {at_512['iteration_ms']:.1f} ms" in environment
+
+
+def test_the_generalist_section_is_its_result_files():
+    """docs/results.md's generalist section (its table, the planners' rows and the breakdowns by
+    needle radius and goal angle) is experiments/results/general's general.json and
+    planners_general.csv, rounded as shown."""
+    import csv
+    import json
+
+    folder = ROOT / "experiments" / "results" / "general"
+    text = " ".join((ROOT / "docs" / "results.md").read_text().split())
+    data = json.loads((folder / "general.json").read_text())
+    rate = {(r["policy"], r["testset"], r["rollout"]): r["success_rate"] for r in data["rows"]}
+    seeds = ("seed0", "seed1", "seed2")
+
+    def seeds_cell(testset: str) -> str:
+        shielded = {f"{rate[s, testset, 'shielded']:.3f}" for s in seeds}
+        assert len(shielded) == 1, shielded  # the docs write "shielded X x 3"
+        bare = " / ".join(f"{rate[s, testset, 'bare']:.3f}" for s in seeds)
+        return f"**{bare}**, shielded {shielded.pop()} x 3"
+
+    specialist = f"{rate['specialist', 'paper300', 'bare']:.3f} / {rate['specialist', 'paper300', 'shielded']:.3f}"
+    assert f"| {seeds_cell('general1000')} | {seeds_cell('paper300')} |" in text
+    assert f"| refuses other needles and goals | {specialist} | |" in text
+    rows = {r["algorithm"]: r for r in csv.DictReader((folder / "planners_general.csv").open())}
+    bit, line = rows["BIT* (R)"], rows["straight line"]
+    assert (
+        f"| BIT* (R), 10 s budget | {float(bit['success_rate']):.3f} | | {1e3 * float(bit['plan_time_median_s']):.0f} "
+        f"(mean {1e3 * float(bit['plan_time_mean_s']):.0f}; path {float(bit['path_length_mm']):.2f} mm) |"
+    ) in text
+    assert (
+        f"| straight line | {float(line['success_rate']):.3f} | | {1e3 * float(line['plan_time_median_s']):.1f} |"
+        in text
+    )
+    by = data["breakdown"]
+    radius = " / ".join(f"{v:.3f}" for v in by["by_radius_mm"][1])
+    alpha = " / ".join(f"{v:.3f}" for v in by["by_alpha_rad"][1])
+    assert f"10-12 mm: {radius}; by alpha* 200-215 / 215-230 / 230-245 / 245-260°: {alpha} (mean" in text
