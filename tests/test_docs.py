@@ -170,3 +170,15 @@ def test_the_generalist_section_is_its_result_files():
     radius = " / ".join(f"{v:.3f}" for v in by["by_radius_mm"][1])
     alpha = " / ".join(f"{v:.3f}" for v in by["by_alpha_rad"][1])
     assert f"10-12 mm: {radius}; by alpha* 200-215 / 215-230 / 230-245 / 245-260°: {alpha} (mean" in text
+
+
+def test_table_one_in_the_docs_is_its_result_file():
+    """docs/results.md's Table I at the paper's scale (last epoch, exported, the paper's number per
+    setting) is experiments/results/table1_paper/table1.md's."""
+    text = (ROOT / "docs" / "results.md").read_text().replace("**", "")
+    made = (ROOT / "experiments" / "results" / "table1_paper" / "table1.md").read_text()
+    rows = [line.split("|")[1:-1] for line in made.splitlines() if line.startswith("| DDPG+BC")]
+    assert len(rows) == 3
+    for cells in rows:
+        setting, last, exported, paper = (cells[i].strip() for i in (0, 1, 4, 8))
+        assert f"| {setting} | {last} | {exported} | {paper} |" in text, setting
