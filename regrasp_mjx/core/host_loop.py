@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import gc
 import json
 import math
 import os
@@ -25,6 +26,8 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+import jax
 
 from regrasp_mjx.core.atomic import dumps, write_text
 
@@ -222,10 +225,6 @@ def release_programs(high: int = MAPS_HIGH) -> bool:
         return False
     if count <= high:
         return False
-    import gc
-
-    import jax
-
     jax.clear_caches()
     gc.collect()
     return True
