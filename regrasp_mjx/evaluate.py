@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         "--batch-size",
         type=int,
         default=None,
-        help="queries of the throughput batch (test set repeated; default its size); more than 65536 run as equal chunks of at most that many, one after the other",
+        help=f"queries of the throughput batch (test set repeated; default its size); more than {BATCH_CHUNK} run as equal chunks of at most that many, one after the other",
     )
     p.add_argument("--no-shield", action="store_true", help="roll the bare policy out (no collision shield)")
     p.add_argument(

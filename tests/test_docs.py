@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import importlib
 import io
+import json
 import re
 
 import pytest
@@ -63,8 +65,6 @@ def test_the_shipped_networks_table_is_the_comparison_file():
     (paper300 and held-out 3000, bare / shielded; general1000 where the row names it) are those of
     experiments/results/continuous/compare.json, the comparison the table cites; the default's
     planning time is the benchmark file's it cites."""
-    import json
-
     rows = json.loads((ROOT / "experiments" / "results" / "continuous" / "compare.json").read_text())["rows"]
     success = {(r["policy"], r["testset"].split(" (")[0], r["rollout"]): r["success_rate"] for r in rows}
     bench = json.loads(
@@ -112,8 +112,6 @@ def test_the_readme_is_short_and_its_results_table_is_generated():
 def test_the_environment_speed_in_the_docs_is_the_benchmark_file():
     """docs/results.md's and docs/environment.md's env-steps/s are those of the benchmark file they
     cite (experiments/results/continuous/bench_env_pending_h100.json, and the before-run beside it)."""
-    import json
-
     folder = ROOT / "experiments" / "results" / "continuous"
 
     def millions(name):
@@ -138,9 +136,6 @@ def test_the_generalist_section_is_its_result_files():
     """docs/results.md's generalist section (its table, the planners' rows and the breakdowns by
     needle radius and goal angle) is experiments/results/general's general.json and
     planners_general.csv, rounded as shown."""
-    import csv
-    import json
-
     folder = ROOT / "experiments" / "results" / "general"
     text = " ".join((ROOT / "docs" / "results.md").read_text().split())
     data = json.loads((folder / "general.json").read_text())
