@@ -177,3 +177,19 @@ def test_table_one_in_the_docs_is_its_result_file():
     for cells in rows:
         setting, last, exported, paper = (cells[i].strip() for i in (0, 1, 4, 8))
         assert f"| {setting} | {last} | {exported} | {paper} |" in text, setting
+
+
+def test_the_closed_loop_recheck_in_the_docs_is_its_result_files():
+    """docs/environment.md's closed-loop re-check (no executed step below 0, the closest clearance)
+    is experiments/results/continuous/directional/continuous_check_closed_loop_0.25mm*.json's."""
+    folder = ROOT / "experiments" / "results" / "continuous" / "directional"
+    rows = [
+        r
+        for f in sorted(folder.glob("continuous_check_closed_loop_0.25mm*.json"))
+        for r in json.loads(f.read_text())["rows"]
+    ]
+    assert {r["policy"] for r in rows} == {"default", "general"} and len(rows) == 4
+    assert all(r["steps_below_zero"] == 0 for r in rows)
+    closest = min(r["smallest_clearance_um"] for r in rows)
+    text = " ".join((ROOT / "docs" / "environment.md").read_text().split())
+    assert f"on and off; closest {closest:.2f} um)" in text
