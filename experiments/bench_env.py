@@ -54,9 +54,33 @@ def make_rollout(env: RegraspEnv, batch: int, steps: int):
     return rollout
 
 
-def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: int, share: float | None = None) -> dict:
+def set_walk(walk: str | None) -> str:
+    """The continuous test's walk on an accelerator (read when the step is traced): ``chunk``
+    (WALK_CHUNK intervals one after another a loop iteration) or ``DEPTH:HEAD:TAIL_DEPTH``
+    (SUBTREE_DEPTH, HEAD_STEPS, TAIL_DEPTH); None: the module's. Returns it as such a string."""
+    if walk == "chunk":
+        continuous.SUBTREE_DEPTH = None
+    elif walk is not None:
+        continuous.SUBTREE_DEPTH, continuous.HEAD_STEPS, continuous.TAIL_DEPTH = (int(x) for x in walk.split(":"))
+    if continuous.SUBTREE_DEPTH is None:
+        return "chunk"
+    return f"{continuous.SUBTREE_DEPTH}:{continuous.HEAD_STEPS}:{continuous.TAIL_DEPTH}"
+
+
+def bench_mjx(
+    config: EnvConfig,
+    batch: int,
+    steps: int,
+    rollouts: int,
+    seed: int,
+    share: float | None = None,
+    root_share: float | None = None,
+    walk: str | None = None,
+) -> dict:
     share = continuous.PENDING_SHARE if share is None else share
-    continuous.PENDING_SHARE = share  # read when the step is traced
+    root_share = continuous.ROOT_SHARE if root_share is None else root_share
+    continuous.PENDING_SHARE, continuous.ROOT_SHARE = share, root_share  # read when the step is traced
+    walk = set_walk(walk)
     env = RegraspEnv(config)
     rollout = make_rollout(env, batch, steps)
     t0 = time.perf_counter()
@@ -75,6 +99,8 @@ def bench_mjx(config: EnvConfig, batch: int, steps: int, rollouts: int, seed: in
         "rollouts": rollouts,
         "check_actions": config.check_actions,
         "pending_share": share,
+        "root_share": root_share,
+        "walk": walk,
         "compile_s": round(compile_s, 2),
         "wall_s": round(wall, 4),
         "env_steps_per_s": batch * steps * rollouts / wall,
@@ -133,6 +159,19 @@ def main() -> None:
         help="comma-separated shares of a batch whose pending lanes the continuous test gathers a round "
         f"(regrasp_mjx.world.continuous.PENDING_SHARE, default {continuous.PENDING_SHARE:g}; 1 = none gathered)",
     )
+    p.add_argument(
+        "--root-shares",
+        default=None,
+        help="comma-separated shares of a batch whose root intervals are tested a round where the end pose has "
+        f"not proved the step (regrasp_mjx.world.continuous.ROOT_SHARE, default {continuous.ROOT_SHARE:g})",
+    )
+    p.add_argument(
+        "--walks",
+        default=None,
+        help="comma-separated walks of the continuous test on an accelerator: chunk (WALK_CHUNK intervals a loop "
+        "iteration) or DEPTH:HEAD:TAIL_DEPTH (regrasp_mjx.world.continuous.SUBTREE_DEPTH, HEAD_STEPS, TAIL_DEPTH); "
+        "default: the module's",
+    )
     p.add_argument("--out", default=None, help="folder for bench_env.json and bench_env.md")
     args = p.parse_args()
 
@@ -146,16 +185,18 @@ def main() -> None:
     rows = []
     sizes = [int(b) for b in args.batch_sizes.split(",")]
     shares = [float(x) for x in args.pending_shares.split(",")] if args.pending_shares else [None]
-    runs = [(b, config, share) for b in sizes for share in shares]
+    roots = [float(x) for x in args.root_shares.split(",")] if args.root_shares else [None]
+    walks = args.walks.split(",") if args.walks else [None]
+    runs = [(b, config, sh, root, w) for b in sizes for sh in shares for root in roots for w in walks]
     if args.also_checked:
-        runs.append((sizes[-1], EnvConfig(check_actions=True), shares[0]))
-    for batch, cfg, share in runs:
-        r = bench_mjx(cfg, batch, args.steps, args.rollouts, args.seed, share)
+        runs.append((sizes[-1], EnvConfig(check_actions=True), shares[0], roots[0], walks[0]))
+    for batch, cfg, share, root, walk in runs:
+        r = bench_mjx(cfg, batch, args.steps, args.rollouts, args.seed, share, root, walk)
         r["ratio_vs_cpu"] = r["env_steps_per_s"] / cpu["env_steps_per_s"]
         r["ratio_vs_cpu_raw"] = r["env_steps_per_s"] / raw["env_steps_per_s"]
         rows.append(r)
         print(
-            f"MJX {r['backend']} batch {batch:>6} share {r['pending_share']:<7g} check_actions={cfg.check_actions!s:5}: "
+            f"MJX {r['backend']} batch {batch:>6} share {r['pending_share']:<7g} root {r['root_share']:<6g} walk {r['walk']:6} check_actions={cfg.check_actions!s:5}: "
             f"{r['env_steps_per_s']:>14,.0f} env-steps/s  x{r['ratio_vs_cpu']:,.0f} vs CPU MDP step, "
             f"x{r['ratio_vs_cpu_raw']:,.0f} vs CPU C calls only "
             f"(compile {r['compile_s']} s)",
@@ -171,13 +212,13 @@ def main() -> None:
         lines = [
             f"Machine: {where}",
             "",
-            "| backend | batch | pending share | NaN check | env-steps/s | x CPU MDP step | x CPU C calls only | compile s |",
-            "| --- | ---: | ---: | --- | ---: | ---: | ---: | ---: |",
-            f"| CPU MuJoCo, 1 thread, MDP step (HostEnv) | 1 | - | no | {cpu['env_steps_per_s']:,.0f} | 1 | - | - |",
-            f"| CPU MuJoCo, 1 thread, kinematics+collision only | 1 | - | no | {raw['env_steps_per_s']:,.0f} | - | 1 | - |",
+            "| backend | batch | pending share | root share | walk | NaN check | env-steps/s | x CPU MDP step | x CPU C calls only | compile s |",
+            "| --- | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: |",
+            f"| CPU MuJoCo, 1 thread, MDP step (HostEnv) | 1 | - | - | - | no | {cpu['env_steps_per_s']:,.0f} | 1 | - | - |",
+            f"| CPU MuJoCo, 1 thread, kinematics+collision only | 1 | - | - | - | no | {raw['env_steps_per_s']:,.0f} | - | 1 | - |",
         ]
         lines += [
-            f"| MJX {r['backend']} | {r['batch']} | {r['pending_share']:g} | {'yes' if r['check_actions'] else 'no'} | "
+            f"| MJX {r['backend']} | {r['batch']} | {r['pending_share']:g} | {r['root_share']:g} | {r['walk']} | {'yes' if r['check_actions'] else 'no'} | "
             f"{r['env_steps_per_s']:,.0f} | {r['ratio_vs_cpu']:,.0f} | {r['ratio_vs_cpu_raw']:,.0f} | {r['compile_s']} |"
             for r in rows
         ]

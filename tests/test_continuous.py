@@ -279,3 +279,85 @@ def test_interval_low_holds_along_random_motions():
             )
             assert np.all(true - radii >= low - 1e-12)
     assert tighter > 300  # of 1,200 pairs
+
+
+@pytest.mark.parametrize("unrolled", [False, True])
+def test_the_end_pose_stands_in_for_the_root_with_the_same_verdicts(unrolled, monkeypatch):
+    # random actions from the paper's starts, 8 steps of 256 environments: where the end pose is
+    # clear by each capsule's v_t (most steps) the root is not tested, the others' roots run
+    # gathered (rounds of 1/16 of the batch: several rounds a step); the verdicts are those of the
+    # root tested on every lane, and both kinds of lane and both verdicts occur
+    monkeypatch.setattr(continuous, "UNROLLED", unrolled)
+    monkeypatch.setattr(continuous, "ROOT_SHARE", 1 / 16)
+    env = RegraspEnv(EnvConfig())
+    batch, steps = 256, 8
+
+    def verdicts(state, action):
+        es = state.pipeline_state
+        dp, rotvec = action[:3] * env.max_dp, action[3:] * env.max_drot
+        placed = env._place_others(es.needle_pos, es.needle_quat)
+        moved = env.move(state, dp, rotvec)
+        from_env = moved.metrics["collision"] > 0
+        end = env._gaps(placed, moved.pipeline_state.ee_pos, moved.pipeline_state.ee_quat)
+        speed = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * env.levers
+        clear = jnp.all(end.reshape(speed.shape[0], -1) >= speed[:, None] + 1e-6)  # well clear: the root skipped
+        motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec)
+        fastest = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * jnp.max(env.levers)
+        every_root = continuous.motion_collides(env._bounds_along, motion, fastest, env.clearance)
+        return from_env, every_root, clear
+
+    @jax.jit
+    def run(key):
+        k_reset, k_act = jax.random.split(key)
+        state = jax.vmap(env.reset)(jax.random.split(k_reset, batch))
+
+        def body(state, k):
+            action = jax.random.uniform(k, (batch, 6), minval=-1.0, maxval=1.0)
+            out = jax.vmap(verdicts)(state, action)
+            return jax.vmap(env.step)(state, action), out
+
+        return jax.lax.scan(body, state, jax.random.split(k_act, steps))[1]
+
+    from_env, every_root, clear = (np.asarray(x) for x in run(jax.random.PRNGKey(4)))
+    np.testing.assert_array_equal(from_env, every_root)
+    assert 0 < from_env.sum() < from_env.size
+    assert 0.3 < clear.mean() < 0.98  # both kinds of lane, and more root tests than one round holds
+
+
+@pytest.mark.parametrize("depth,head", [(1, 0), (2, 2), (3, 1)])
+def test_the_subtree_walk_gives_the_walks_verdicts_deep_and_at_the_budget(depth, head, monkeypatch):
+    # grazing synthetic motions (one pair d(s) = a + b (s - s0)^2, a of 0.5-30 um, the bound's speed
+    # 0.1 mm): walks from 1 to past the budget of tests, 8 into collision by a stop, 12 by the
+    # budget or the resolution, 42 proved after more than 8 tests. The subtree walk (`depth` levels a loop iteration, vmapped as on a GPU) gives the
+    # host walk's verdict on every lane
+    monkeypatch.setattr(continuous, "SUBTREE_DEPTH", depth)
+    monkeypatch.setattr(continuous, "UNROLLED", True)
+    rng = np.random.default_rng(7)
+    n = 96
+    a = (10 ** rng.uniform(-6.3, -4.5, n)).astype(np.float32)
+    a[:8] = -1e-6  # colliding somewhere
+    s0 = rng.uniform(0, 1, n).astype(np.float32)
+    b = rng.uniform(0.0, 5e-4, n).astype(np.float32)
+    speed = np.float32(1e-4)
+
+    def dist(motion, s, h):
+        a, s0, b = motion
+        d = a + b * (s - s0) ** 2
+        return jnp.stack([d, d + 1.0]), jnp.stack([d, d + 1.0]) - h * speed
+
+    tests_taken, host = [], []
+    for i in range(n):
+        count = [0]
+
+        def at(s, h, reach, i=i, count=count):
+            count[0] += 1
+            d = a[i] + b[i] * (s - s0[i]) ** 2
+            return np.array([d, d + 1.0]), np.array([d, d + 1.0]) - h * speed
+
+        host.append(continuous.motion_collides_host(at, speed, 0.0))
+        tests_taken.append(count[0])
+    tests_taken, host = np.array(tests_taken), np.array(host)
+    assert host.sum() > 8 and (~host).sum() > 8
+    assert (tests_taken >= continuous.MAX_TESTS).any() and ((tests_taken > 8) & ~host).any()
+    verdict = jax.jit(jax.vmap(lambda *m: continuous.motion_collides(dist, m, speed, 0.0, share=1 / 4)))(a, s0, b)
+    np.testing.assert_array_equal(np.asarray(verdict), host)

@@ -235,10 +235,14 @@ class RegraspEnv(Env):
         placed = self._place_others(es.needle_pos, es.needle_quat, *needle)  # once for the step's poses
         end = self._gaps(placed, end_pos, end_quat)
 
-        fastest = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * jnp.max(self.levers)
+        speed = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * self.levers  # [T]: v_t, each tool capsule's
         motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec)
         ends_in = jnp.any(end < self.clearance)  # a collision whatever the motion before: not walked
-        collision = continuous.motion_collides(self._bounds_along, motion, fastest, self.clearance, known=ends_in)
+        # the end pose clear by v_t: clear along the whole step (s = 1 back to 0), the root not tested
+        clear = jnp.all(end.reshape(speed.shape[0], -1) - speed[:, None] - self.clearance >= continuous.SLACK)
+        collision = continuous.motion_collides(
+            self._bounds_along, motion, jnp.max(speed), self.clearance, known=ends_in, proved=clear
+        )
 
         es = es.replace(
             ee_pos=end_pos,

@@ -72,10 +72,24 @@ MAX_TESTS = 32
 # for its grazing lanes alone; more pending lanes take more rounds (the same verdicts)
 PENDING_SHARE = 1 / 16
 
+# the share of a vmapped batch whose root intervals are tested in one round where the end pose has
+# proved the other lanes (:func:`motion_collides`' ``proved``); the halves then gather
+# PENDING_SHARE of these lanes
+ROOT_SHARE = 1 / 4
+
 # whether a vmapped batch's walk takes WALK_CHUNK steps a loop iteration (:func:`_halves`); None:
 # where a loop iteration's test waits for an accelerator (not on a CPU, which loops step by step)
 UNROLLED: bool | None = None
 WALK_CHUNK = 4  # best of 2, 4 and 8 at 512 and 32,768 lanes on an H100 (issue 44, fifteenth session)
+# or, where not None, a subtree of this many levels below the walk's interval a loop iteration,
+# tested in one call (:func:`_subtree_step`)
+SUBTREE_DEPTH: int | None = 2
+# on an accelerator: this many subtree steps for every lane the root left pending, unrolled; then the
+# lanes whose walk goes on, gathered TAIL_SHARE of those at a time, a subtree of TAIL_DEPTH levels a
+# loop iteration (0: every step in one loop on the pending lanes)
+HEAD_STEPS = 2
+TAIL_SHARE = 1 / 8
+TAIL_DEPTH = 3
 
 
 # a planner's motion between two states (OMPL's edges, the straight line) is tested as the
@@ -130,15 +144,21 @@ def interval_low(tool, origin, other, gap, d, h, dp, rotvec, levers, xp=jnp):
 
 
 def motion_collides(
-    bound_fn, motion, fastest: jax.Array, margin: float, share: float | None = None, known: jax.Array | None = None
+    bound_fn,
+    motion,
+    fastest: jax.Array,
+    margin: float,
+    share: float | None = None,
+    known: jax.Array | None = None,
+    proved: jax.Array | None = None,
 ) -> jax.Array:
     """Whether the motion collides (module docstring), in JAX: one lane's test, jit/vmap-able.
 
     ``bound_fn(motion, s, h) -> (d [P], low [P])``: every counted pair's signed distance at the pose
     s of the motion ``motion`` (a pytree of arrays: the lane's poses and placed capsules) and its
     lower bound over the interval of half-width h about it (:func:`interval_low`); ``fastest``: the
-    largest ``v_t``. The root interval is tested for every lane; its halves only where it is not
-    proved, walked depth first (:func:`_halves`).
+    largest ``v_t``. The root interval is tested, then its halves where it is not proved, walked
+    depth first (:func:`_halves`).
 
     Vmapped, the halves run on the lanes the root left pending alone, gathered ``share`` of the
     batch at a time (:func:`_pending_lanes`): a vmapped loop runs as many iterations as its slowest
@@ -147,14 +167,30 @@ def motion_collides(
 
     ``known``: True where the motion is already known to collide (its end pose does, say): the
     verdict then, and its halves are not walked (a step into the wire is what takes the most tests:
-    its approach proved interval by interval up to where it collides)."""
+    its approach proved interval by interval up to where it collides).
+
+    ``proved``: True where a test that proves more than the root's has proved the motion clear (its
+    end pose clear of the margin by each capsule's ``v_t``, which bounds the whole step from s = 1:
+    the root's own bound from the midpoint then holds too, module docstring): the verdict then, and
+    the root is tested on the other lanes alone, gathered :data:`ROOT_SHARE` of the batch at a time
+    (on a random-action batch the end pose proves about 80 % of the steps, and the root's
+    directional bound is the step's costliest arithmetic)."""
     share = PENDING_SHARE if share is None else share
     fastest = jnp.asarray(fastest, jnp.float32)
     known = jnp.bool_(False) if known is None else known
-    h0 = jnp.float32(0.5)
-    proved, stop = _verdict(*bound_fn(motion, h0, h0), h0, fastest, margin)
-    halves = _halves_fn(bound_fn, margin, share)
-    return known | (~proved & stop) | halves(motion, fastest, ~proved & ~stop & ~known)
+    halves = _gathered(lambda batched: _halves_lane(bound_fn, margin, batched), share)
+
+    def from_root(batched: bool):
+        def lane(motion, fastest, pending):
+            h0 = jnp.float32(0.5)
+            ok, stop = _verdict(*bound_fn(motion, h0, h0), h0, fastest, margin)
+            return pending & ((~ok & stop) | halves(motion, fastest, pending & ~ok & ~stop))
+
+        return lane
+
+    if proved is None:
+        return known | from_root(False)(motion, fastest, ~known)
+    return known | _gathered(from_root, ROOT_SHARE)(motion, fastest, ~known & ~proved)
 
 
 def _verdict(d, low, h, fastest, margin):
@@ -165,26 +201,57 @@ def _verdict(d, low, h, fastest, margin):
     return proved, stop
 
 
-def _halves_fn(bound_fn, margin: float, share: float):
+def _halves_lane(bound_fn, margin: float, batched: bool):
     """``halves(motion, fastest, pending)``: whether the root's halves, tested depth first where
-    ``pending``, fail to be proved; vmapped, on the pending lanes alone."""
+    ``pending``, fail to be proved. ``batched`` (vmapped on an accelerator, where each loop
+    iteration waits for the device): :data:`HEAD_STEPS` subtree steps unrolled, then the lanes whose
+    walk goes on gathered :data:`TAIL_SHARE` at a time (:func:`_tail_lane`): a walk's length is set
+    by its slowest lane, and after the first levels a few lanes are left."""
 
-    def lane(batched: bool):
-        def one(motion, fastest, pending):
-            return _halves(lambda s, h: bound_fn(motion, s, h), fastest, margin, pending, batched)
+    def one(motion, fastest, pending):
+        bound_at = lambda s, h: bound_fn(motion, s, h)  # noqa: E731
+        if not (batched and SUBTREE_DEPTH is not None and HEAD_STEPS):
+            return _halves(bound_at, fastest, margin, pending, batched)
+        c = _walk_start(pending)
+        for _ in range(HEAD_STEPS):
+            c = _subtree_step(bound_at, fastest, margin, c, SUBTREE_DEPTH)
+        tail = _gathered(lambda batched: _tail_lane(bound_fn, margin), TAIL_SHARE)
+        return c[3] | tail(motion, fastest, c[0], c[1], c[2], c[4])
 
-        return one
+    return one
 
-    halves = jax.custom_batching.custom_vmap(lane(batched=False))
 
-    @halves.def_vmap
+def _tail_lane(bound_fn, margin: float):
+    """``tail(motion, fastest, k, i, tests, pending)``: the walk from interval ``(k, i)`` with
+    ``tests`` taken, where ``pending``, to its end, :data:`TAIL_DEPTH` levels a loop iteration."""
+
+    def one(motion, fastest, k, i, tests, pending):
+        step = lambda c: _subtree_step(lambda s, h: bound_fn(motion, s, h), fastest, margin, c, TAIL_DEPTH)  # noqa: E731
+        return jax.lax.while_loop(lambda c: c[4], step, (k, i, tests, jnp.bool_(False), pending))[3]
+
+    return one
+
+
+def _walk_start(pending: jax.Array):
+    """The walk's state ``(k, i, tests, collision, active)`` at the root's left half, the root tested."""
+    return jnp.int32(1), jnp.int32(0), jnp.int32(1), jnp.bool_(False), pending
+
+
+def _gathered(make_lane, share: float):
+    """``make_lane(batched)(*args, pending) -> bool`` (False where not ``pending``) as one lane's
+    function whose vmap runs the pending lanes alone, ``share`` of the batch a round
+    (:func:`_pending_lanes`); ``batched``: whether the lane function runs vmapped on an accelerator
+    (:data:`UNROLLED`)."""
+    fn = jax.custom_batching.custom_vmap(make_lane(False))
+
+    @fn.def_vmap
     def _rule(axis_size, in_batched, *args):
         grow = lambda x, batched: x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))  # noqa: E731
         args = tuple(jax.tree.map(grow, a, b) for a, b in zip(args, in_batched))
-        unrolled = lane(batched=jax.default_backend() != "cpu" if UNROLLED is None else UNROLLED)
-        return _pending_lanes(jax.vmap(unrolled), args, axis_size, share), True
+        lane = make_lane(jax.default_backend() != "cpu" if UNROLLED is None else UNROLLED)
+        return _pending_lanes(jax.vmap(lane), args, axis_size, share), True
 
-    return halves
+    return fn
 
 
 def _pending_lanes(batched, args, size: int, share: float) -> jax.Array:
@@ -214,8 +281,9 @@ def _pending_lanes(batched, args, size: int, share: float) -> jax.Array:
 def _halves(bound_at, fastest, margin: float, pending: jax.Array, batched: bool = False) -> jax.Array:
     """Whether the root's halves, tested depth first where ``pending``, fail to be proved: the walk
     of :func:`motion_collides_host` without its stack (:func:`_advance`), an interval a step.
-    ``batched``: :data:`WALK_CHUNK` steps a loop iteration, unrolled (on a GPU each iteration's test
-    waits for the device; a lane done within a chunk idles to its end)."""
+    ``batched`` (on a GPU each loop iteration waits for the device): a subtree of
+    :data:`SUBTREE_DEPTH` levels a loop iteration, tested at once and walked in one replay
+    (:func:`_subtree_step`); or, where that is None, :data:`WALK_CHUNK` steps, unrolled."""
 
     def step(c):
         h = jnp.ldexp(jnp.float32(1.0), -(c[0] + 1))
@@ -223,12 +291,75 @@ def _halves(bound_at, fastest, margin: float, pending: jax.Array, batched: bool 
         return _advance(c, c[4], proved, stop)
 
     def chunk(c):
+        if batched and SUBTREE_DEPTH is not None:
+            return _subtree_step(bound_at, fastest, margin, c, SUBTREE_DEPTH)
         for _ in range(WALK_CHUNK if batched else 1):
             c = step(c)
         return c
 
-    init = (jnp.int32(1), jnp.int32(0), jnp.int32(1), jnp.bool_(False), pending)
-    return jax.lax.while_loop(lambda c: c[4], chunk, init)[3]
+    return jax.lax.while_loop(lambda c: c[4], chunk, _walk_start(pending))[3]
+
+
+def _preorder(depth: int) -> list[tuple[int, int, int]]:
+    """A subtree of ``depth`` levels below its root, in the walk's order (depth first, left first):
+    ``(levels below the root, index within that level, parent's position or -1)``."""
+    nodes: list[tuple[int, int, int]] = []
+
+    def visit(a: int, b: int, parent: int) -> None:
+        nodes.append((a, b, parent))
+        here = len(nodes) - 1
+        if a < depth:
+            visit(a + 1, 2 * b, here)
+            visit(a + 1, 2 * b + 1, here)
+
+    visit(0, 0, -1)
+    return nodes
+
+
+def _subtree_step(bound_at, fastest, margin: float, c, depth: int):
+    """The walk ``c = (k, i, tests, collision, active)`` from interval ``(k, i)`` through the subtree
+    of ``depth`` levels below it, where active: every interval of the subtree tested at once (one
+    call, not a chain of them), then the walk's path through them replayed. The walk visits the
+    intervals whose ancestors (within the subtree) all split, in order, counting tests, up to the
+    first event: a stop (collision), a split at the test budget (collision), or a split on the
+    subtree's last level (the walk goes on at its left half). Without an event the subtree is
+    proved and the walk climbs on from ``(k, i)``, as :func:`_advance` after a proof. The same
+    intervals, verdicts and test counts as :func:`_advance` an interval at a time: a subtree's
+    intervals past its first event are tested and not used."""
+    k, i, tests, collision, go = c
+    nodes = _preorder(depth)
+    a = jnp.asarray([n[0] for n in nodes], jnp.int32)
+    kk, ii = k + a, (i << a) + jnp.asarray([n[1] for n in nodes], jnp.int32)
+    h = jnp.ldexp(jnp.float32(1.0), -(kk + 1))
+    proved, stop = jax.vmap(lambda s, h: _verdict(*bound_at(s, h), h, fastest, margin))(
+        (2 * ii + 1).astype(jnp.float32) * h, h
+    )
+    split = ~proved & ~stop
+    reach, count, found = [], tests, jnp.bool_(False)
+    k_next, i_next, hit = k, i, jnp.bool_(False)
+    for j, (level, _, parent) in enumerate(nodes):
+        reach.append(jnp.bool_(True) if parent < 0 else reach[parent] & split[parent])
+        count = count + reach[j]
+        ends = (~proved[j] & stop[j]) | (split[j] & (count >= MAX_TESTS))  # the walk's collision here
+        event = reach[j] & ~found & (ends | (split[j] & (level == depth)))
+        hit = hit | (event & ends)
+        k_next = jnp.where(event, kk[j] + 1, k_next)  # a split on the last level: its left half
+        i_next = jnp.where(event, 2 * ii[j], i_next)
+        tests = jnp.where(event, count, tests)
+        found = found | event
+    up = jax.lax.population_count(i ^ (i + 1)) - 1  # proved: climb as _advance does
+    k_next = jnp.where(found, k_next, k - up)
+    i_next = jnp.where(found, i_next, (i >> up) + 1)
+    tests = jnp.where(found, tests, count)
+    finished = hit | (~found & (k_next == 0))
+    collision = collision | (go & hit)
+    return (
+        jnp.where(go, k_next, k),
+        jnp.where(go, i_next, i),
+        jnp.where(go, tests, c[2]),
+        collision,
+        go & ~finished,
+    )
 
 
 def _advance(c, go, proved, stop):
