@@ -11,6 +11,7 @@ import re
 
 import pytest
 
+from regrasp_mjx.world import continuous
 from tests.conftest import ROOT
 
 CLIS = ("train", "evaluate", "compare", "distill", "demos", "recipe", "sweep", "testset", "export_onnx", "grasps")
@@ -110,26 +111,39 @@ def test_the_readme_is_short_and_its_results_table_is_generated():
 
 
 def test_the_environment_speed_in_the_docs_is_the_benchmark_file():
-    """docs/results.md's and docs/environment.md's env-steps/s are those of the benchmark file they
-    cite (experiments/results/continuous/bench_env_pending_h100.json, and the before-run beside it)."""
-    folder = ROOT / "experiments" / "results" / "continuous"
+    """docs/results.md's and docs/environment.md's env-steps/s and training iterations are those of the
+    benchmark files they cite (experiments/results/continuous/subtree/: the committed walk's rows, and
+    the code before the continuous test run in the same session)."""
+    folder = ROOT / "experiments" / "results" / "continuous" / "subtree"
 
-    def millions(name):
-        rows = json.loads((folder / name).read_text())["mjx"]
-        return {r["batch"]: f"{r['env_steps_per_s'] / 1e6:.1f} M" for r in rows}
+    def rate(rows, **match):
+        row = next(r for r in rows if all(r.get(k) == v for k, v in match.items()))
+        return f"{row['env_steps_per_s'] / 1e6:.1f} M"
 
-    now, before = millions("bench_env_pending_h100.json"), millions("bench_env_before_rerun_h100.json")
-    results = (ROOT / "docs" / "results.md").read_text()
-    assert f"{now[32768]} env-steps/s at a batch of\n32,768 and {now[8192]} at 8,192" in results
+    # the module's settings, which the rows measured and docs/environment.md describes
+    walk = f"{continuous.SUBTREE_DEPTH}:{continuous.HEAD_STEPS}:{continuous.TAIL_DEPTH}"
+    shares = {"root_share": continuous.ROOT_SHARE, "pending_share": continuous.PENDING_SHARE}
+    assert shares == {"root_share": 1 / 4, "pending_share": 1 / 16}
+    now = {
+        b: rate(json.loads((folder / f"bench_env_{b}_h100.json").read_text())["mjx"], walk=walk, **shares)
+        for b in (8192, 32768)
+    }
+    old = json.loads((folder / "call2" / "env_old.json").read_text())["mjx"]
+    before = {b: rate(old, batch=b) for b in (8192, 32768)}
+    results = " ".join((ROOT / "docs" / "results.md").read_text().split())
+    assert f"{now[32768]} env-steps/s at a batch of 32,768 and {now[8192]} at 8,192" in results
     assert f"({before[32768]} and {before[8192]} before the continuous test" in results
     environment = " ".join((ROOT / "docs" / "environment.md").read_text().split())
     assert (
         f"the same verdicts): {now[32768]} env-steps/s at 32,768 on one H100, against {before[32768][:2]} M"
         in environment
     )
-    train = json.loads((folder / "directional" / "bench_train_final_h100.json").read_text())["rows"]
-    at_512 = next(r for r in train if r["num_envs"] == 512)
-    assert f"a training iteration at 512 environments takes {at_512['iteration_ms']:.1f} ms" in environment
+    train = json.loads((folder / "bench_train_h100.json").read_text())["rows"]
+    printed = [json.loads(line) for line in (folder / "call1" / "train_printed.jsonl").read_text().splitlines()]
+    ms = {r["num_envs"]: f"{r['iteration_ms']:.1f} ms" for r in train}
+    was = {r["num_envs"]: f"{r['iteration_ms']:.1f} ms" for r in printed if r["code"].startswith("4acb4a5")}
+    assert f"a training iteration at 512 environments takes {ms[512]} on one H100, against {was[512]}" in environment
+    assert f"{ms[512]} against {was[512]} at 512 environments and {ms[8192]} against {was[8192]} at 8,192" in results
 
 
 def test_the_generalist_section_is_its_result_files():
