@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 
 from regrasp_mjx.inference.policy import load_policy
-from regrasp_mjx.robot import dvrk
+from regrasp_mjx.robot import dvrk, psm_timing
 from regrasp_mjx.robot.psm_timing import (
     A_MAX,
     HEADROOM,
     V_MAX,
     MotionRefused,
     check_motion,
+    limit_ratio,
     sample_const_accel,
     time_executed,
     time_joints,
@@ -35,7 +36,8 @@ def test_one_insertion_move_is_the_hand_worked_bang_bang_profile():
     other half, T = 2 sqrt(d / a) = 1.0153 s, peak speed sqrt(d a) = 0.0985 m/s."""
     q0 = np.array([0.1, -0.2, 0.10, 0.3, 0.0, 0.0])
     q1 = q0 + [0, 0, 0.05, 0, 0, 0]
-    timed = time_joints([q0, q1])
+    timed = time_joints([q0, q1], gridpoints=200)  # the fine grid: within 1 % of the optimum
+    assert time_joints([q0, q1]).duration_s == pytest.approx(timed.duration_s, rel=0.03)  # the default grid
     a = 0.2 * HEADROOM
     assert timed.duration_s == pytest.approx(2 * math.sqrt(0.05 / a), rel=0.01)
     assert np.abs(timed.qd[:, 2]).max() == pytest.approx(math.sqrt(0.05 * a), rel=0.01)
@@ -67,8 +69,33 @@ def test_every_sample_keeps_the_dvrk_limits_and_passes_every_waypoint():
         time_joints(waypoints, rate_hz=0.0)
     with pytest.raises(ValueError, match="gridpoints=1 is not accepted"):
         time_joints(waypoints, gridpoints=1)
+    fine = time_joints(waypoints, rate_hz=500.0, gridpoints=240)
     coarse = time_joints(waypoints, rate_hz=500.0, gridpoints=50)  # a coarser grid: never faster motion
-    assert coarse.duration_s >= timed.duration_s * (1 - 1e-6)
+    assert coarse.duration_s >= fine.duration_s * (1 - 1e-6)
+
+
+def test_a_coarse_grid_is_slowed_uniformly_until_every_sample_keeps_the_limits(monkeypatch):
+    """TOPP-RA holds the limits at its grid points only: on 20 points the constant-acceleration motion
+    between them passes the acceleration limit (by more than a tenth here, measured at 1 kHz); the
+    trajectory returned is that motion slowed uniformly, every sample within the limits, its
+    duration the raw one times the slow-down; 2 grid points (at rest at both ends: no motion) are
+    refused, not timed forever."""
+    rng = np.random.default_rng(11)
+    steps = rng.normal(0, [0.02, 0.02, 1e-3, 0.1, 0.1, 0.1], (6, 6))
+    q = np.cumsum(np.r_[[[0.1, -0.2, 0.15, 0.3, 0.1, -0.2]], steps], 0)
+    timed = time_joints(q, gridpoints=20)
+    assert limit_ratio(timed.qd, timed.qdd) <= 1.0
+    raw = psm_timing.raw_timing(q, 20)
+    t, _, qd, qdd = sample_const_accel(*raw, 1000.0)
+    assert limit_ratio(qd, qdd) > 1.1
+    slow = psm_timing.path_ratio(*raw, V_MAX, A_MAX)
+    assert timed.duration_s == pytest.approx(t[-1] * slow, rel=1e-9)  # one slow-down, from path_ratio
+    monkeypatch.setattr(psm_timing, "path_ratio", lambda *args, **kwargs: 1.0)  # without the slow-down
+    monkeypatch.setattr(psm_timing, "MAX_RESCALES", 1)
+    with pytest.raises(ValueError, match="no timing within the limits"):
+        time_joints(q, gridpoints=20)
+    with pytest.raises(ValueError, match="TOPP-RA found no trajectory"):
+        time_joints(q, gridpoints=2)
 
 
 def test_the_sampled_trajectory_is_toppra_s_own_constant_acceleration_one():

@@ -31,6 +31,7 @@ Limits (:data:`V_MAX`, :data:`A_MAX`): the dVRK's own for the PSM's joint trajec
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import mujoco
@@ -38,6 +39,7 @@ import numpy as np
 import toppra
 import toppra.algorithm
 import toppra.constraint
+import toppra.solverwrapper
 
 from regrasp_mjx.envs.host import quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
 from regrasp_mjx.envs.lean_checker import LeanChecker
@@ -49,9 +51,13 @@ V_MAX = np.array([math.pi / 2, math.pi / 2, 0.2, 6 * math.pi, 6 * math.pi, 6 * m
 A_MAX = np.array([math.pi / 2, math.pi / 2, 0.2, 4 * math.pi, 4 * math.pi, 4 * math.pi])  # rad/s^2, m/s^2
 RATE_HZ = 1000.0  # the dVRK's servo rate
 MAX_INSERTIONS = 8
-# TOPP-RA meets the limits at its grid points; between them a sample's acceleration can pass them by
-# up to 1 % (seen on paper300's plans), so it is given 97 % of each
-HEADROOM = 0.97
+# TOPP-RA's grid along the path: at least this many points, and this many per waypoint (coarser is
+# faster to compute and gives longer motion, experiments/RESULTS.md, issue 48)
+GRID = (200, 40)
+MAX_RESCALES = 4  # uniform slow-downs of a timing whose samples pass a limit (one is the rule)
+# the share of each limit TOPP-RA is given: all of it, since the motion between its grid points is
+# slowed to the limits afterwards (path_ratio); below 1 it leaves room and motion time
+HEADROOM = 1.0
 TOOL_REACH = 0.3  # m: farther than any point of the tool's capsules from the RCM (insertion <= 0.24 m)
 
 
@@ -76,10 +82,11 @@ def time_joints(
     waypoints, rate_hz: float = RATE_HZ, v_max=V_MAX, a_max=A_MAX, gridpoints: int | None = None
 ) -> TimedTrajectory:
     """The time-optimal trajectory through joint ``waypoints`` ``[W, 6]`` (at rest at both ends) under
-    ``v_max`` and ``a_max`` (6 each; every sample within them: TOPP-RA is given :data:`HEADROOM` of
-    each), sampled at ``rate_hz`` (see the module's docstring). ``gridpoints``: TOPP-RA's grid along
-    the path (default ``max(200, 40 W)``; fewer is faster and slightly slower motion,
-    experiments/RESULTS.md)."""
+    ``v_max`` and ``a_max`` (6 each), sampled at ``rate_hz`` (see the module's docstring): TOPP-RA's
+    timing (:func:`raw_timing`, at :data:`HEADROOM` of the limits) slowed uniformly by the largest
+    excess anywhere between its grid points (:func:`path_ratio`), so that every sample keeps the
+    limits. ``gridpoints``: TOPP-RA's grid along the path (default :data:`GRID`: ``max(200, 40 W)``;
+    a coarser grid is faster to compute and gives longer motion, experiments/RESULTS.md)."""
     q = np.asarray(waypoints, np.float64)
     if q.ndim != 2 or q.shape[1] != 6 or len(q) < 1 or not np.all(np.isfinite(q)):
         raise ValueError(f"waypoints of shape {q.shape} are not accepted: [W, 6] finite joint vectors, W >= 1")
@@ -95,24 +102,89 @@ def time_joints(
     if len(q) == 1:
         zero = np.zeros((1, 6))
         return TimedTrajectory(np.zeros(1), q.copy(), zero, zero.copy(), q.copy(), float(rate_hz))
+    if gridpoints is not None and not (isinstance(gridpoints, int) and gridpoints >= 2):
+        raise ValueError(f"gridpoints={gridpoints!r} is not accepted: an integer >= 2")
+    path, grid, sd = raw_timing(q, gridpoints, v_max, a_max)
+    # TOPP-RA holds the limits at its grid points; between them the motion can pass one (the path's
+    # curvature changes within an interval): the whole motion is slowed uniformly by the largest
+    # excess anywhere along it (velocities / r, accelerations / r^2), then sampled
+    sd = sd / max(1.0, path_ratio(path, grid, sd, v_max, a_max))
+    for _ in range(MAX_RESCALES):
+        t, position, velocity, acceleration = sample_const_accel(path, grid, sd, rate_hz)
+        over = limit_ratio(velocity, acceleration, v_max, a_max)
+        if over <= 1.0:
+            return TimedTrajectory(t, position, velocity, acceleration, q, float(rate_hz))
+        sd = sd / (over * (1.0 + 1e-3))  # a sample past path_ratio's points (rare): slowed again
+    raise ValueError(f"no timing within the limits after {MAX_RESCALES} uniform slow-downs (last excess {over:.6f})")
+
+
+def raw_timing(q: np.ndarray, gridpoints: int | None = None, v_max=V_MAX, a_max=A_MAX):
+    """TOPP-RA's own timing of distinct waypoints ``q`` ``[W >= 2, 6]``: ``(path, gridpoints, sd)``,
+    the C2 spline through them (knots spaced by the time each segment takes at the velocity limits)
+    and the path velocities at the grid's points, at :data:`HEADROOM` of the limits; ``gridpoints``
+    None: :data:`GRID`."""
+    span = np.max(np.abs(np.diff(q, axis=0)) / v_max, axis=1)
     ss = np.r_[0.0, np.cumsum(span)]
     ss /= ss[-1]
     path = toppra.SplineInterpolator(ss, q, bc_type="clamped" if len(q) > 2 else "natural")
-    v, a = v_max * HEADROOM, a_max * HEADROOM  # the samples between TOPP-RA's grid points stay within
-    limits = [
+    limits = _constraints(tuple(v_max * HEADROOM), tuple(a_max * HEADROOM))
+    grid = np.linspace(0.0, 1.0, gridpoints or max(GRID[0], GRID[1] * len(q)))
+    solver = toppra.algorithm.TOPPRA(limits, path, gridpoints=grid, solver_wrapper="seidel")
+    solver.compute_parameterization(0.0, 0.0)
+    data = solver.problem_data
+    ok = data.return_code == toppra.algorithm.ParameterizationReturnCode.Ok
+    if ok and len(grid) > 2 and np.all(data.sd_vec[1:-1] > 0):  # 2 points at rest: no motion at all
+        return path, grid, data.sd_vec
+    raise ValueError("TOPP-RA found no trajectory through these waypoints at these limits")
+
+
+def path_ratio(path, gridpoints: np.ndarray, sd: np.ndarray, v_max, a_max, points: int = 2000) -> float:
+    """:func:`limit_ratio` of the motion TOPP-RA's ``sd`` makes (the path acceleration constant between
+    grid points, :func:`sample_const_accel`) at both ends of every grid interval and points inside
+    it, about ``points`` in all (at least 2 inside each), where the samples at the controller's rate
+    fall anywhere (a coarse grid's intervals need the most: its curvature changes within them)."""
+    ss, sd = np.asarray(gridpoints, np.float64), np.asarray(sd, np.float64)
+    per_interval = max(2, points // len(ss))
+    u = 0.5 * np.diff(sd**2) / np.diff(ss)
+    frac = np.linspace(0.0, 1.0, per_interval + 2)
+    s = ss[:-1, None] + frac * np.diff(ss)[:, None]  # [G-1, K]: each interval with its ends
+    v = np.sqrt(np.maximum(sd[:-1, None] ** 2 + 2.0 * u[:, None] * (s - ss[:-1, None]), 0.0))
+    flat = s.reshape(-1)
+    dq, ddq = path(flat, 1).reshape(*s.shape, -1), path(flat, 2).reshape(*s.shape, -1)
+    qd = dq * v[..., None]
+    qdd = ddq * (v**2)[..., None] + dq * u[:, None, None]
+    return limit_ratio(qd.reshape(-1, dq.shape[-1]), qdd.reshape(-1, dq.shape[-1]), v_max, a_max)
+
+
+def limit_ratio(qd: np.ndarray, qdd: np.ndarray, v_max=V_MAX, a_max=A_MAX) -> float:
+    """The uniform slow-down ``r`` (time x r) that brings samples ``qd``, ``qdd`` ``[N, 6]`` within the
+    limits: ``max(|qd| / v_max, sqrt(|qdd| / a_max))`` over every sample and joint (<= 1: within)."""
+    v = float(np.max(np.abs(qd) / v_max)) if len(qd) else 0.0
+    a = float(np.max(np.abs(qdd) / a_max)) if len(qdd) else 0.0
+    return max(v, math.sqrt(a))
+
+
+def _available_solvers(output_msg: bool = True, _found=toppra.solverwrapper.available_solvers(output_msg=False)):
+    """``toppra.solverwrapper.available_solvers`` looked up once: toppra's every TOPPRA() searches
+    sys.path for its optional solvers (0.1 ms of a plan's timing, profiled), which cannot appear
+    while a process runs."""
+    if output_msg:
+        print(_found)
+    return _found
+
+
+toppra.solverwrapper.available_solvers = _available_solvers
+
+
+@functools.lru_cache(maxsize=8)
+def _constraints(v: tuple[float, ...], a: tuple[float, ...]) -> list:
+    """TOPP-RA's joint velocity and acceleration constraints, made once per limits: toppra formats
+    every limit into a string as it makes a constraint (0.4 ms of a plan's 1.5 ms, profiled)."""
+    v, a = np.asarray(v), np.asarray(a)
+    return [
         toppra.constraint.JointVelocityConstraint(np.stack([-v, v], 1)),
         toppra.constraint.JointAccelerationConstraint(np.stack([-a, a], 1)),
     ]
-    if gridpoints is not None and not (isinstance(gridpoints, int) and gridpoints >= 2):
-        raise ValueError(f"gridpoints={gridpoints!r} is not accepted: an integer >= 2")
-    grid = np.linspace(0.0, 1.0, gridpoints or max(200, 40 * len(q)))
-    solver = toppra.algorithm.TOPPRA(limits, path, gridpoints=grid)
-    solver.compute_parameterization(0.0, 0.0)
-    data = solver.problem_data
-    if data.return_code != toppra.algorithm.ParameterizationReturnCode.Ok:
-        raise ValueError("TOPP-RA found no trajectory through these waypoints at these limits")
-    t, position, velocity, acceleration = sample_const_accel(path, data.gridpoints, data.sd_vec, rate_hz)
-    return TimedTrajectory(t, position, velocity, acceleration, q, float(rate_hz))
 
 
 def sample_const_accel(path, gridpoints: np.ndarray, sd: np.ndarray, rate_hz: float):
