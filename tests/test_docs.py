@@ -9,6 +9,7 @@ import io
 import json
 import re
 
+import numpy as np
 import pytest
 
 from regrasp_mjx.world import continuous
@@ -207,3 +208,68 @@ def test_the_closed_loop_recheck_in_the_docs_is_its_result_files():
     closest = min(r["smallest_clearance_um"] for r in rows)
     text = " ".join((ROOT / "docs" / "environment.md").read_text().split())
     assert f"on and off; closest {closest:.2f} um)" in text
+
+
+def _prose(name: str) -> str:
+    """A docs file with its line breaks and bold marks dropped, for phrases that wrap."""
+    return " ".join((ROOT / "docs" / name).read_text().replace("**", "").split())
+
+
+def test_the_one_query_speeds_in_the_history_are_their_benchmark_files():
+    """docs/results.md's "One query on one core, now": the lean path's medians on the dev machine and
+    the H100 host, the code before issue 31, and the ratios to the JAX path and RRT-Connect (F)
+    (experiments/results/bench_plan/)."""
+    folder = ROOT / "experiments" / "results" / "bench_plan"
+    rows = lambda path: {r["method"]: r for r in json.loads((folder / path).read_text())["rows"]}  # noqa: E731
+    dev, host = rows("fewer_tests/bench_plan.json"), rows("fewer_tests/h100_host/bench_plan.json")
+    before = rows("before_c3c14db_amd.json")
+    lean = "policy `default`, shielded, lean path (`Policy.plan`)"
+    jax_path = "policy `default`, shielded, JAX path (`Policy.plan`)"
+    rrt = "RRT-Connect (F)"
+    text = _prose("results.md")
+    jax_x = sorted(round(r[jax_path]["ratio_to_first"]) for r in (dev, host))
+    assert (
+        f"in {dev[lean]['median_ms']:.3f} ms on one core of the 2-core development machine (an AMD EPYC VM; the code "
+        f"before issue 31: {before[lean]['median_ms']:.3f} ms with the check off on the same machine) and "
+        f"{host[lean]['median_ms']:.3f} ms on the H100 host's CPU, {jax_x[0]}-{jax_x[1]}x faster than the same rollout"
+    ) in text
+    assert (
+        f"{round(dev[rrt]['ratio_to_first'])}x faster than RRT-Connect ({dev[rrt]['median_ms']:.1f} ms; "
+        f"{round(dev[rrt + ' + 0.2 s shortcutting']['ratio_to_first'])}x with 0.2 s of shortcutting; "
+        f"{round(dev[rrt + ', lean checker']['ratio_to_first'])}x and "
+        f"{round(dev[rrt + ' + 0.2 s shortcutting, lean checker']['ratio_to_first'])}x over the compiled collision checker)"
+    ) in text
+
+
+def test_table_one_with_the_decay_recipe_in_the_docs_is_its_result_file():
+    """docs/results.md's Table I with the decay recipe: last epoch and exported (mean ± std over seeds),
+    the best epochs, each setting's gap from last to best and the wall time
+    (experiments/results/table1_decay)."""
+    folder = ROOT / "experiments" / "results" / "table1_decay"
+    rows = json.loads((folder / "table1.json").read_text())["rows"]
+    order = ("ddpg_bc", "targeted", "mixed")
+    ms = lambda xs: f"{np.mean(xs):.3f} ± {np.std(xs):.3f}"  # noqa: E731
+    text = _prose("results.md")
+    last = ", ".join(f"{ms(rows[k]['last'])} ({n})" for k, n in zip(order, ("DDPG+BC", "targeted", "mixed")))
+    assert (
+        f"last epoch {last}; exported (best on validation) " + ", ".join(ms(rows[k]["exported"]) for k in order) in text
+    )
+    best = sorted(np.mean(rows[k]["best"]) for k in order)
+    assert f"best epoch {best[0]:.3f}-{best[-1]:.3f}" in text
+    gaps = [np.mean(rows[k]["last"]) - np.mean(rows[k]["best"]) for k in order]
+    assert (
+        f"within 0.01 of the best for DDPG+BC and targeted ({gaps[0]:.3f}, {gaps[1]:.3f}) and {-gaps[2]:.3f} below"
+        in text
+    )
+    minutes = re.search(r"Training wall-clock.*?: ([\d.]+) min", (folder / "table1.md").read_text()).group(1)
+    assert f"one H200, {minutes} min; `experiments/results/table1_decay`" in text
+
+
+def test_the_planners_line_is_the_planners_file():
+    """docs/results.md's "Planners": BIT* (R)'s row at 20-degree jaws in experiments/results/planners.csv."""
+    with open(ROOT / "experiments" / "results" / "planners.csv") as f:
+        row = next(r for r in csv.DictReader(f) if r["algorithm"] == "BIT* (R)" and float(r["jaw_angle_deg"]) == 20.0)
+    assert (
+        f"BIT* (R): {float(row['success_rate']):.2f} success, {float(row['plan_time_mean_s']):.3f} s mean, "
+        f"{float(row['path_length_mm']):.2f} mm."
+    ) in _prose("results.md")
