@@ -11,7 +11,11 @@ Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no
 import contextlib as _contextlib
 import io as _io
 
-import gymnasium as _gymnasium
+from regrasp_mjx.core import xla_flags as _xla_flags
+
+_xla_flags.apply()  # before anything starts JAX's backend: loops on the GPU run as CUDA graphs
+
+import gymnasium as _gymnasium  # noqa: E402
 
 # mujoco.mjx prints "Failed to import warp" (twice) to stdout when the optional NVIDIA Warp backend
 # is absent, which we never use; importing it once here with stdout captured keeps every command's
