@@ -274,3 +274,53 @@ def test_the_planners_line_is_the_planners_file():
         f"BIT* (R): {float(row['success_rate']):.2f} success, {float(row['plan_time_mean_s']):.3f} s mean, "
         f"{float(row['path_length_mm']):.2f} mm."
     ) in _prose("results.md")
+
+
+def test_the_november_24_default_s_students_in_the_history_are_their_result_files():
+    """docs/results.md's "The default of 2026-11-24": the three students' bare success on paper300 and
+    the held-out 3000, shielded success, steps, and the validation scores that chose seed 0
+    (experiments/results/default_v3)."""
+    folder = ROOT / "experiments" / "results" / "default_v3"
+    load = lambda name: json.loads((folder / f"{name}.json").read_text())  # noqa: E731
+    rows = load("students_s0") + load("students")
+    pick = lambda seed, testset, rollout: next(  # noqa: E731
+        r for r in rows if r["policy"] == f"s{seed}" and r["testset"].startswith(testset) and r["rollout"] == rollout
+    )
+    text = _prose("results.md")
+    paper = " / ".join(f"{pick(s, 'paper300', 'bare')['success_rate']:.3f}" for s in range(3))
+    held = " / ".join(f"{pick(s, 'held-out 3000', 'bare')['success_rate']:.3f}" for s in range(3))
+    assert f"three 2x256 students, bare, {paper} on paper300 and {held} on the held-out 3000" in text
+    assert all(r["success_rate"] == 1.0 for r in rows if r["rollout"] == "shielded")
+    steps = [r["steps"] for r in rows]
+    assert f"every seed; {min(steps):.1f}-{max(steps):.1f} steps a plan" in text
+    chosen = {
+        r["policy"]: r["success_rate"] for r in load("selection_s0") + load("selection") if r["rollout"] == "bare"
+    }
+    assert max(chosen, key=chosen.get) == "s0"
+    assert f"seed 0 scored {chosen['s0']:g} bare against {chosen['s1']:.3f} and {chosen['s2']:.3f}" in text
+
+
+def test_the_decay_recipe_in_the_history_is_its_result_file():
+    """docs/results.md's "The decay recipe": each seed's bare success on paper300 and the held-out 3000,
+    the collisions on the held-out 3000, the mean steps, and the fast baseline's ranges
+    (experiments/results/decay/decay_vs_base.json)."""
+    rows = json.loads((ROOT / "experiments" / "results" / "decay" / "decay_vs_base.json").read_text())
+    bare = [r for r in rows if r["rollout"] == "bare"]
+    of = lambda kind, testset: [r for r in bare if r["policy"].startswith(kind) and r["testset"].startswith(testset)]  # noqa: E731
+    span = lambda xs, fmt: f"{min(xs):{fmt}}-{max(xs):{fmt}}"  # noqa: E731
+    text = _prose("results.md")
+    paper = " / ".join(f"{r['success_rate']:.3f}" for r in of("decay", "paper300"))
+    held = " / ".join(f"{r['success_rate']:.3f}" for r in of("decay", "held-out 3000"))
+    hits = [100 * r["collision_rate"] for r in of("decay", "held-out 3000")]
+    steps = np.mean([r["steps"] for r in of("decay", "")])
+    assert (
+        f"{paper} on paper300, {held} on the held-out 3000, collisions {min(hits):g}-{max(hits):.2f} % on the held-out "
+        f"3000, {steps:.1f} steps per plan"
+    ) in text
+    base_paper = span([r["success_rate"] for r in of("base", "paper300")], ".3f")
+    base_held = span([r["success_rate"] for r in of("base", "held-out 3000")], ".3f")
+    base_hits = span([100 * r["collision_rate"] for r in of("base", "held-out 3000")], ".1f")
+    base_steps = np.mean([r["steps"] for r in of("base", "")])
+    assert (
+        f"demonstrations: {base_paper} and {base_held}, collisions {base_hits} % on the held-out 3000, {base_steps:.1f} steps"
+    ) in text
