@@ -324,3 +324,29 @@ def test_the_decay_recipe_in_the_history_is_its_result_file():
     assert (
         f"demonstrations: {base_paper} and {base_held}, collisions {base_hits} % on the held-out 3000, {base_steps:.1f} steps"
     ) in text
+
+
+def test_the_first_shipped_students_in_the_history_are_their_result_files():
+    """docs/results.md's "One network at 0.99, shipped": the three 3x256 students (bare on paper300 and
+    the held-out 3000, shielded), and the three 2x256 students under the conservative needle
+    (experiments/results/shipping/policies.json and policies_conservative.json)."""
+    folder = ROOT / "experiments" / "results" / "shipping"
+    text = _prose("results.md")
+    for name, prefix, lead, paper_words in (
+        ("policies", "student_seed", "Three seeds' 3x256 students, bare: ", "on paper300, {held} on 3000 held-out"),
+        ("policies_conservative", "student_s", "", "bare on the regenerated paper300, {held} held-out"),
+    ):
+        rows = json.loads((folder / f"{name}.json").read_text())
+        success = lambda testset, rollout, rows=rows, prefix=prefix: [  # noqa: E731
+            r["success_rate"]
+            for s in range(3)
+            for r in rows
+            if r["policy"] == f"{prefix}{s}" and r["testset"].startswith(testset) and r["rollout"] == rollout
+        ]
+        paper = " / ".join(f"{x:.3f}" for x in success("paper300", "bare"))
+        held = " / ".join(f"{x:.3f}" for x in success("held-out 3000", "bare"))
+        assert f"{lead}{paper} {paper_words.format(held=held)}" in text, name
+        shielded = success("paper300", "shielded") + success("held-out 3000", "shielded")
+        shown = [f"{x:.3f}" for x in shielded]  # "all 1.000 (one 0.999) with the shield"; "all 1.000 shielded"
+        assert len(shown) == 6 and shown.count("0.999") == (1 if name == "policies" else 0)
+        assert set(shown) <= {"1.000", "0.999"}
