@@ -350,3 +350,34 @@ def test_the_first_shipped_students_in_the_history_are_their_result_files():
         shown = [f"{x:.3f}" for x in shielded]  # "all 1.000 (one 0.999) with the shield"; "all 1.000 shielded"
         assert len(shown) == 6 and shown.count("0.999") == (1 if name == "policies" else 0)
         assert set(shown) <= {"1.000", "0.999"}
+
+
+def test_the_long_runs_drift_and_scale_sweep_in_the_history_are_their_result_files():
+    """docs/results.md's 500-epoch runs (where they stopped, the last 10 epochs' success, the exported
+    epochs and their validation score), the baseline's collisions from epoch 50 to 425, and the scale
+    sweep (experiments/results/table1_paper500, drift, scale)."""
+    results = ROOT / "experiments" / "results"
+    long_run = json.loads((results / "table1_paper500" / "long_run.json").read_text())
+    mixed, ddpg = long_run["mixed"], long_run["ddpg_bc"]
+    ms = lambda xs: f"{np.mean(xs):.3f} ± {np.std(xs):.3f}"  # noqa: E731
+    text = _prose("results.md")
+    assert f"stopped by the device's time limit at epochs {mixed['epochs']} and {ddpg['epochs']}" in text
+    assert f"drift down to {ms(mixed['last10'])} (mixed) and {ms(ddpg['last10'])} (DDPG+BC)" in text
+    epochs = mixed["best_val_epoch"] + ddpg["best_val_epoch"]
+    assert (
+        f"(best on validation, epochs {min(epochs)}-{max(epochs)}) keeps {np.mean(mixed['best_val']):.3f} on validation"
+        in text
+    )
+    base = json.loads((results / "drift" / "drift.json").read_text())["baseline (5 envs)"]["at"]
+    assert (
+        f"collisions creep up ({np.mean(base['50']['collision']):.3f} to {np.mean(base['425']['collision']):.3f})"
+        in text
+    )
+    scale = json.loads((results / "scale" / "scale.json").read_text())
+    mean = lambda envs, setting: np.mean(scale[envs][setting]["last10"])  # noqa: E731
+    more = [mean(e, s) for e in scale if int(e) >= 32 for s in ("mixed", "ddpg_bc")]
+    gaps = [np.mean(np.subtract(scale[e]["mixed"]["last10"], scale[e]["ddpg_bc"]["last10"])) for e in scale]
+    assert (
+        f"{mean('5', 'mixed'):.3f} / {mean('5', 'ddpg_bc'):.3f} at 5 environments and {min(more):.3f}-{max(more):.3f} "
+        f"for both at 32 and more; mixed minus DDPG+BC is {min(gaps):.3f}-{max(gaps):.3f} at every scale"
+    ) in text
