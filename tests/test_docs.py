@@ -381,3 +381,36 @@ def test_the_long_runs_drift_and_scale_sweep_in_the_history_are_their_result_fil
         f"{mean('5', 'mixed'):.3f} / {mean('5', 'ddpg_bc'):.3f} at 5 environments and {min(more):.3f}-{max(more):.3f} "
         f"for both at 32 and more; mixed minus DDPG+BC is {min(gaps):.3f}-{max(gaps):.3f} at every scale"
     ) in text
+
+
+def test_table_two_s_planner_and_default_rows_and_its_summary_are_their_result_files():
+    """docs/results.md's Table II: the BIT* (R), PRM* (R) and straight-line rows (planners.csv, 20-degree
+    jaws), the shipped default's row (the lean path in continuous/directional/bench_plan_after_dev.json),
+    and the sentence under the figure: the default's median, its ratios to BIT* (R)'s median and to the
+    paper's policy (21.2 ms, the paper's Table II), and BIT* (R)'s success and mean time."""
+    results = ROOT / "experiments" / "results"
+    with open(results / "planners.csv") as f:
+        planners = {r["algorithm"]: r for r in csv.DictReader(f) if float(r["jaw_angle_deg"]) == 20.0}
+    text = _prose("results.md")
+    for name, digits in (("BIT* (R)", 1), ("PRM* (R)", 0), ("straight line", 1)):
+        r = planners[name]
+        mean, median = (1e3 * float(r[k]) for k in ("plan_time_mean_s", "plan_time_median_s"))
+        cells = f"| {name} | {float(r['success_rate']):.3f} | {mean:.{digits}f} / {median:.{digits}f} | {float(r['path_length_mm']):.2f} |"
+        assert cells in text, cells
+    bench = json.loads((results / "continuous" / "directional" / "bench_plan_after_dev.json").read_text())["rows"]
+    lean = next(r for r in bench if r["method"].startswith("policy `default`, shielded, lean path"))
+    assert (
+        f"after issue 44's two bounds) | {lean['success_rate']:.3f} | {lean['mean_ms']:.3f} / {lean['median_ms']:.3f} | "
+        f"{lean['path_length_mm']:.2f} |"
+    ) in text
+    bit = planners["BIT* (R)"]
+    bit_median = 1e3 * float(bit["plan_time_median_s"])
+    assert (
+        f"The shipped default plans one query in {lean['median_ms']:.3f} ms on one core through its compiled lean path, "
+        f"about {round(bit_median / lean['median_ms'], -2):.0f}x faster than BIT* reverse's median and "
+        f"{round(21.2 / lean['median_ms'], -2):.0f}x faster than the paper's policy"
+    ) in text
+    assert (
+        f"{float(bit['success_rate']):.2f} in {1e3 * float(bit['plan_time_mean_s']):.0f} ms against 0.72 in 2.6 s"
+        in text
+    )
