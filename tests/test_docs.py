@@ -141,6 +141,11 @@ def test_the_environment_speed_in_the_docs_is_the_benchmark_file():
         in environment
     )
     train = json.loads((folder / "flags" / "bench_train_h100.json").read_text())["rows"]
+    without = json.loads((folder / "bench_train_h100.json").read_text())["rows"]  # the same code, no flags
+    faster = without[0]["iteration_ms"] / train[0]["iteration_ms"]
+    assert train[0]["num_envs"] == without[0]["num_envs"] == 512
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert f"(a training iteration {faster:.1f}x faster on an H100)" in readme
     printed = [json.loads(line) for line in (folder / "call1" / "train_printed.jsonl").read_text().splitlines()]
     ms = {r["num_envs"]: f"{r['iteration_ms']:.1f} ms" for r in train}
     was = {r["num_envs"]: f"{r['iteration_ms']:.1f} ms" for r in printed if r["code"].startswith("4acb4a5")}
