@@ -419,3 +419,48 @@ def test_table_two_s_planner_and_default_rows_and_its_summary_are_their_result_f
         f"{float(bit['success_rate']):.2f} in {1e3 * float(bit['plan_time_mean_s']):.0f} ms against 0.72 in 2.6 s"
         in text
     )
+
+
+def test_the_networks_of_2026_11_24_in_the_history_are_their_result_files():
+    """docs/results.md's table of the shipped networks as they stood on 2026-11-24: the success cells
+    (bare / shielded on paper300 and the held-out 3000), steps and path of the rows whose runs are
+    committed: the default then (default_v3, seed 0), `decay` (decay_vs_base, seed 1), `student_v1`
+    and the ensemble (shipping/policies.json; no steps shown)."""
+    results = ROOT / "experiments" / "results"
+    text = (ROOT / "docs" / "results.md").read_text().replace("**", "")
+    history = text.split("The shipped networks as they stood on 2026-11-24")[1].splitlines()
+    for lead, path, policy, steps in (
+        (
+            "the default then (now `exact`): one 2x256 network, distilled from `decay`",
+            "default_v3/students_s0.json",
+            "s0",
+            True,
+        ),
+        ('`load_policy("decay")`: one 3x512 network of the `decay` preset', "decay/decay_vs_base.json", "decay1", True),
+        (
+            "earlier default before the conservative needle (`student_v1`), on the earlier paper300",
+            "shipping/policies.json",
+            "student0_2x256",
+            False,
+        ),
+        (
+            "earlier default: 3-network ensemble + shield (`ensemble3`)",
+            "shipping/policies.json",
+            "old_shipped_ensemble",
+            False,
+        ),
+    ):
+        rows = {
+            (r["testset"].split(" (")[0], r["rollout"]): r
+            for r in json.loads((results / path).read_text())
+            if r["policy"] == policy
+        }
+        cells = [c.strip() for c in next(line for line in history if line.startswith(f"| {lead} |")).split("|")[1:-1]]
+        for column, testset in ((1, "paper300"), (2, "held-out 3000")):
+            shown = " / ".join(f"{rows[testset, kind]['success_rate']:.3f}" for kind in ("bare", "shielded"))
+            assert cells[column] == shown, (lead, testset)
+        shielded = rows["paper300", "shielded"]
+        assert (
+            cells[4] == (f"{shielded['steps']:.1f}" if steps else "")
+            and cells[5] == f"{shielded['path_length_mm']:.2f}"
+        ), lead
