@@ -150,11 +150,14 @@ def test_the_lean_checker_checks_a_motion_as_ompl_interpolates_it(paper_testset)
 @pytest.mark.parametrize("planner", ["RRTConnect", "BITstar"])
 def test_a_planner_with_the_lean_checker_plans_the_same_paths(paper_testset, planner):
     """The same seed and the same verdicts: RRT-Connect (shortcut too) and BIT* return the very
-    paths they return over CPU MuJoCo."""
+    paths they return over CPU MuJoCo. OMPL's shortcutting runs until it converges or its time is up
+    (`simplifySolution(seconds)`): given 2 s, both checkers converge (it stops early when nothing
+    improves); at the default 0.2 s a loaded 2-core machine stopped the slower MuJoCo checks early
+    once (7 waypoints against 8)."""
     episodes, _ = paper_testset
     problems = [_problem(episodes, i) for i in range(4)]
     assert isinstance(OmplPlanner(PlannerConfig(checker="lean")).checker, LeanChecker)
-    for simplify in (0.0, 0.2) if planner == "RRTConnect" else (0.0,):
+    for simplify in (0.0, 2.0) if planner == "RRTConnect" else (0.0,):
         paths = {}
         for checker in ("mujoco", "lean"):  # each in a fresh process: OMPL seeds once per process
             cfg = PlannerConfig(
