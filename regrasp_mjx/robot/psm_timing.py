@@ -149,11 +149,15 @@ def path_ratio(path, gridpoints: np.ndarray, sd: np.ndarray, v_max, a_max, point
     frac = np.linspace(0.0, 1.0, per_interval + 2)
     s = ss[:-1, None] + frac * np.diff(ss)[:, None]  # [G-1, K]: each interval with its ends
     v = np.sqrt(np.maximum(sd[:-1, None] ** 2 + 2.0 * u[:, None] * (s - ss[:-1, None]), 0.0))
-    flat = s.reshape(-1)
-    dq, ddq = path(flat, 1).reshape(*s.shape, -1), path(flat, 2).reshape(*s.shape, -1)
-    qd = dq * v[..., None]
-    qdd = ddq * (v**2)[..., None] + dq * u[:, None, None]
-    return limit_ratio(qd.reshape(-1, dq.shape[-1]), qdd.reshape(-1, dq.shape[-1]), v_max, a_max)
+    qd, qdd = _joint_rates(path, s.reshape(-1), v.reshape(-1), np.repeat(u, s.shape[1]))
+    return limit_ratio(qd, qdd, v_max, a_max)
+
+
+def _joint_rates(path, s: np.ndarray, v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Joint velocities and accelerations ``[N, 6]`` at path points ``s`` moved along at path velocity
+    ``v`` and path acceleration ``u`` ``[N]``: ``q' v`` and ``q'' v^2 + q' u``."""
+    dq = path(s, 1)
+    return dq * v[:, None], path(s, 2) * (v**2)[:, None] + dq * u[:, None]
 
 
 def limit_ratio(qd: np.ndarray, qdd: np.ndarray, v_max=V_MAX, a_max=A_MAX) -> float:
@@ -202,9 +206,7 @@ def sample_const_accel(path, gridpoints: np.ndarray, sd: np.ndarray, rate_hz: fl
     i = np.minimum(np.searchsorted(knots, t, side="right") - 1, len(u) - 1)
     dt = t - knots[i]
     s = ss[i] + dt * sd[i] + 0.5 * dt**2 * u[i]
-    v = sd[i] + dt * u[i]
-    dq, ddq = path(s, 1), path(s, 2)
-    return t, path(s), dq * v[:, None], ddq * (v**2)[:, None] + dq * u[i][:, None]
+    return t, path(s), *_joint_rates(path, s, sd[i] + dt * u[i], u[i])
 
 
 @dataclasses.dataclass(frozen=True)
