@@ -85,8 +85,8 @@ class Plan:
     def jobs(self) -> list[Job]:
         out, r, cfg = self.out, self.recipe, self.teacher_cfg
         logs = out / "logs"
-        job = lambda name, stage, argv, finished, share, needs=(): Job(  # noqa: E731
-            name, stage, argv, finished, logs / (name.replace("/", "_") + ".txt"), share, needs
+        job = lambda name, stage, argv, finished, share, needs=(), **same: Job(  # noqa: E731
+            name, stage, argv, finished, logs / (name.replace("/", "_") + ".txt"), share, needs, **same
         )
         demos = out / "demos"
         env_items = [(k.removeprefix("env."), v) for k, v in self.routed["teachers"].items() if k.startswith("env.")]
@@ -112,6 +112,8 @@ class Plan:
             )
         )
         if r.students is not None:
+            # iterations 1 and 2 are two programs: after the second line a variant's programs are compiled
+            its = {v: r.student_config(v, self.routed["students"]).iterations for v, _ in r.students.variants}
             for variant, settings in r.students.variants:
                 for s in range(r.teachers.seeds):
                     folder = out / "students" / variant / f"s{s}"
@@ -129,6 +131,9 @@ class Plan:
                             folder / "distill_eval.json",
                             r.students.share,
                             ("teachers",),
+                            # a variant's seeds are one program set (its noise levels are constants in it)
+                            programs=f"students/{variant}",
+                            compiled=f"distill {min(2, its[variant])}/{its[variant]}",
                         )
                     )
         sel = r.selection
@@ -146,6 +151,7 @@ class Plan:
                     out / "select" / f"{name}.json",
                     sel.share,
                     (maker,),
+                    programs="select",  # the candidates share shapes: one compiles, the rest load it
                 )
             )
         choose = ["-m", "regrasp_mjx.recipe", r.name, "--out", str(out), "--step", "choose", *self._user_sets()]

@@ -127,6 +127,30 @@ def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp
     assert float(y[0]) >= float(x[1]) and x[3] == "None"
 
 
+def test_jobs_of_one_program_set_wait_for_the_first_to_compile(tmp_path):
+    """The first job of a ``programs`` key runs alone until its log shows ``compiled`` (then the
+    others start beside it); a key whose first job prints nothing waits for it to end."""
+
+    def job(name, programs, compiled, seconds):
+        done = tmp_path / f"{name}.done"
+        script = (
+            "import time, sys; t0 = time.time(); time.sleep(0.5); print('distill 2/20', flush=True); "
+            f"time.sleep({seconds}); open({str(done)!r}, 'w').write(f'{{t0}} {{time.time()}}')"
+        )
+        log = tmp_path / "logs" / f"{name}.txt"
+        return Job(name, "students", lambda: ["-c", script], done, log, 0.1, (), programs, compiled)
+
+    jobs = [job(f"s{i}", "a", "distill 2/20", 2.0) for i in range(3)] + [job(f"q{i}", "b", None, 1.0) for i in range(2)]
+    lines = []
+    run_jobs(jobs, ["0"], lines.append, heartbeat_s=1e9)
+    t = {j.name: [float(x) for x in j.finished.read_text().split()] for j in jobs}
+    # a's followers started after s0 printed its line (0.5 s in) and before it ended: side by side
+    assert all(t["s0"][0] + 0.5 <= t[n][0] < t["s0"][1] for n in ("s1", "s2"))
+    assert t["q1"][0] >= t["q0"][1]  # b never printed its marker: its second job waited for the first to end
+    assert t["q0"][0] < t["s0"][1]  # another key does not wait for this one
+    assert any("s0 has compiled its programs" in x for x in lines)
+
+
 def test_the_score_is_the_mean_success_over_the_rule_rows_and_the_best_candidate_wins():
     rows = lambda fused, per_frame: [  # noqa: E731
         {"mode": "fused", "condition": "sigma 0.25 mm", "success_rate": fused},

@@ -8,6 +8,12 @@ on a machine without a GPU, and never starts a job whose need failed. A job whos
 is skipped, and so is one whose dependents have all finished, so a killed schedule started again
 runs only what is left; each job resumes its own work
 as its command does (its arguments are made when it starts, ``Job.argv``).
+
+Jobs that compile the same programs (``Job.programs``, e.g. one student variant's seeds) start one
+at a time until one of them has compiled (its log shows ``Job.compiled``, or it ends): the others
+then load the programs from the persistent compilation cache the commands share
+(:func:`regrasp_mjx.core.xla_flags.compilation_cache`) instead of compiling them side by side, which
+on the GPU machine's CPU cores took several minutes for six students at once.
 """
 
 from __future__ import annotations
@@ -30,7 +36,8 @@ class Job:
     """One process. ``argv`` makes its ``python -m ...`` arguments when it starts (so a restart
     can add ``--resume``); ``finished`` exists once it has finished; ``needs`` names jobs that must
     finish first; ``share`` is the fraction of one GPU's memory it may take; ``stage`` groups jobs
-    for the progress lines; its output goes to ``log``."""
+    for the progress lines; its output goes to ``log``; jobs of one ``programs`` key wait for one of
+    them to print ``compiled`` (see the module's docstring)."""
 
     name: str
     stage: str
@@ -39,6 +46,8 @@ class Job:
     log: Path
     share: float = 1.0
     needs: tuple[str, ...] = ()
+    programs: str | None = None
+    compiled: str | None = None
 
     def done(self) -> bool:
         return self.finished.is_file()
@@ -83,6 +92,7 @@ class _Running:
     proc: subprocess.Popen
     stdout: object
     started: float
+    offset: int  # where this start's output begins in the job's log (a resumed job appends)
 
 
 def run_jobs(
@@ -137,6 +147,7 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
     """Starts and reaps jobs until none is left to start or running (``running`` and ``out`` are the
     caller's, so a stopped loop leaves them as they were)."""
     gpu = slots != [None]
+    warmed: set[str] = set()  # programs keys some job has compiled (see Job.programs)
     stage_left = {s: sum(1 for j in todo if j.stage == s) for s in dict.fromkeys(j.stage for j in todo)}
     stage_t0: dict[str, float] = {}
     t0 = last_beat = time.perf_counter()
@@ -150,6 +161,8 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
                 continue
             if not all(n in finished for n in job.needs):
                 continue
+            if _waits(job, running, warmed):
+                continue
             slot = _place(job, load, gpu, busy=bool(running))
             if slot is False:
                 continue
@@ -161,6 +174,10 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
             log(f"started {job.name} on {where}")
         time.sleep(0.5)
         now = time.perf_counter()
+        for r in running:
+            if r.job.programs and r.job.programs not in warmed and _printed(r, r.job.compiled):
+                warmed.add(r.job.programs)
+                log(f"{r.job.name} has compiled its programs: the jobs that share them start")
         if running and now - last_beat >= heartbeat_s:
             last_beat = now
             for r in running:
@@ -171,6 +188,8 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
             load[r.slot] -= r.job.share if gpu else 1.0
             wall = now - r.started
             code = r.proc.returncode
+            if r.job.programs and code == 0:  # what it compiled is in the cache (failed: the next one compiles)
+                warmed.add(r.job.programs)
             out[r.job.name] = {"exit": code, "wall_s": wall, "stage": r.job.stage}
             if code == 0 and r.job.done():
                 finished.add(r.job.name)
@@ -222,6 +241,25 @@ def _place(job: Job, load: dict, gpu: bool, busy: bool):
     return False
 
 
+def _waits(job: Job, running: list[_Running], warmed: set[str]) -> bool:
+    """Whether ``job`` waits for a running job of its ``programs`` key to compile them."""
+    if job.programs is None or job.programs in warmed:
+        return False
+    return any(r.job.programs == job.programs for r in running)
+
+
+def _printed(r: _Running, text: str | None) -> bool:
+    """Whether the running job's output since its start holds ``text``."""
+    if not text:
+        return False
+    try:
+        with open(r.job.log, "rb") as f:
+            f.seek(r.offset)
+            return text in f.read().decode(errors="replace")
+    except OSError:
+        return False
+
+
 def _start(job: Job, slot: str | None, gpu: bool) -> _Running:
     env = dict(os.environ)
     if gpu:
@@ -233,4 +271,4 @@ def _start(job: Job, slot: str | None, gpu: bool) -> _Running:
     stdout.flush()
     argv = [sys.executable, *job.argv()]
     proc = subprocess.Popen(argv, stdout=stdout, stderr=subprocess.STDOUT, env=env)
-    return _Running(job, slot, proc, stdout, time.perf_counter())
+    return _Running(job, slot, proc, stdout, time.perf_counter(), stdout.tell())

@@ -1,5 +1,6 @@
-"""XLA flags this package's programs run best with, added to ``XLA_FLAGS`` when the package is
-imported (before JAX starts a backend, which reads them once).
+"""How this package's programs are compiled: the XLA flags they run best with, added to
+``XLA_FLAGS`` when the package is imported (before JAX starts a backend, which reads them once),
+and the compilation cache its commands share (:func:`compilation_cache`).
 
 On a GPU the continuous collision test walks intervals in loops whose trip counts the data decide
 (:mod:`regrasp_mjx.world.continuous`); XLA runs each loop iteration from the host, copying its
@@ -11,15 +12,22 @@ a step (experiments/RESULTS.md, "Fewer waits for the device"). On a CPU the flag
 Flags already in the user's ``XLA_FLAGS`` are kept as given; ``REGRASP_MJX_XLA_FLAGS=0`` leaves
 ``XLA_FLAGS`` alone. Set by a program that started JAX's backend before importing this package,
 they do not apply.
+
+Every command (``train``, ``distill``, ``compare``, ``evaluate``) keeps its compiled programs in one
+persistent cache, so a process that compiles what another already has loads it instead: a recipe's
+students and candidates are the same programs on other data (:mod:`regrasp_mjx.core.jobs` starts
+one of them first and the rest once it has compiled).
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import MutableMapping
+from pathlib import Path
 
 FLAGS = ("--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL", "--xla_gpu_graph_min_graph_size=1")
 OPT_OUT = "REGRASP_MJX_XLA_FLAGS"
+CACHE = "REGRASP_JAX_CACHE"  # the cache's folder; JAX's own JAX_COMPILATION_CACHE_DIR wins over it
 
 
 def apply(environ: MutableMapping[str, str] = os.environ) -> str:
@@ -33,3 +41,17 @@ def apply(environ: MutableMapping[str, str] = os.environ) -> str:
     if add:
         environ["XLA_FLAGS"] = " ".join([current, *add]).strip()
     return environ.get("XLA_FLAGS", "")
+
+
+def compilation_cache(environ: MutableMapping[str, str] = os.environ) -> str:
+    """Points JAX's persistent compilation cache at ``JAX_COMPILATION_CACHE_DIR`` if set, else at
+    ``REGRASP_JAX_CACHE`` or ``~/.cache/regrasp_mjx/jax``; returns the folder."""
+    import jax  # here: importing the package must not start JAX's config before the flags are set
+
+    folder = (
+        environ.get("JAX_COMPILATION_CACHE_DIR")
+        or environ.get(CACHE)
+        or str(Path.home() / ".cache" / "regrasp_mjx" / "jax")
+    )
+    jax.config.update("jax_compilation_cache_dir", folder)
+    return folder
