@@ -25,7 +25,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from regrasp_mjx.agents.dagger import DistillConfig, Distiller
+from regrasp_mjx.agents.dagger import DistillConfig, Distiller, aim
 from regrasp_mjx.core import xla_flags
 from regrasp_mjx.core.atomic import dumps, output_folder_problem, write_json
 from regrasp_mjx.core.config import ConfigError, parse_overrides, replace
@@ -56,13 +56,8 @@ def distill(
     log = (lambda msg: None) if quiet else (lambda msg: print(msg, flush=True))
     env_cfg = teacher.env_config
     env = RegraspEnv(env_cfg)
-    aim = env_cfg
-    if cfg.goal_tolerance != 1.0:  # the student learns to reach deeper into the goal; it is judged as always
-        f = cfg.goal_tolerance
-        aim = dataclasses.replace(
-            env_cfg, success_pos_mm=f * env_cfg.success_pos_mm, success_rot_deg=f * env_cfg.success_rot_deg
-        )
-    distiller = Distiller(RegraspEnv(aim) if aim != env_cfg else env, teacher.members_fn(), cfg)
+    aimed = aim(env_cfg, cfg)  # the student learns to reach deeper into the goal; it is judged as always
+    distiller = Distiller(RegraspEnv(aimed) if aimed != env_cfg else env, teacher.members_fn(), cfg)
     valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, env_cfg)
     f32 = lambda tree: jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), tree)  # noqa: E731
     val, test = f32(valset), f32(testset)

@@ -464,3 +464,75 @@ def test_the_networks_of_2026_11_24_in_the_history_are_their_result_files():
             cells[4] == (f"{shielded['steps']:.1f}" if steps else "")
             and cells[5] == f"{shielded['path_length_mm']:.2f}"
         ), lead
+
+
+def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
+    """docs/training.md's recipe times: the demonstrations' and teachers' wall on one H100 (the
+    recipe's own recipe.json) and the students' iteration speed-up (the mean of iterations 3-5 with
+    ended rows stepped by their action against by no motion, prof2.json)."""
+    folder = ROOT / "experiments" / "results" / "recipe" / "h100_2026-11-27"
+    jobs = json.loads((folder / "recipe.json").read_text())["runs"][0]["jobs"]
+    prof = json.loads((folder / "prof2.json").read_text())
+    speedup = sum(prof["False"][2:]) / sum(prof["True"][2:])
+    text = _prose("training.md")
+    assert (
+        f"demonstrations {jobs['demos']['wall_s']:.0f} s and teachers {jobs['teachers']['wall_s']:.0f} s (2026-11-27)"
+        in text
+    )
+    assert f"after their iteration became {speedup:.1f}x faster" in text
+
+
+def test_table_two_s_rrt_connect_and_earlier_policy_rows_are_their_result_files():
+    """docs/results.md's Table II: the RRT-Connect rows (forward / reverse: rrt_connect/*.csv over
+    OMPL's MuJoCo checker, lean_checker/dev_amd/bench_plan.json over the lean one), BIT* (R) over the
+    lean checker (lean_checker/planners_lean.csv) and the earlier policies' rows (inference/eval_cpu1_*.json)."""
+    results = ROOT / "experiments" / "results"
+    text = _prose("results.md")
+
+    def csv_rows(path):
+        with open(results / path) as f:
+            return {r["algorithm"].split(",")[0]: r for r in csv.DictReader(f)}
+
+    def pair(rows, digits):
+        f, r = rows
+        times = ", ".join(
+            f"{1e3 * float(x['plan_time_mean_s']):.{digits}f} / {1e3 * float(x['plan_time_median_s']):.{digits}f}"
+            for x in (f, r)
+        )
+        return f"| {float(f['success_rate']):.3f} / {float(r['success_rate']):.3f} | {times} | {float(f['path_length_mm']):.2f} / {float(r['path_length_mm']):.2f} |"
+
+    for lead, path in (
+        ("RRT-Connect (F / R), 2 mm range (ours; 2-core dev machine)", "rrt_connect/planners_rrtconnect.csv"),
+        ("RRT-Connect (F / R) + 0.2 s shortcutting", "rrt_connect/planners_rrtconnect_simplified.csv"),
+    ):
+        rows = csv_rows(path)
+        cells = f"| {lead} " + pair((rows["RRT-Connect (F)"], rows["RRT-Connect (R)"]), 1)
+        assert cells in text, cells
+    bench = {r["method"]: r for r in json.loads((results / "lean_checker/dev_amd/bench_plan.json").read_text())["rows"]}
+    for lead, suffix in (
+        ("100 queries)", ", lean checker"),
+        ("the same + 0.2 s shortcutting", " + 0.2 s shortcutting, lean checker"),
+    ):
+        f, r = (bench[f"RRT-Connect ({d}){suffix}"] for d in "FR")
+        cells = (
+            f"{lead} | {f['success_rate']:.3f} / {r['success_rate']:.3f} | {f['mean_ms']:.2f} / {f['median_ms']:.2f}, "
+            f"{r['mean_ms']:.2f} / {r['median_ms']:.2f} | {f['path_length_mm']:.2f} / {r['path_length_mm']:.2f} |"
+        )
+        assert cells in text, cells
+    bit = csv_rows("lean_checker/planners_lean.csv")["BIT* (R)"]
+    assert (
+        f"16 planner processes) | {float(bit['success_rate']):.3f} | {1e3 * float(bit['plan_time_mean_s']):.1f} / "
+        f"{1e3 * float(bit['plan_time_median_s']):.1f} | {float(bit['path_length_mm']):.2f} |"
+    ) in text
+    for lead, name in (
+        ("policy, one 3x512 network of the paper's learner, bare", "single"),
+        ("policy, 3-network ensemble + shield (earlier default)", "ensemble3_shield"),
+        ("policy, distilled 3x256 network, bare", "student3x256_bare"),
+        ("policy, `student_v2` (distilled 2x256 network + shield; the default on 2026-11-23)", "shipped"),
+    ):
+        e = json.loads((results / "inference" / f"eval_cpu1_{name}.json").read_text())
+        cells = (
+            f"| {lead} | {e['success_rate']:.3f} | {e['planning_time_ms_mean']:.2f} / {e['planning_time_ms_median']:.2f} | "
+            f"{e['path_length_mm']:.2f} |"
+        )
+        assert cells in text, cells

@@ -160,6 +160,36 @@ def test_a_compacted_rollout_ends_every_episode_as_the_whole_batch_does(env, jit
         np.testing.assert_array_equal(a, b)
 
 
+def test_an_ended_row_is_stepped_by_no_motion_and_the_outcomes_stay(env, jit_env, paper_testset, monkeypatch):
+    """A row that has ended is held; ``rollout`` steps it by a zero action (which the continuous
+    collision test proves at once) instead of its policy's, and every outcome is as before."""
+    from regrasp_mjx.envs import rollout as r
+
+    _, reset_from, _ = jit_env
+    toward = _toward_goal(env)
+    start = reset_from(_rows(paper_testset, range(16)))
+    act = lambda st, t: toward(st.pipeline_state)  # noqa: E731 - straight at the goal: some rows hit the wire
+    given = []
+
+    def step(state, a):
+        jax.debug.callback(lambda a: given.append(np.asarray(a)), a, ordered=True)
+        return jax.vmap(env.step)(state, a)
+
+    runs = {}
+    for hold in (True, False):
+        monkeypatch.setattr(r, "HOLD_STILL", hold)
+        given.clear()
+        out = jax.tree.map(np.asarray, jax.jit(lambda s: r.rollout(env, act, s, max_steps=12, step=step))(start))
+        runs[hold] = (out, np.stack(given))
+    (out, moved), (before, _) = runs[True], runs[False]
+    assert out.collision.any() and out.success.any()  # rows ended both ways, at different steps
+    live = np.arange(len(moved))[:, None] < out.steps[None, :]  # [step, row]: the row was live at that step
+    assert len(moved) == out.steps.max() and (~live).sum() > len(moved)
+    assert (moved[~live] == 0).all() and (np.abs(moved[live]).sum(-1) > 0).all()
+    for name in ("start_valid", "success", "collision", "time_out", "steps", "path_length_mm", "discounted_return"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(before, name), err_msg=name)
+
+
 def test_a_stopping_rule_ends_episodes_in_place_of_the_environment(env, jit_env, paper_testset):
     """``rollout(stop=...)``: the rule ends rows before a step (its success or not, ``stopped``),
     reaching the true goal no longer ends an episode, a collision still does, and the rows the rule

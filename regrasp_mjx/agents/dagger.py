@@ -114,6 +114,18 @@ class DistillState:
     key: jax.Array
 
 
+def aim(env_config, config: DistillConfig):
+    """The environment the student learns in: the task's, with its success tolerances scaled by
+    ``goal_tolerance`` (the teacher's lookahead and the rollouts end there; the student is judged
+    in the task's own)."""
+    f = config.goal_tolerance
+    if f == 1.0:
+        return env_config
+    return dataclasses.replace(
+        env_config, success_pos_mm=f * env_config.success_pos_mm, success_rot_deg=f * env_config.success_rot_deg
+    )
+
+
 def teacher_actions(env: RegraspEnv, members: MembersFn, state: Any, key: jax.Array, lookahead: int):
     """The teacher's actions at a batch of environment states (see the module docstring).
 

@@ -127,7 +127,10 @@ def rollout(
             ended = ended | stopping | late
             live = ~ended
         a = act(state, t)
-        nxt = step(state, a)
+        # an ended row's state is held and its step dropped: it is stepped by no motion, which the
+        # continuous collision test proves at once, instead of walking its action's motion (out of
+        # the wire it ended in: the costliest walk there is; a lookahead's candidates end so by the many)
+        nxt = step(state, jnp.where(_rows(live, a), a, jnp.zeros_like(a)) if HOLD_STILL else a)
         if shield is not None:
             a, nxt = shield(state, t, a, nxt, live)
         if buffers is not None:
@@ -161,6 +164,7 @@ def rollout(
     return out._replace(trace=buffers)
 
 
+HOLD_STILL = True  # ended rows are stepped by a zero action (see rollout's body; False: by their own)
 COMPACT = 16  # rollout(compact=True) narrows to the live rows once at most 1/16 of the batch is left
 
 
