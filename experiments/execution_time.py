@@ -25,14 +25,21 @@ from regrasp_mjx.world.sampling import episode_poses, load_testset
 from regrasp_mjx.world.scene import load_scene
 
 
-def _timed_ms(waypoints: np.ndarray, size: int | None) -> tuple[float, float]:
-    """Milliseconds of one ``time_joints`` and the motion's length (NaN where TOPP-RA found none)."""
+def _timed_ms(waypoints: np.ndarray, size: int | str | None) -> tuple[float, float]:
+    """Milliseconds of one ``time_joints`` and the motion's length (NaN where TOPP-RA found none);
+    ``size``: even grid points, ``"200+40W"`` the grid before 2026-11-27 (max(200, 40 W) even points),
+    None the default (:func:`psm_timing.knot_grid`)."""
+    if size == EARLIER:
+        size = max(200, 40 * len(waypoints))
     t0 = time.perf_counter()
     try:
         duration = time_joints(waypoints, gridpoints=size).duration_s
     except ValueError:  # too coarse a grid can leave no feasible parameterisation
         duration = float("nan")
     return 1e3 * (time.perf_counter() - t0), duration
+
+
+EARLIER = "200+40W"  # the default grid until 2026-11-27: max(200, 40 W) evenly spaced points
 
 
 def _off_path(points: np.ndarray, path: np.ndarray) -> float:
@@ -87,7 +94,10 @@ def main() -> None:
     p.add_argument("--testset", default="paper300")
     p.add_argument("--out", default=None)
     p.add_argument(
-        "--grids", default="50,100,200", help="TOPP-RA grid sizes to time against the default, comma-separated"
+        "--grids",
+        default=f"{EARLIER},50,100,200",
+        help=f"TOPP-RA grids to time against the default, comma-separated: even point counts, or {EARLIER} "
+        "(max(200, 40 W) even points, the default until 2026-11-27)",
     )
     p.add_argument(
         "--closed-loop-noise-mm",
@@ -127,7 +137,7 @@ def main() -> None:
     d = np.array(durations)
     # TOPP-RA's grid: time against motion length, on the same waypoints (each timed 3 times, the fastest kept)
     grids = {}
-    for size in [None, *(int(g) for g in args.grids.split(",") if g)]:
+    for size in [None, *(g if g == EARLIER else int(g) for g in args.grids.split(",") if g)]:
         ms, dur = [], []
         for w in waypoints:
             best = min(_timed_ms(w, size) for _ in range(3))
@@ -173,7 +183,9 @@ def main() -> None:
     base_d = grids["default"]["duration_median_s"]
     lines += [
         "",
-        "TOPP-RA's grid (`time_joints(gridpoints=...)`, default max(200, 40 W)) on the same waypoints, the fastest of 3:",
+        "TOPP-RA's grid on the same waypoints, the fastest of 3: the default (the waypoints and 8 Chebyshev-spaced "
+        f"points inside each segment, `psm_timing.knot_grid`), {EARLIER} (max(200, 40 W) even points, the default "
+        "until 2026-11-27) and even grids (`time_joints(gridpoints=...)`):",
         "",
         "| grid points | time_joints, median (ms) | motion, median (s) | against the default grid | no trajectory found |",
         "| --- | ---: | ---: | ---: | ---: |",

@@ -74,6 +74,24 @@ def test_every_sample_keeps_the_dvrk_limits_and_passes_every_waypoint():
     assert coarse.duration_s >= fine.duration_s * (1 - 1e-6)
 
 
+def test_the_default_grid_is_the_knots_and_chebyshev_points_between_them():
+    """``knot_grid``: every knot and, inside each segment, ``(1 - cos(pi k / (n + 1))) / 2`` of its
+    length (hand-worked for n = 3: 0.1464, 0.5, 0.8536); on a curved path of eight waypoints the
+    default timing on it (64 points) is within 6 % of a fine even grid's (315 points) and shorter than
+    an even grid's of as many points (measured: +3.8 % and +10.3 %)."""
+    grid = psm_timing.knot_grid(np.array([0.0, 0.25, 1.0]), 3)
+    c = (1 - math.cos(math.pi / 4)) / 2
+    expected = [0.0, 0.25 * c, 0.125, 0.25 * (1 - c), 0.25, 0.25 + 0.75 * c, 0.625, 0.25 + 0.75 * (1 - c), 1.0]
+    np.testing.assert_allclose(grid, expected, atol=1e-12)
+    t = np.linspace(0.0, 1.0, 8)[:, None]
+    waypoints = np.c_[0.3 * np.sin(3 * t), 0.2 * np.cos(2 * t), 0.1 + 0.02 * t, np.sin(5 * t), t, -t] * 0.5
+    default = time_joints(waypoints)
+    fine = time_joints(waypoints, gridpoints=7 * 9 * 5)
+    assert fine.duration_s <= default.duration_s <= 1.06 * fine.duration_s
+    assert time_joints(waypoints, gridpoints=7 * 9 + 1).duration_s > default.duration_s
+    assert limit_ratio(default.qd, default.qdd) <= 1.0 + 1e-9
+
+
 def test_a_coarse_grid_is_slowed_uniformly_until_every_sample_keeps_the_limits(monkeypatch):
     """TOPP-RA holds the limits at its grid points only: on 20 points the constant-acceleration motion
     between them passes the acceleration limit (by more than a tenth here, measured at 1 kHz); the

@@ -51,9 +51,12 @@ V_MAX = np.array([math.pi / 2, math.pi / 2, 0.2, 6 * math.pi, 6 * math.pi, 6 * m
 A_MAX = np.array([math.pi / 2, math.pi / 2, 0.2, 4 * math.pi, 4 * math.pi, 4 * math.pi])  # rad/s^2, m/s^2
 RATE_HZ = 1000.0  # the dVRK's servo rate
 MAX_INSERTIONS = 8
-# TOPP-RA's grid along the path: at least this many points, and this many per waypoint (coarser is
-# faster to compute and gives longer motion, experiments/RESULTS.md, issue 48)
-GRID = (200, 40)
+# TOPP-RA's grid along the path: every waypoint (a knot of the spline) and this many points inside
+# each segment between two, Chebyshev-spaced (densest next to the knots, where the spline's curvature,
+# and with it how fast the joints move for a path velocity, changes most). Against a uniform grid of
+# max(200, 40 W) points: about 5x fewer points, the motion a few percent longer (experiments/RESULTS.md,
+# issue 48: TOPP-RA's time grows with its points, its motion shrinks with them)
+GRID_PER_SEGMENT = 8
 MAX_RESCALES = 4  # uniform slow-downs of a timing whose samples pass a limit (one is the rule)
 # the share of each limit TOPP-RA is given: all of it, since the motion between its grid points is
 # slowed to the limits afterwards (path_ratio); below 1 it leaves room and motion time
@@ -85,8 +88,9 @@ def time_joints(
     ``v_max`` and ``a_max`` (6 each), sampled at ``rate_hz`` (see the module's docstring): TOPP-RA's
     timing (:func:`raw_timing`, at :data:`HEADROOM` of the limits) slowed uniformly by the largest
     excess anywhere between its grid points (:func:`path_ratio`), so that every sample keeps the
-    limits. ``gridpoints``: TOPP-RA's grid along the path (default :data:`GRID`: ``max(200, 40 W)``;
-    a coarser grid is faster to compute and gives longer motion, experiments/RESULTS.md)."""
+    limits. ``gridpoints``: TOPP-RA's grid along the path, that many points spaced evenly (default:
+    the knots and :data:`GRID_PER_SEGMENT` points between two, :func:`knot_grid`; a coarser grid is
+    faster to compute and gives longer motion, experiments/RESULTS.md)."""
     q = np.asarray(waypoints, np.float64)
     if q.ndim != 2 or q.shape[1] != 6 or len(q) < 1 or not np.all(np.isfinite(q)):
         raise ValueError(f"waypoints of shape {q.shape} are not accepted: [W, 6] finite joint vectors, W >= 1")
@@ -122,13 +126,13 @@ def raw_timing(q: np.ndarray, gridpoints: int | None = None, v_max=V_MAX, a_max=
     """TOPP-RA's own timing of distinct waypoints ``q`` ``[W >= 2, 6]``: ``(path, gridpoints, sd)``,
     the C2 spline through them (knots spaced by the time each segment takes at the velocity limits)
     and the path velocities at the grid's points, at :data:`HEADROOM` of the limits; ``gridpoints``
-    None: :data:`GRID`."""
+    None: :func:`knot_grid`, else that many points spaced evenly."""
     span = np.max(np.abs(np.diff(q, axis=0)) / v_max, axis=1)
     ss = np.r_[0.0, np.cumsum(span)]
     ss /= ss[-1]
     path = toppra.SplineInterpolator(ss, q, bc_type="clamped" if len(q) > 2 else "natural")
     limits = _constraints(tuple(v_max * HEADROOM), tuple(a_max * HEADROOM))
-    grid = np.linspace(0.0, 1.0, gridpoints or max(GRID[0], GRID[1] * len(q)))
+    grid = np.linspace(0.0, 1.0, gridpoints) if gridpoints else knot_grid(ss)
     solver = toppra.algorithm.TOPPRA(limits, path, gridpoints=grid, solver_wrapper="seidel")
     solver.compute_parameterization(0.0, 0.0)
     data = solver.problem_data
@@ -136,6 +140,15 @@ def raw_timing(q: np.ndarray, gridpoints: int | None = None, v_max=V_MAX, a_max=
     if ok and len(grid) > 2 and np.all(data.sd_vec[1:-1] > 0):  # 2 points at rest: no motion at all
         return path, grid, data.sd_vec
     raise ValueError("TOPP-RA found no trajectory through these waypoints at these limits")
+
+
+def knot_grid(knots: np.ndarray, per_segment: int = GRID_PER_SEGMENT) -> np.ndarray:
+    """The path's grid: the spline's ``knots`` (increasing, 0 to 1) and ``per_segment`` points inside
+    each segment at the Chebyshev points' spacing, ``(1 - cos(pi k / (n + 1))) / 2``."""
+    inner = (1.0 - np.cos(np.pi * np.arange(1, per_segment + 1) / (per_segment + 1))) / 2.0
+    knots = np.asarray(knots, np.float64)
+    points = knots[:-1, None] + inner[None, :] * np.diff(knots)[:, None]
+    return np.sort(np.r_[knots, points.ravel()])
 
 
 def path_ratio(path, gridpoints: np.ndarray, sd: np.ndarray, v_max, a_max, points: int = 2000) -> float:
