@@ -378,6 +378,17 @@ def test_the_long_runs_drift_and_scale_sweep_in_the_history_are_their_result_fil
         f"collisions creep up ({np.mean(base['50']['collision']):.3f} to {np.mean(base['425']['collision']):.3f})"
         in text
     )
+    decay = [json.loads((results / "drift" / "drift.json").read_text())[k]["at"] for k in (
+        "BC to 0 by epoch 100", "BC to 0 by epoch 100, second run")]  # fmt: skip
+    at100 = lambda name: [x for run in decay for x in run["100"][name]]  # noqa: E731
+    steps = [x for run in decay for epoch, row in run.items() if int(epoch) >= 100 for x in row["steps"]]
+    stalls = max(x for run in decay for epoch, row in run.items() if int(epoch) >= 150 for x in row["time-out"])
+    assert (
+        f"drops collisions to {min(at100('collision')):.3f}-{max(at100('collision')):.3f} and brings validation "
+        f"success to {min(at100('validation success')):.3f}-{max(at100('validation success')):.3f} on every seed at "
+        f"epoch 100 (two runs, 3 seeds each), but the policy then takes {min(steps):.0f}-{max(steps):.0f} smaller "
+        f"steps instead of 10 and some seeds stall, timing out on up to {stalls:.2f} of the problems from epoch 150 on"
+    ) in text
     scale = json.loads((results / "scale" / "scale.json").read_text())
     mean = lambda envs, setting: np.mean(scale[envs][setting]["last10"])  # noqa: E731
     more = [mean(e, s) for e in scale if int(e) >= 32 for s in ("mixed", "ddpg_bc")]
