@@ -3,9 +3,10 @@ student's rollouts, the teacher's labels with their lookahead rollouts, the upda
 have ended stepped by no motion (``rollout.HOLD_STILL``, as shipped) and by their own action (before).
 
 The recipe's students spend their time here: 20 iterations each, six of them for the shipped
-default. The labels' lookahead rolls 26 candidate actions out from each of 16,384 states; most
-candidates end in the wire within a few steps, and an ended row stepped by its own action again
-walks the continuous collision test's costliest case, a motion out of the wire.
+default. The labels' lookahead rolls 26 candidate actions out from each of 16,384 states for up to
+40 steps; a row that has ended (in the wire, say) and is stepped by its own action again is, we
+infer, the continuous collision test's costliest case: a motion from inside the wire, bisected to
+the test's budget.
 
     python experiments/bench_distill.py --teacher runs/d/teachers/seed0/policy --out experiments/results/recipe/distill
     python experiments/bench_distill.py --teacher decay --iterations 3        # a shipped policy as the teacher
