@@ -36,7 +36,6 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx.core import xla_flags
 from regrasp_mjx.core.atomic import dumps, machine, output_folder_problem, write_results
 from regrasp_mjx.core.config import ConfigError, parse_overrides
 from regrasp_mjx.core.host_loop import release_programs, run_command
@@ -175,7 +174,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="folder for NAME.md and NAME.json (default: print only)")
     p.add_argument("--name", default=None, help="file name (default: compare, or robustness)")
     args = p.parse_args(argv)
-    xla_flags.compilation_cache()  # programs another command compiled load instead
     args.name = args.name or ("robustness" if args.robustness else "compare")
     if args.out is not None and (problem := output_folder_problem(args.out)):  # before any work: minutes
         p.error(problem)

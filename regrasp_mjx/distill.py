@@ -26,7 +26,6 @@ import jax
 import jax.numpy as jnp
 
 from regrasp_mjx.agents.dagger import DistillConfig, Distiller, aim
-from regrasp_mjx.core import xla_flags
 from regrasp_mjx.core.atomic import dumps, output_folder_problem, write_json
 from regrasp_mjx.core.config import ConfigError, parse_overrides, replace
 from regrasp_mjx.core.host_loop import BestOf, FolderInUse, Phases, RunLog, eta, folder_lock, run_command
@@ -185,7 +184,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
-    xla_flags.compilation_cache()  # programs another command compiled load instead
     if problem := output_folder_problem(args.out):  # the string as given: Path("") would be "."
         p.error(problem)
     out = Path(args.out)

@@ -26,7 +26,6 @@ import time
 import jax
 import numpy as np
 
-from regrasp_mjx.core import xla_flags
 from regrasp_mjx.core.atomic import dumps
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import run_command
@@ -290,7 +289,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="seed of the needle-estimate noise")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
-    xla_flags.compilation_cache()  # programs another command compiled load instead
     _check_args(p, args)
     try:
         policy = load_policy(args.policy)

@@ -28,7 +28,7 @@ import jax
 
 from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, grow_with_devices, make_config
 from regrasp_mjx.agents.ddpg_bc.placement import Placement
-from regrasp_mjx.core import distributed, gpu_memory, xla_flags
+from regrasp_mjx.core import distributed, gpu_memory
 from regrasp_mjx.core.atomic import dumps, output_folder_problem
 from regrasp_mjx.core.config import TASKS, ConfigError, parse_overrides
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
@@ -207,7 +207,6 @@ def main(argv: list[str] | None = None) -> int:
             out.mkdir(parents=True, exist_ok=True)
             if jax.default_backend() == "cpu" and args.preset != "smoke":
                 warnings.warn("training on the CPU: no GPU is visible to JAX; this preset expects one", stacklevel=1)
-            xla_flags.compilation_cache()
             run = Run(cfg, out, Path(args.demos) if args.demos else None, Path(args.testset), args.quiet)
             final = run.train(resume=args.resume)
     except (ConfigError, DemosError, TestsetError, FolderInUse) as err:

@@ -29,6 +29,7 @@ from typing import Any
 
 import jax
 
+from regrasp_mjx.core import xla_flags
 from regrasp_mjx.core.atomic import dumps, write_text
 
 
@@ -198,8 +199,10 @@ def folder_lock(out: Path):
 
 
 def run_command(main: Callable[[], int], again: str) -> int:
-    """Runs a command line's ``main``; Ctrl-C prints one line saying how to go on (``again``) and
-    exits 130, never a traceback."""
+    """Runs a command line's ``main`` with the compilation cache every command shares
+    (:func:`regrasp_mjx.core.xla_flags.cache_folder`: a program another command compiled loads
+    instead); Ctrl-C prints one line saying how to go on (``again``) and exits 130, never a traceback."""
+    jax.config.update("jax_compilation_cache_dir", xla_flags.cache_folder())
     try:
         return main()
     except KeyboardInterrupt:

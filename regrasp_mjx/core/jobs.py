@@ -12,7 +12,7 @@ as its command does (its arguments are made when it starts, ``Job.argv``).
 Jobs that compile the same programs (``Job.programs``, e.g. one student variant's seeds) start one
 at a time until one of them has compiled (its log shows ``Job.compiled``, or it ends): the others
 then load the programs from the persistent compilation cache the commands share
-(:func:`regrasp_mjx.core.xla_flags.compilation_cache`) instead of compiling them side by side, which
+(:func:`regrasp_mjx.core.xla_flags.cache_folder`) instead of compiling them side by side, which
 on the GPU machine's CPU cores took several minutes for six students at once.
 """
 

@@ -1,6 +1,6 @@
 """How this package's programs are compiled: the XLA flags they run best with, added to
 ``XLA_FLAGS`` when the package is imported (before JAX starts a backend, which reads them once),
-and the compilation cache its commands share (:func:`compilation_cache`).
+and the compilation cache its commands share (:func:`cache_folder`).
 
 On a GPU the continuous collision test walks intervals in loops whose trip counts the data decide
 (:mod:`regrasp_mjx.world.continuous`); XLA runs each loop iteration from the host, copying its
@@ -13,7 +13,7 @@ Flags already in the user's ``XLA_FLAGS`` are kept as given; ``REGRASP_MJX_XLA_F
 ``XLA_FLAGS`` alone. Set by a program that started JAX's backend before importing this package,
 they do not apply.
 
-Every command (``train``, ``distill``, ``compare``, ``evaluate``) keeps its compiled programs in one
+Every command (:func:`regrasp_mjx.core.host_loop.run_command`) keeps its compiled programs in one
 persistent cache, so a process that compiles what another already has loads it instead: a recipe's
 students and candidates are the same programs on other data (:mod:`regrasp_mjx.core.jobs` starts
 one of them first and the rest once it has compiled).
@@ -43,15 +43,11 @@ def apply(environ: MutableMapping[str, str] = os.environ) -> str:
     return environ.get("XLA_FLAGS", "")
 
 
-def compilation_cache(environ: MutableMapping[str, str] = os.environ) -> str:
-    """Points JAX's persistent compilation cache at ``JAX_COMPILATION_CACHE_DIR`` if set, else at
-    ``REGRASP_JAX_CACHE`` or ``~/.cache/regrasp_mjx/jax``; returns the folder."""
-    import jax  # here: importing the package must not start JAX's config before the flags are set
-
-    folder = (
+def cache_folder(environ: MutableMapping[str, str] = os.environ) -> str:
+    """The persistent compilation cache's folder: ``JAX_COMPILATION_CACHE_DIR`` if set, else
+    ``REGRASP_JAX_CACHE``, else ``~/.cache/regrasp_mjx/jax``."""
+    return (
         environ.get("JAX_COMPILATION_CACHE_DIR")
         or environ.get(CACHE)
         or str(Path.home() / ".cache" / "regrasp_mjx" / "jax")
     )
-    jax.config.update("jax_compilation_cache_dir", folder)
-    return folder
