@@ -11,7 +11,8 @@ the test's budget.
     python experiments/bench_distill.py --teacher runs/d/teachers/seed0/policy --out experiments/results/recipe/distill
     python experiments/bench_distill.py --teacher decay --iterations 3        # a shipped policy as the teacher
 
-Compile time is the first two iterations' (two programs); the others are timed one by one.
+Compile time is in the first two iterations (one program for every iteration since the first's teacher
+rollout became a traced flag); the others are timed one by one.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from regrasp_mjx.workflows.recipes import RECIPES
 
 def bench(teacher, cfg: DistillConfig, iterations: int, hold_still: bool) -> dict:
     rollout.HOLD_STILL = hold_still  # read when the iteration is traced: a new Distiller traces anew
-    distiller = Distiller(RegraspEnv(aim(teacher.env_config, cfg)), teacher.members_fn(), cfg)
+    distiller = Distiller(RegraspEnv(aim(teacher.env_config, cfg)), teacher.network(), cfg)
     ds, times, metrics = distiller.init(), [], []
     for i in range(iterations + 2):
         t0 = time.perf_counter()

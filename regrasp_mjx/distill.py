@@ -32,7 +32,7 @@ from regrasp_mjx.core.host_loop import BestOf, FolderInUse, Phases, RunLog, eta,
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import evaluate_noisy
 from regrasp_mjx.envs.rollout import evaluate_actor, summarize
-from regrasp_mjx.inference.policy import Policy, PolicyError, load_policy, save_policy
+from regrasp_mjx.inference.policy import Policy, PolicyError, load_policy, mean_action, save_policy
 from regrasp_mjx.inference.testset_plans import outcomes
 from regrasp_mjx.world.sampling import PAPER300, Episode, TestsetError, load_testset
 from regrasp_mjx.world.testsets import make_testset
@@ -56,7 +56,7 @@ def distill(
     env_cfg = teacher.env_config
     env = RegraspEnv(env_cfg)
     aimed = aim(env_cfg, cfg)  # the student learns to reach deeper into the goal; it is judged as always
-    distiller = Distiller(RegraspEnv(aimed) if aimed != env_cfg else env, teacher.members_fn(), cfg)
+    distiller = Distiller(RegraspEnv(aimed) if aimed != env_cfg else env, teacher.network(), cfg)
     valset = make_testset(cfg.validation_size, VALIDATION_SEED + cfg.seed, env_cfg)
     f32 = lambda tree: jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), tree)  # noqa: E731
     val, test = f32(valset), f32(testset)
@@ -65,15 +65,18 @@ def distill(
     def student_eval(params, normalizer, episodes):
         return evaluate_actor(env, functools.partial(distiller.nets.policy, params, normalizer), episodes)
 
+    # the seed's key, the weights and the problems are arguments: the students of a recipe (three
+    # teachers, three seeds) share these programs through the persistent compilation cache
     @jax.jit
-    def student_eval_noisy(params, normalizer, episodes):
+    def student_eval_noisy(params, normalizer, episodes, key):
         act = functools.partial(distiller.nets.policy, params, normalizer)
-        key = jax.random.PRNGKey(VALIDATION_SEED + cfg.seed)
         return evaluate_noisy(env, act, episodes, key, cfg.obs_noise_mm, cfg.obs_bias_mm, cfg.obs_tool_noise_mm)
 
-    teacher_eval = jax.jit(lambda episodes: evaluate_actor(env, teacher.actor_fn(), episodes))
+    noisy_key = jax.random.PRNGKey(VALIDATION_SEED + cfg.seed)
+    apply, weights = teacher.network()
+    teacher_eval = jax.jit(lambda w, episodes: evaluate_actor(env, lambda obs: mean_action(apply(w, obs)), episodes))
     t0 = time.perf_counter()
-    teacher_val = summarize(jax.device_get(teacher_eval(val)), "bare")
+    teacher_val = summarize(jax.device_get(teacher_eval(weights, val)), "bare")
     log(
         f"teacher {teacher_name or '(given)'}: {teacher.members} network(s), bare success on "
         f"{cfg.validation_size} validation problems {teacher_val['success_rate']:.3f}"
@@ -96,14 +99,14 @@ def distill(
         with phases("iterations"):
             ds, metrics = distiller.iteration(ds, it == 0)
             metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
-        if compile_s is None and it == 1:  # iteration 0 and 1 are two programs; count both compiles
+        if compile_s is None:  # one program for every iteration: the first compiles it
             compile_s = time.perf_counter() - t0
         with phases("evaluate"):
             va = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, val)), "bare")
             te = summarize(jax.device_get(student_eval(ds.params, ds.normalizer, test)), "bare")
             # with noise the student is chosen under the noise it learned (one new frame a step, bare)
             vn = (
-                summarize(jax.device_get(student_eval_noisy(ds.params, ds.normalizer, val)), "noisy")
+                summarize(jax.device_get(student_eval_noisy(ds.params, ds.normalizer, val, noisy_key)), "noisy")
                 if distiller.noisy
                 else None
             )

@@ -38,6 +38,7 @@ from regrasp_mjx.core.config import TASKS, ConfigError, parse_overrides
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.core.jobs import Job, gpu_slots, run_jobs
 from regrasp_mjx.distill import DISTILL_OUTPUTS
+from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.selection import closed_loop_markdown, closed_loop_settings, parse_noises, score
 from regrasp_mjx.train import restart_args
@@ -60,8 +61,8 @@ def _sets(pairs) -> list[str]:
 class Plan:
     """One recipe's jobs in ``out`` with the user's ``--set`` ``items``."""
 
-    def __init__(self, recipe: Recipe, out: Path, items: list[str], workers: int):
-        self.recipe, self.out, self.items, self.workers = recipe, out, items, workers
+    def __init__(self, recipe: Recipe, out: Path, items: list[str], workers: int, gpus: bool = False):
+        self.recipe, self.out, self.items, self.workers, self.gpus = recipe, out, items, workers, gpus
         self.routed = recipes.check(recipe, parse_overrides(items))
         self.teacher_cfg = recipe.teacher_config(self.routed["teachers"])
 
@@ -112,7 +113,7 @@ class Plan:
             )
         )
         if r.students is not None:
-            # iterations 1 and 2 are two programs: after the second line a variant's programs are compiled
+            # one program for every iteration: after the first line a variant's programs are compiled
             its = {v: r.student_config(v, self.routed["students"]).iterations for v, _ in r.students.variants}
             for variant, settings in r.students.variants:
                 for s in range(r.teachers.seeds):
@@ -131,9 +132,10 @@ class Plan:
                             folder / "distill_eval.json",
                             r.students.share,
                             ("teachers",),
-                            # a variant's seeds are one program set (its noise levels are constants in it)
+                            # a variant's seeds are one program set (its noise levels are constants in
+                            # it; the teacher's weights and the seed are arguments)
                             programs=f"students/{variant}",
-                            compiled=f"distill {min(2, its[variant])}/{its[variant]}",
+                            compiled=f"distill 1/{its[variant]}",
                         )
                     )
         sel = r.selection
@@ -160,12 +162,28 @@ class Plan:
         report = ["-m", "regrasp_mjx.compare", "--robustness", "--policy", f"{r.name}={out / 'policy'}"]
         if r.report.heldout:
             report += ["--heldout", "{}:{}".format(*r.report.heldout), "--no-testset"]
-        if r.report.modes:
-            report += ["--modes", ",".join(r.report.modes)]
-        if r.report.conditions:
-            report += ["--conditions", ",".join(r.report.conditions)]
-        report += ["--out", str(out), "--name", "robustness"]
-        jobs.append(job("report", "report", lambda: report, out / "robustness.json", r.report.share, ("choose",)))
+        modes = r.report.modes or tuple(robustness.MODES)
+        groups = robustness.program_groups(modes, r.report.conditions)
+        if not self.gpus or len(groups) == 1:  # one job at a time: one process compiles them all
+            report += ["--modes", ",".join(modes)]
+            if r.report.conditions:
+                report += ["--conditions", ",".join(r.report.conditions)]
+            report += ["--out", str(out), "--name", "robustness"]
+            jobs.append(job("report", "report", lambda: report, out / "robustness.json", r.report.share, ("choose",)))
+            return jobs
+        # on GPUs the table's rows run as parts side by side, one compiled program each (a table is
+        # mostly compiling: about 16 programs for the default's), then joined
+        parts = []
+        for i, (mode, names) in enumerate(groups):
+            part = [*report, "--modes", mode, "--conditions", ",".join(names)]
+            part += ["--out", str(out / "report"), "--name", f"part{i:02d}"]
+            parts.append(out / "report" / f"part{i:02d}.json")
+            share = r.report.share / len(groups)
+            jobs.append(job(f"report/part{i:02d}", "report", lambda part=part: part, parts[-1], share, ("choose",)))
+        merge = ["-m", "regrasp_mjx.compare", "--robustness", "--merge", *map(str, parts)]
+        merge += ["--out", str(out), "--name", "robustness"]
+        needs = tuple(f"report/part{i:02d}" for i in range(len(groups)))
+        jobs.append(job("report", "report", lambda: merge, out / "robustness.json", 0.01, needs))
         return jobs
 
     def _user_sets(self) -> list[str]:
@@ -301,7 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     if problem := output_folder_problem(out):
         p.error(problem)
     try:
-        plan = Plan(RECIPES[args.name], out, args.set, args.workers)
+        slots = gpu_slots(args.gpus)
+        plan = Plan(RECIPES[args.name], out, args.set, args.workers, gpus=slots != [None])
         if args.step == "choose":
             plan.choose(log)
             return 0
@@ -314,7 +333,6 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         with folder_lock(out):
             record = check_manifest(out, {"recipe": args.name, "set": args.set})
-            slots = gpu_slots(args.gpus)
             run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "gpus": slots, "jobs": {}}
             record["runs"].append(run)
             write_json(out / "recipe.json", record)

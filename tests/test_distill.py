@@ -61,7 +61,7 @@ def test_a_small_student_learns_the_teacher(setup):
         hidden=(64, 64), iterations=3, problems=64, label_states=640, updates=300, batch_size=256, lr=3e-3,
         lookahead=20, validation_size=64,
     )  # fmt: skip
-    distiller = Distiller(env, teacher.members_fn(), cfg)
+    distiller = Distiller(env, teacher.network(), cfg)
     ds = distiller.init()
     val = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), make_testset(64, 5, teacher.env_config))
     success = lambda ds: float(jnp.mean(evaluate_actor(env, lambda o: distiller.act(ds, o), val).success))  # noqa: E731
@@ -84,7 +84,7 @@ def test_distill_config_errors():
         DistillConfig(buffer_size=10, batch_size=64)
     assert DistillConfig(iterations=0).iterations == 0  # a training config without the stage
     with pytest.raises(ConfigError, match="at least 1"):
-        Distiller(RegraspEnv(), lambda obs: [obs[..., :6]], DistillConfig(iterations=0))
+        Distiller(RegraspEnv(), (lambda w, obs: [obs[..., :6]], ()), DistillConfig(iterations=0))
 
 
 def test_noisy_distillation_labels_true_states_for_noisy_observations(setup):
@@ -94,7 +94,7 @@ def test_noisy_distillation_labels_true_states_for_noisy_observations(setup):
     # 16 problems visit at most 16 x 100 states: 1600 label slots store every visited state
     kw = dict(hidden=(32,), iterations=1, problems=16, label_states=1600, updates=2, batch_size=32, lookahead=5)
     for noise in (0.0, 0.5):
-        distiller = Distiller(env, teacher.members_fn(), DistillConfig(**kw, obs_noise_mm=noise, obs_bias_mm=noise))
+        distiller = Distiller(env, teacher.network(), DistillConfig(**kw, obs_noise_mm=noise, obs_bias_mm=noise))
         ds0 = distiller.init()
         k_reset = jax.random.split(ds0.key, 5)[1]  # as the iteration draws its problems
         start = np.asarray(jax.vmap(env.reset)(jax.random.split(k_reset, 16)).obs)
@@ -119,7 +119,7 @@ def test_with_tool_noise_the_student_sees_its_tools_through_the_camera(setup):
     still labels the true state."""
     teacher, env, _ = setup
     kw = dict(hidden=(32,), iterations=1, problems=16, label_states=1600, updates=2, batch_size=32, lookahead=5)
-    distiller = Distiller(env, teacher.members_fn(), DistillConfig(**kw, obs_tool_noise_mm=0.5))
+    distiller = Distiller(env, teacher.network(), DistillConfig(**kw, obs_tool_noise_mm=0.5))
     ds0 = distiller.init()
     k_reset = jax.random.split(ds0.key, 5)[1]
     start = np.asarray(jax.vmap(env.reset)(jax.random.split(k_reset, 16)).obs)

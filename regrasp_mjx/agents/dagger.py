@@ -13,13 +13,17 @@ The **student** is a fresh MLP of any size (smaller is faster to plan with). DAg
 each iteration rolls the student out on fresh problems (the teacher's policy in the first
 iteration), labels the states it visited with the teacher's actions, adds them to a buffer of
 labelled states (flashbax), and fits the student to the buffer by (weighted) mean squared error.
-The student's observation normaliser is fixed from the first iteration's states. Iterations are one
-jitted program each; the host picks the iteration best on validation problems of their own seed.
+The student's observation normaliser is fixed from the first iteration's states. Every iteration is
+one jitted program, the same for all (the first's teacher rollout is a traced flag), and the
+teacher's weights are its argument, not constants: distillations of teachers of one shape share the
+compiled program through the persistent cache (a recipe's students compile it once). The host picks
+the iteration best on validation problems of their own seed.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -38,6 +42,7 @@ from regrasp_mjx.envs.rollout import rollout
 from regrasp_mjx.envs.shield import shield_candidates
 
 MembersFn = Callable[[jax.Array], list]  # obs [B, 21] -> each teacher member's actions [B, 6]
+MembersApply = Callable[[Any, jax.Array], list]  # (weights, obs [B, 21]) -> each member's actions [B, 6]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,12 +157,14 @@ def teacher_actions(env: RegraspEnv, members: MembersFn, state: Any, key: jax.Ar
 
 
 class Distiller:
-    """The jitted DAgger iteration for one teacher and one :class:`DistillConfig`."""
+    """The jitted DAgger iteration for one teacher and one :class:`DistillConfig`: the teacher is
+    ``apply(weights, obs) -> [each member's action]`` and its ``weights`` (``Policy.network()``)."""
 
-    def __init__(self, env: RegraspEnv, members: MembersFn, config: DistillConfig):
+    def __init__(self, env: RegraspEnv, teacher: tuple[MembersApply, Any], config: DistillConfig):
         if config.iterations < 1:
             raise ConfigError(f"distill.iterations={config.iterations} is not accepted here: at least 1")
-        self.env, self.members, self.config = env, members, config
+        self.env, self.config = env, config
+        self.apply, self.weights = teacher
         self.noisy = config.obs_noise_mm > 0 or config.obs_bias_mm > 0 or config.obs_tool_noise_mm > 0
         self.nets = make_networks(env.action_size, config.hidden)
         total = config.iterations * config.updates
@@ -169,7 +176,12 @@ class Distiller:
             sample_batch_size=config.batch_size,
             add_batches=True,
         )
-        self.iteration = jax.jit(self._iteration, static_argnums=(1,), donate_argnums=(0,))
+        self._program = jax.jit(self._iteration, donate_argnums=(0,))
+
+    def iteration(self, ds: DistillState, teacher_rollout: bool) -> tuple[DistillState, dict]:
+        """One DAgger iteration; ``teacher_rollout``: the first (the teacher's policy rolls out and
+        the student's normaliser is fixed from its states)."""
+        return self._program(ds, self.weights, jnp.asarray(teacher_rollout))
 
     def init(self) -> DistillState:
         cfg, obs_size, act_size = self.config, self.env.observation_size, self.env.action_size
@@ -188,17 +200,16 @@ class Distiller:
         """The student's action."""
         return self.nets.policy(ds.params, ds.normalizer, obs)
 
-    def _iteration(self, ds: DistillState, teacher_rollout: bool):
+    def _iteration(self, ds: DistillState, weights: Any, teacher_rollout: jax.Array):
         cfg, env = self.config, self.env
+        members = functools.partial(self.apply, weights)
         key, k_reset, k_order, k_label, k_upd = jax.random.split(ds.key, 5)
         horizon = env.config.horizon
         first = jax.vmap(env.reset)(jax.random.split(k_reset, cfg.problems))
 
-        def policy(obs):
-            if teacher_rollout:
-                own = self.members(obs)
-                return sum(own) / len(own)
-            return self.act(ds, obs)
+        def policy(obs):  # both networks are cheap beside a step; one program serves every iteration
+            own = members(obs)
+            return jnp.where(teacher_rollout, sum(own) / len(own), self.act(ds, obs))
 
         if self.noisy:  # each problem's noise level, bias and frames (folded off: noise-free runs keep their streams)
             k_rows, k_sigma, k_bias = jax.random.split(jax.random.fold_in(ds.key, 17), 3)
@@ -227,11 +238,11 @@ class Distiller:
         order = order[jnp.argsort(~live[order], stable=True)][: cfg.label_states]
         states, obs = jax.tree.map(lambda x: x[order], flat)
         valid = live[order].astype(jnp.float32)
-        labels, overridden, reaches = teacher_actions(env, self.members, states, k_label, cfg.lookahead)
+        labels, overridden, reaches = teacher_actions(env, members, states, k_label, cfg.lookahead)
         weight = valid * jnp.where(overridden, cfg.correction_weight, 1.0)
-        normalizer = ds.normalizer
-        if teacher_rollout:  # the first iteration fixes the student's normaliser
-            normalizer = running_statistics.update(normalizer, obs, weights=valid)
+        # the first iteration fixes the student's normaliser
+        fixed = running_statistics.update(ds.normalizer, obs, weights=valid)
+        normalizer = jax.tree.map(lambda a, b: jnp.where(teacher_rollout, a, b), fixed, ds.normalizer)
         buffer = self.buffer.add(ds.buffer, {"obs": obs, "action": labels, "weight": weight})
         ds = ds.replace(normalizer=normalizer, buffer=buffer, key=key)
 

@@ -61,11 +61,22 @@ def _with_needle(state, needle: jax.Array, ee: jax.Array | None = None):
 def _at_goal(env: RegraspEnv, state, needle: jax.Array, scale: float = 1.0) -> jax.Array:
     """Whether the end-effector is at the goal grasp on ``needle`` (eqs. 8, 9 on that needle), with
     the tolerances scaled by ``scale``."""
+    return _within(env, state, needle, tolerances(env.config, scale))
+
+
+def tolerances(config, scale: float) -> tuple[float, float]:
+    """An ``EnvConfig``'s success tolerances scaled by ``scale``, (metres, radians) as Python floats. The
+    executor takes float32 of these as an argument (one program for every stop tolerance): the
+    same comparisons as the float32 constants they were."""
+    return scale * config.success_pos_mm * 1e-3, scale * math.radians(config.success_rot_deg)
+
+
+def _within(env: RegraspEnv, state, needle: jax.Array, tol) -> jax.Array:
+    """:func:`_at_goal` within ``tol`` (metres, radians; Python floats or traced)."""
     es = state.pipeline_state
     current = geometry.relative((es.ee_pos, es.ee_quat), (needle[:, :3], needle[:, 3:]))
     dist, angle = geometry.pose_error(current, (es.goal_needle_pos, es.goal_needle_quat))
-    c = env.config
-    return (dist <= scale * c.success_pos_mm * 1e-3) & (angle <= scale * math.radians(c.success_rot_deg))
+    return (dist <= tol[0]) & (angle <= tol[1])
 
 
 def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array, shield: bool, live=None):
@@ -92,16 +103,17 @@ def make_executor(
     shield: bool,
     frames: str = "fused",
     shield_env: RegraspEnv | None = None,
-    stop_scale: float = 1.0,
     warmup: int = 1,
     observe: str = "camera",
     joints: bool = False,
 ):
-    """``run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None) -> dict``
+    """``run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None, stop=None) -> dict``
     (jitted): regrasping in simulation for ``[B, 7]`` true needle, start and goal poses (e_g frame;
     ``radii`` ``[B, 2]``: each needle's radius and wire radius in metres, for a task that varies
     needles; ``robot``: the :class:`~regrasp_mjx.robot.robot_errors.RobotErrors` numbers
-    ``(calibration_mm, calibration_deg, joint_offset, tool_noise_mm)``, default none).
+    ``(calibration_mm, calibration_deg, joint_offset, tool_noise_mm)``, default none; ``stop``: the
+    view's stop tolerances (metres, radians; :func:`tolerances`), default the task's own: an
+    argument, so one program serves every stop tolerance).
 
     Each step the policy acts on a view of the needle and of its tool (``observe``, one of
     :data:`~regrasp_mjx.robot.robot_errors.OBSERVE`): with ``frames="one"`` the first frame held for the
@@ -128,8 +140,9 @@ def make_executor(
     def move(state, a):  # an executed action: unclipped (the view's error may turn it off the axes)
         return env.move(state, a[:3] * env.max_dp, a[3:] * env.max_drot)
 
-    def run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None):
+    def run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None, stop=None):
         b = needle.shape[0]
+        stop_tol = tolerances(env.config, 1.0) if stop is None else stop
         calibration_mm, calibration_deg, joint_offset, tool_noise_mm = (0.0,) * 4 if robot is None else robot
         episode = Episode.from_poses(needle, start, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
@@ -189,7 +202,7 @@ def make_executor(
                 else:  # one frame, then the plan's own motion
                     tool = jnp.where(t > 0, moved, frame_tool)
                 tool = jnp.where(exact_tools[:, None], frame_tool, tool)  # a camera that sees the tool exactly
-            stopping = _at_goal(env, _with_needle(state, seen, tool), seen, stop_scale)
+            stopping = _within(env, _with_needle(state, seen, tool), seen, stop_tol)
             acting = live & ~stopping & (t < horizon)
             info = {**info, "needle_total": total, "needle_seen": seen, "ee_seen": tool, "kinematics": kin}
             info["acting"] = acting
@@ -280,7 +293,7 @@ def _program(
         guard = RegraspEnv(dataclasses.replace(policy.env_config, clearance_mm=clearance_mm)) if clearance_mm else env
         apply = members_apply(policy.hidden)
         if kind == "execute":
-            return make_executor(env, apply, shield, frames, guard, stop, warmup, observe, joints)
+            return make_executor(env, apply, shield, frames, guard, warmup, observe, joints)
         return make_stepper(guard, apply, shield, stop)
 
     return policy.program((kind, shield, frames, clearance_mm, stop, warmup, observe, joints), build)
@@ -385,12 +398,14 @@ def execute(
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     warmup = int(warmup_frames) if frames == "fused" else 1
     joints = robot.joint_offset > 0
-    run = _program(
-        policy, "execute", shield, frames, float(clearance_mm), float(stop_tolerance), warmup, observe, joints
-    )
+    # the stop tolerance is the program's argument (1.0 in the key: one program for all)
+    run = _program(policy, "execute", shield, frames, float(clearance_mm), 1.0, warmup, observe, joints)
     key = jax.random.PRNGKey(seed)
     errors = tuple(
         f32(v) for v in (robot.calibration_mm, robot.calibration_deg, robot.joint_offset, robot.tool_noise_mm)
     )
-    out = run(f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii), errors)
+    stop = tuple(f32(x) for x in tolerances(policy.env_config, float(stop_tolerance)))
+    out = run(
+        f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii), errors, stop
+    )
     return {k: np.asarray(v) for k, v in jax.device_get(out).items()}

@@ -103,6 +103,7 @@ class Policy:
             tuple((pick(self.actor_params, i), norm.mean[i], norm.std[i]) for i in range(self.members))
         )
         object.__setattr__(self, "_weights", weights)
+        object.__setattr__(self, "_apply", apply)
         object.__setattr__(self, "_member_actions", functools.partial(apply, weights))
         object.__setattr__(self, "_actor", lambda obs: mean_action(apply(weights, obs)))
         object.__setattr__(self, "_act", jax.jit(self._actor))
@@ -147,6 +148,13 @@ class Policy:
     def actor_fn(self) -> Callable:
         """The pure function ``obs[..., 21] -> action[..., 6]``, parameters closed over (to jit or export)."""
         return self._actor
+
+    def network(self) -> tuple[Callable, Any]:
+        """``(apply, weights)``: the pure ``apply(weights, obs[..., 21]) -> [each member's action]``
+        and the weights to pass it (device arrays). Jit with the weights as an argument, not closed
+        over, and policies of one network shape share the compiled program (and the persistent
+        compilation cache: a recipe's students of three teachers compile theirs once)."""
+        return self._apply, self._weights
 
     def members_fn(self) -> Callable:
         """``obs[..., 21] -> [action[..., 6] of each member]``; :meth:`actor_fn` is their mean."""

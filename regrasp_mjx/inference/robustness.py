@@ -107,6 +107,22 @@ ROBOT_CONDITIONS = tuple(
 )
 
 
+def program_groups(modes: tuple[str, ...], names: tuple[str, ...] | None = None) -> list[tuple[str, list[str]]]:
+    """The rows of a table (``modes`` x the conditions named ``names``, all where None) grouped by
+    the compiled program they run: ``[(mode, [condition names])]``, in table order. A group
+    compiles one program (a mode, a clearance margin, a way of seeing the tools, joints or not;
+    the noise is the program's argument), so groups run side by side compile side by side
+    (``python -m regrasp_mjx.recipe``'s report; join their files with ``compare --merge``)."""
+    groups: dict[tuple, tuple[str, list[str]]] = {}
+    for mode in modes:
+        for c in CONDITIONS + ROBOT_CONDITIONS:
+            if (names is not None and c.name not in names) or (c.modes is not None and mode not in c.modes):
+                continue
+            key = (mode, c.clearance_mm, c.observe, c.robot.joint_offset > 0)
+            groups.setdefault(key, (mode, []))[1].append(c.name)
+    return list(groups.values())
+
+
 def measure(
     policy, episodes, condition: Condition, mode: str = "fused", seed: int = 0, shield: bool = True
 ) -> dict[str, Any]:

@@ -69,12 +69,13 @@ class Selection:
 @dataclasses.dataclass(frozen=True)
 class Report:
     """The exported policy's robustness table (``compare --robustness``): on the policy's own test
-    set, or with ``heldout`` (N, SEED) on drawn problems; ``modes``/``conditions`` None: all."""
+    set, or with ``heldout`` (N, SEED) on drawn problems; ``modes``/``conditions`` None: all. On
+    GPUs its rows run as parts side by side, one per compiled program, ``share`` split among them."""
 
     heldout: tuple[int, int] | None = None
     modes: tuple[str, ...] | None = None
     conditions: tuple[str, ...] | None = None
-    share: float = 0.5
+    share: float = 0.9
 
 
 @dataclasses.dataclass(frozen=True)
