@@ -75,6 +75,22 @@ def test_a_small_student_learns_the_teacher(setup):
     assert float(m["loss_last"]) < 0.1
 
 
+def test_one_program_serves_every_iteration_and_every_teacher_of_one_shape(setup):
+    """The iteration program takes the teacher's weights (and the first iteration's flag) as
+    arguments: teachers of one network shape lower to the same program, so a recipe's students of
+    three teacher seeds share one compiled program through the persistent cache."""
+    teacher, env, _ = setup
+    other = regrasp_mjx.load_policy("exact")  # another 2x256 network
+    assert other.hidden == teacher.hidden
+    cfg = DistillConfig(hidden=(32,), iterations=2, problems=8, label_states=64, updates=2, batch_size=16, lookahead=3)
+    texts = []
+    for t in (teacher, other):
+        d = Distiller(env, t.network(), cfg)
+        for first in (True, False):
+            texts.append(d._program.lower(d.init(), d.weights, jnp.asarray(first)).as_text())
+    assert len(set(texts)) == 1
+
+
 def test_distill_config_errors():
     with pytest.raises(ConfigError, match=r"distill.hidden=\(\) is not accepted"):
         DistillConfig(hidden=())

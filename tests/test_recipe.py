@@ -17,6 +17,7 @@ import pytest
 from regrasp_mjx import recipe as recipe_cli
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.jobs import Job, run_jobs
+from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.policy_file import resolve
 from regrasp_mjx.inference.selection import score
@@ -70,6 +71,24 @@ def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
     assert "iterations=20" in sets
     sel = jobs["select/t07_s0"].argv()
     assert sel[sel.index("--heldout") + 1] == "1000:7000001" and "--no-testset" in sel  # never a test set
+    # without a GPU the report is one job; on GPUs it is parts side by side, one compiled program
+    # each, that hold exactly the whole table's rows (in its order once joined), and a job joining them
+    assert jobs["report"].needs == ("choose",) and not any(n.startswith("report/") for n in jobs)
+    on_gpus = {j.name: j for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3, gpus=True).jobs()}
+    parts = [n for n in on_gpus if n.startswith("report/")]
+    assert len(parts) == 15 and on_gpus["report"].needs == tuple(parts)
+    rows = []
+    for name in parts:
+        argv = on_gpus[name].argv()
+        assert on_gpus[name].needs == ("choose",) and on_gpus[name].share * len(parts) <= 0.6 + 1e-9
+        (mode,) = argv[argv.index("--modes") + 1].split(",")
+        rows += [(c, mode) for c in argv[argv.index("--conditions") + 1].split(",")]
+    whole = [(c.name, m) for c in robustness.CONDITIONS + robustness.ROBOT_CONDITIONS for m in robustness.MODES
+             if c.modes is None or m in c.modes]  # fmt: skip
+    order = {c: i for i, (c, _) in enumerate(whole)}
+    assert sorted(rows, key=lambda r: order[r[0]]) == whole  # merge's stable sort by condition
+    merge = on_gpus["report"].argv()
+    assert merge[merge.index("--merge") + 1 : merge.index("--out")] == [str(on_gpus[n].finished) for n in parts]
     # a general recipe's candidates are its teacher seeds
     general = recipe_cli.Plan(RECIPES["general"], tmp_path / "g", [], 1)
     assert list(general.candidates()) == ["teacher_s0", "teacher_s1", "teacher_s2"]

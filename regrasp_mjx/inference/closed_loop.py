@@ -58,25 +58,21 @@ def _with_needle(state, needle: jax.Array, ee: jax.Array | None = None):
     return state.replace(pipeline_state=es)
 
 
-def _at_goal(env: RegraspEnv, state, needle: jax.Array, scale: float = 1.0) -> jax.Array:
-    """Whether the end-effector is at the goal grasp on ``needle`` (eqs. 8, 9 on that needle), with
-    the tolerances scaled by ``scale``."""
-    return _within(env, state, needle, tolerances(env.config, scale))
-
-
-def tolerances(config, scale: float) -> tuple[float, float]:
-    """An ``EnvConfig``'s success tolerances scaled by ``scale``, (metres, radians) as Python floats. The
-    executor takes float32 of these as an argument (one program for every stop tolerance): the
-    same comparisons as the float32 constants they were."""
-    return scale * config.success_pos_mm * 1e-3, scale * math.radians(config.success_rot_deg)
-
-
-def _within(env: RegraspEnv, state, needle: jax.Array, tol) -> jax.Array:
-    """:func:`_at_goal` within ``tol`` (metres, radians; Python floats or traced)."""
+def _at_goal(env: RegraspEnv, state, needle: jax.Array, tol=None) -> jax.Array:
+    """Whether the end-effector is at the goal grasp on ``needle`` (eqs. 8, 9 on that needle), within
+    ``tol`` (metres, radians; Python floats or traced; default the task's own, :func:`tolerances`)."""
+    tol = tolerances(env.config, 1.0) if tol is None else tol
     es = state.pipeline_state
     current = geometry.relative((es.ee_pos, es.ee_quat), (needle[:, :3], needle[:, 3:]))
     dist, angle = geometry.pose_error(current, (es.goal_needle_pos, es.goal_needle_quat))
     return (dist <= tol[0]) & (angle <= tol[1])
+
+
+def tolerances(config, scale: float) -> tuple[float, float]:
+    """An ``EnvConfig``'s success tolerances scaled by ``scale`` (metres, radians; Python floats). The
+    executor takes their float32 as an argument, one program for every stop tolerance: the same
+    comparisons as the float32 constants they were."""
+    return scale * config.success_pos_mm * 1e-3, scale * math.radians(config.success_rot_deg)
 
 
 def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array, shield: bool, live=None):
@@ -202,7 +198,7 @@ def make_executor(
                 else:  # one frame, then the plan's own motion
                     tool = jnp.where(t > 0, moved, frame_tool)
                 tool = jnp.where(exact_tools[:, None], frame_tool, tool)  # a camera that sees the tool exactly
-            stopping = _within(env, _with_needle(state, seen, tool), seen, stop_tol)
+            stopping = _at_goal(env, _with_needle(state, seen, tool), seen, stop_tol)
             acting = live & ~stopping & (t < horizon)
             info = {**info, "needle_total": total, "needle_seen": seen, "ee_seen": tool, "kinematics": kin}
             info["acting"] = acting
@@ -254,7 +250,7 @@ def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: flo
     def one(weights, needle, ee, goal, t, radii=None):
         episode = Episode.from_poses(needle, ee, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
-        done = _at_goal(env, state, needle, stop_scale)
+        done = _at_goal(env, state, needle, tolerances(env.config, stop_scale))
         a = jnp.where(done[:, None], 0.0, choose_action(env, apply, weights, state, t, shield, ~done))
         es = jax.vmap(env.step)(state, a).pipeline_state
         nxt = jnp.where(done[:, None], ee, jnp.concatenate([es.ee_pos, es.ee_quat], axis=1))
@@ -266,7 +262,6 @@ def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: flo
 # ---- the host entry points (Policy.closed_loop_step, Policy.execute) ------------------------------
 
 
-# the closed loop's settings where a policy file names none (chosen for `student_v1` on validation)
 def _estimate_inputs(policy: Any, needle: Any, ee_name: str, ee: Any, goal: Any, spec: TaskSpec):
     """Checked ``[B, 7]`` needle, end-effector and goal poses (the goal grasp on ``needle`` by
     default), each needle's radii ``[B, 2]`` (m) and whether one query was given."""
@@ -276,15 +271,7 @@ def _estimate_inputs(policy: Any, needle: Any, ee_name: str, ee: Any, goal: Any,
 
 
 def _program(
-    policy: Any,
-    kind: str,
-    shield: bool,
-    frames: str = "fused",
-    clearance_mm: float = 0.0,
-    stop: float = 1.0,
-    warmup: int = 1,
-    observe: str = "camera",
-    joints: bool = False,
+    policy, kind, shield, frames="fused", clearance_mm=0.0, stop=1.0, warmup=1, observe="camera", joints=False
 ):
     """The jitted executor (``kind="execute"``) or stepper of a setting, built once per network shape."""
 
@@ -398,7 +385,7 @@ def execute(
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     warmup = int(warmup_frames) if frames == "fused" else 1
     joints = robot.joint_offset > 0
-    # the stop tolerance is the program's argument (1.0 in the key: one program for all)
+    # the stop tolerance is an argument (1.0 in the key)
     run = _program(policy, "execute", shield, frames, float(clearance_mm), 1.0, warmup, observe, joints)
     key = jax.random.PRNGKey(seed)
     errors = tuple(

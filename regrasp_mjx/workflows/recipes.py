@@ -70,12 +70,14 @@ class Selection:
 class Report:
     """The exported policy's robustness table (``compare --robustness``): on the policy's own test
     set, or with ``heldout`` (N, SEED) on drawn problems; ``modes``/``conditions`` None: all. On
-    GPUs its rows run as parts side by side, one per compiled program, ``share`` split among them."""
+    GPUs its rows run as parts side by side, one per compiled program, ``share`` split among them
+    (0.6: each process's CUDA context, about 0.5 GB outside its share, must fit beside the rest;
+    fifteen parts at 0.06 each ran out of memory on an 80 GB H100)."""
 
     heldout: tuple[int, int] | None = None
     modes: tuple[str, ...] | None = None
     conditions: tuple[str, ...] | None = None
-    share: float = 0.9
+    share: float = 0.6
 
 
 @dataclasses.dataclass(frozen=True)
