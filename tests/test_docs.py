@@ -478,19 +478,29 @@ def test_the_networks_of_2026_11_24_in_the_history_are_their_result_files():
 
 
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
-    """docs/training.md's recipe times: the demonstrations' and teachers' wall on one H100 (the
-    recipe's own recipe.json) and the students' iteration speed-up (the mean of iterations 3-5 with
-    ended rows stepped by their action against by no motion, prof2.json)."""
-    folder = ROOT / "experiments" / "results" / "recipe" / "h100_2026-11-27"
-    jobs = json.loads((folder / "recipe.json").read_text())["runs"][0]["jobs"]
-    prof = json.loads((folder / "prof2.json").read_text())
-    speedup = sum(prof["False"][2:]) / sum(prof["True"][2:])
+    """docs/training.md's recipe times on one H100: each stage's longest job from the recipe's own
+    recipe.json (the runs of one folder), the students' and selection's stage from the first student's
+    start to the last one's end as the recipe printed it (call2.log)."""
+    folder = ROOT / "experiments" / "results" / "recipe" / "h100_2026-11-27b"
+    runs = json.loads((folder / "recipe.json").read_text())["runs"]
+    log = (folder / "call2.log").read_text()
+    stage = {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", log, re.M)}
     text = _prose("training.md")
+    demos, teachers = (runs[0]["jobs"][n]["wall_s"] for n in ("demos", "teachers"))
+    choose = runs[1]["jobs"]["choose"]["wall_s"]
     assert (
-        f"demonstrations {jobs['demos']['wall_s']:.0f} s and teachers {jobs['teachers']['wall_s']:.0f} s (2026-11-27)"
-        in text
+        f"demonstrations {demos:.0f} s, teachers {teachers:.0f} s, students {stage['students']} s, "
+        f"selection {stage['selection']} s, the closed loop's choice {choose:.0f} s" in text
     )
-    assert f"after their iteration became {speedup:.1f}x faster" in text
+    # the report: all its parts side by side at once (6e25af6's share), the run from the exported policy
+    parts = json.loads((folder / "report_share06" / "recipe.json").read_text())["runs"][0]
+    assert all(r["exit"] == 0 for r in parts["jobs"].values()) and len(parts["jobs"]) == 16
+    report = parts["wall_s"]
+    assert f"the report {report:.0f} s (its {len(parts['jobs']) - 1} parts side by side)" in text
+    # the whole: the first call, the second up to the choice's end (minutes into it, as printed), the report
+    to_choice = float(re.search(r"^choose finished after \d+ s; .* ([\d.]+) min in$", log, re.M).group(1))
+    whole = runs[0]["wall_s"] + 60 * to_choice + report
+    assert f"took about {whole / 60:.0f} minutes on one H100" in text
 
 
 def test_table_two_s_rrt_connect_and_earlier_policy_rows_are_their_result_files():
