@@ -14,8 +14,8 @@ its checkpoint, the demonstrations from the plans made so far, a student or a ta
 killed recipe started again with the same arguments goes on; other arguments in the same folder are
 refused. Writes ``DIR/policy`` (the chosen network, its closed-loop settings, and the recipe, its
 ``--set`` overrides and the commit in ``policy.json``), ``DIR/selection.md``/``.json``,
-``DIR/robustness.md``/``.json``, ``DIR/recipe.json`` (the arguments and each job's wall time) and
-each job's output in ``DIR/logs/``.
+``DIR/robustness.md``/``.json`` (on GPUs joined from parts run side by side in ``DIR/report/``),
+``DIR/recipe.json`` (the arguments and each job's wall time) and each job's output in ``DIR/logs/``.
 """
 
 from __future__ import annotations
