@@ -172,18 +172,17 @@ class Plan:
             jobs.append(job("report", "report", lambda: report, out / "robustness.json", r.report.share, ("choose",)))
             return jobs
         # on GPUs the table's rows run as parts side by side, one compiled program each (a table is
-        # mostly compiling: about 16 programs for the default's), then joined
+        # mostly compiling: 15 programs for the default's 38 rows), then joined
         parts = []
         for i, (mode, names) in enumerate(groups):
-            part = [*report, "--modes", mode, "--conditions", ",".join(names)]
-            part += ["--out", str(out / "report"), "--name", f"part{i:02d}"]
-            parts.append(out / "report" / f"part{i:02d}.json")
-            share = r.report.share / len(groups)
-            jobs.append(job(f"report/part{i:02d}", "report", lambda part=part: part, parts[-1], share, ("choose",)))
-        merge = ["-m", "regrasp_mjx.compare", "--robustness", "--merge", *map(str, parts)]
+            argv = [*report, "--modes", mode, "--conditions", ",".join(names)]
+            argv += ["--out", str(out / "report"), "--name", f"part{i:02d}"]
+            finished, share = out / "report" / f"part{i:02d}.json", r.report.share / len(groups)
+            parts.append(job(f"report/part{i:02d}", "report", lambda argv=argv: argv, finished, share, ("choose",)))
+        merge = ["-m", "regrasp_mjx.compare", "--robustness", "--merge", *(str(p.finished) for p in parts)]
         merge += ["--out", str(out), "--name", "robustness"]
-        needs = tuple(f"report/part{i:02d}" for i in range(len(groups)))
-        jobs.append(job("report", "report", lambda: merge, out / "robustness.json", 0.01, needs))
+        needs = tuple(p.name for p in parts)
+        jobs += [*parts, job("report", "report", lambda: merge, out / "robustness.json", 0.01, needs)]
         return jobs
 
     def _user_sets(self) -> list[str]:
