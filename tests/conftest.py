@@ -6,6 +6,12 @@ pyproject.toml), sharing one persistent compilation cache; the :func:`alone` fix
 test's part while no other test runs. A worker that crashes is not replaced
 (``--max-worker-restart=0``): its test fails as "worker crashed while running ..." at once, where a
 replaced worker once left the run waiting until CI's time limit.
+
+Two tiers. ``python -m pytest -q`` (the README's test command) runs every test but those marked
+``slow``: end-to-end checks that each compile several programs or start several processes (the
+smoke recipe killed and resumed, training over processes and devices, exact resume, the long
+notebooks), minutes each on two cores. ``python -m pytest -q -m slow`` runs those; CI runs both
+tiers (``.ci/run``), so nothing goes unchecked, while a change's own tests stay quick to run.
 """
 
 from __future__ import annotations
@@ -67,7 +73,15 @@ SLOW_FIRST = (
 )
 
 
+# notebooks in the long tier (they cannot carry a marker themselves)
+SLOW_NOTEBOOKS = ("notebooks/01_environment.ipynb", "notebooks/04_policy.ipynb")
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` deselects by marker
 def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.nodeid.split("::")[0] in SLOW_NOTEBOOKS:
+            item.add_marker(pytest.mark.slow)
     rank = {name: i for i, name in enumerate(SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))  # stable
 

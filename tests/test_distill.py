@@ -103,6 +103,7 @@ def test_distill_config_errors():
         Distiller(RegraspEnv(), (lambda w, obs: [obs[..., :6]], ()), DistillConfig(iterations=0))
 
 
+@pytest.mark.slow
 def test_noisy_distillation_labels_true_states_for_noisy_observations(setup):
     """Under needle noise the student's rollouts act on, and the buffer stores, observations of an
     estimate; noise-free the stored observations are the true ones."""
@@ -129,6 +130,7 @@ def test_noisy_distillation_labels_true_states_for_noisy_observations(setup):
         DistillConfig(goal_tolerance=0)
 
 
+@pytest.mark.slow
 def test_with_tool_noise_the_student_sees_its_tools_through_the_camera(setup):
     """obs_tool_noise_mm > 0 (issue 45): the stored observations' tool columns (the regrasping
     end-effector in the seen grasping tool's frame) are the camera's, not the truth's; the teacher

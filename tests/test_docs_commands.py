@@ -169,7 +169,12 @@ def test_a_documented_command_runs_and_makes_what_it_says(command, tmp_path, mon
 LEARNER_SNIPPETS = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "learners.md").read_text(), re.S)
 
 
-@pytest.mark.parametrize("snippet", LEARNER_SNIPPETS, ids=["playground", "gymnasium", "gymnasium-vector"])
+@pytest.mark.parametrize(
+    "snippet",
+    # the vector env's snippet compiles a batch of rollouts: in the long tier (see tests/conftest.py)
+    [*LEARNER_SNIPPETS[:2], pytest.param(LEARNER_SNIPPETS[2], marks=pytest.mark.slow)],
+    ids=["playground", "gymnasium", "gymnasium-vector"],
+)
 def test_the_learners_page_snippets_run(snippet, capsys):
     """docs/learners.md's three snippets (Playground style, gymnasium single and vector) run as written."""
     exec(compile(snippet, "docs/learners.md", "exec"), {"__name__": "__docs__"})

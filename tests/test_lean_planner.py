@@ -56,6 +56,7 @@ def test_the_lean_path_gives_the_jax_paths_verdicts_on_paper300_shielded_and_bar
     assert bare.collision.sum() >= 1  # the bare network collides on a few: the shield is exercised above
 
 
+@pytest.mark.slow
 def test_the_lean_path_on_held_out_problems_an_ensemble_and_a_general_policy():
     default = load_policy("default")
     _agree(default, make_testset(100, 2022, default.env_config))

@@ -382,6 +382,7 @@ def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):
 
 
 # ---- a run killed and resumed is the run uninterrupted -------------------------------------------
+@pytest.mark.slow
 def test_resume_continues_exactly(tmp_path, easy_demos):
     from regrasp_mjx.workflows.trainer import Run
 

@@ -21,6 +21,8 @@ import pytest
 from regrasp_mjx.agents.ddpg_bc import checkpoint
 
 ROOT = Path(__file__).resolve().parent.parent
+# several processes, each compiling a learner: in the long tier (see tests/conftest.py)
+pytestmark = pytest.mark.slow
 
 # A few iterations of a tiny data-parallel learner (one seed, environments split over 4 devices);
 # ``ddpg_bc`` has no planner exchange, whose timing would differ between runs.

@@ -229,6 +229,7 @@ def _recipe(out: Path, *more: str, **kw) -> subprocess.Popen:
 
 # the suite's slowest test: every stage's process compiles its programs on two busy cores (440 s in
 # CI on 2026-11-26, 608 s alone on a slower day): its own limit, above the suite's 900 s per test
+@pytest.mark.slow
 @pytest.mark.timeout(2400)
 def test_the_smoke_recipe_builds_on_the_cpu_and_resumes_after_a_kill(tmp_path):
     out = tmp_path / "r"

@@ -199,6 +199,7 @@ def policy():
     return load_policy()
 
 
+@pytest.mark.slow
 def test_no_robot_error_is_the_needle_only_loop_and_the_camera_ignores_calibration(policy, rows):
     """Without robot errors both views are exactly the needle-only closed loop; with the camera
     seeing exact tools, a calibration error of 10 mm / 5 deg per arm changes nothing at all; seen

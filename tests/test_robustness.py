@@ -75,6 +75,7 @@ def test_a_margin_leaves_out_problems_that_cannot_keep_it(paper_testset):
         assert int(keep.sum()) == valid, margin
 
 
+@pytest.mark.slow
 def test_a_general_policy_runs_the_closed_loop_on_its_own_needles():
     episodes, _ = load_testset("general1000")
     part = _rows(episodes, slice(0, 12))

@@ -194,6 +194,7 @@ def child() -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # the child compiles three learners' iterations (see tests/conftest.py)
 def test_sharded_update_equals_the_unsharded_one(child):
     assert child["init"] == 0.0  # same seeds, same networks
     assert child["actor_moved"] > 1e-3  # the steps did something
@@ -202,12 +203,14 @@ def test_sharded_update_equals_the_unsharded_one(child):
     assert child["loss_metrics"] < 1e-4, child
 
 
+@pytest.mark.slow  # the child compiles three learners' iterations (see tests/conftest.py)
 def test_planner_chunks_split_over_the_buffer_slices_and_the_normaliser_sums(child):
     assert child["normalizer_after_add"] < 1e-5, child
     assert child["buffer_layout"] == 0.0
     assert child["insert_index"] == [64, 32]  # one slice of 4096 vs two of 2048, half the chunk each
 
 
+@pytest.mark.slow  # the child compiles three learners' iterations (see tests/conftest.py)
 def test_sharded_iterations_keep_replicas_identical(child):
     assert child["outcome_shape"] == [2, 8]  # [seed, all environments]
     assert child["problems_shape"] == [2, 8]
@@ -217,6 +220,7 @@ def test_sharded_iterations_keep_replicas_identical(child):
     assert child["insert_index_after"] == 2 * 4 * 12  # two iterations of 4 envs x 12 steps per device
 
 
+@pytest.mark.slow  # the child compiles three learners' iterations (see tests/conftest.py)
 def test_members_per_device_compute_what_one_device_computes(child):
     assert child["members_moved"] > 1e-3  # three iterations did something
     # 1e-4: the continuous collision test's per-lane while loops (issue 44) reorder float work
@@ -243,6 +247,7 @@ def test_devices_must_exist_and_divide_the_sizes():
         dataclasses.replace(_config(1), devices=-1)
 
 
+@pytest.mark.slow  # the child compiles three learners' iterations (see tests/conftest.py)
 def test_sizes_that_do_not_split_over_the_devices_are_refused(child):
     assert child["indivisible"].startswith("devices=2 does not divide num_envs (7)"), child["indivisible"]
 

@@ -25,6 +25,7 @@ def batch():
     return policy, jax.vmap(env.step), state, action
 
 
+@pytest.mark.slow
 def test_shield_rows_takes_each_rows_first_free_allowed_alternative_in_any_chunk(batch):
     policy, step, state, action = batch
     members = lambda sub: policy.members_fn()(sub.obs)  # noqa: E731
