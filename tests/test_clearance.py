@@ -210,6 +210,7 @@ def _as_pose(t: np.ndarray) -> np.ndarray:
     return np.r_[t[:3, 3], q / np.linalg.norm(q)]
 
 
+@pytest.mark.slow
 def test_limit_aware_shield_keeps_a_fixed_port_within_the_joint_limits(paper_testset):
     """One port for all of paper300 (0.12 m behind the average start): the earlier default's
     (``student_v2``, ~9.3 steps a plan) plans of rows 175 and 229 swing the wrist yaw past its limit;

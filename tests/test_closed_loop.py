@@ -74,6 +74,7 @@ def test_stopping_uses_only_the_estimate(policy, paper_testset):
     assert (run["success"] <= run["stopped"]).all() and (run["stopped"] & ~run["success"]).any()
 
 
+@pytest.mark.slow
 def test_one_closed_loop_step_on_the_lean_path_is_the_jax_program(policy, paper_testset):
     """One query on the CPU takes the lean numba step; a batch takes the JAX program: the same
     stop verdicts, actions to float32 rounding and the same next poses, at the start, along the

@@ -18,6 +18,7 @@ from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.world.testsets import make_testset
 
 
+@pytest.mark.slow
 def test_compare_plans_each_policy_bare_and_shielded_as_policy_plan_does(tmp_path):
     argv = ["--policy", "default", "--policy", "again=", "--no-testset", "--heldout", "6:5", "--out", str(tmp_path)]
     assert compare.main(argv) == 0

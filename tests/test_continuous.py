@@ -161,7 +161,7 @@ def test_the_test_budget_and_resolution_by_hand():
         assert bool(continuous.motion_collides(jdist, jnp.float32(gap), 1e-3, 0.0)) == expect
 
 
-@pytest.mark.parametrize("unrolled", [False, True])
+@pytest.mark.parametrize("unrolled", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_a_vmapped_batch_tests_its_pending_lanes_alone_with_the_same_verdicts(unrolled, monkeypatch):
     # synthetic motions: 4 pairs, d(s) = a + b s + c s^2 (|b| + 2|c| <= speed: the bound holds);
     # 26 of 64 lanes need halvings, 18 collide. The host's walk (a stack, float64), lane by lane in
@@ -281,7 +281,7 @@ def test_interval_low_holds_along_random_motions():
     assert tighter > 300  # of 1,200 pairs
 
 
-@pytest.mark.parametrize("unrolled", [False, True])
+@pytest.mark.parametrize("unrolled", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_the_end_pose_stands_in_for_the_root_with_the_same_verdicts(unrolled, monkeypatch):
     # random actions from the paper's starts, 8 steps of 256 environments: where the end pose is
     # clear by each capsule's v_t (most steps) the root is not tested, the others' roots run

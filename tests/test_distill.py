@@ -36,6 +36,7 @@ def _starts(env, episodes, rows):
     return jax.vmap(env.reset_from)(ep)
 
 
+@pytest.mark.slow
 def test_teacher_keeps_the_policy_where_it_succeeds_and_repairs_where_it_collides(setup):
     teacher, env, episodes = setup
     members = teacher.members_fn()

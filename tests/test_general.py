@@ -182,6 +182,7 @@ def test_testset_fields_filled_for_old_files_and_validated(tmp_path):
         load_testset(bad)
 
 
+@pytest.mark.slow
 def test_specialist_refuses_what_it_was_not_trained_for_and_the_generalist_plans_it():
     specialist, general = load_policy(), load_policy("general")
     ep, _ = load_testset(GENERAL1000)

@@ -36,7 +36,13 @@ def test_the_gymnasium_ids_are_the_registry():
         assert spec.kwargs == {"name": name} and spec.vector_entry_point is not None
 
 
-@pytest.mark.parametrize("name", ["NeedleRegrasp", "NeedleRegraspGeneral", "NeedleRegraspNoisy"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "NeedleRegrasp",
+        *(pytest.param(n, marks=pytest.mark.slow) for n in ("NeedleRegraspGeneral", "NeedleRegraspNoisy")),
+    ],
+)
 def test_a_registered_env_is_deterministic_and_judges_as_regrasp_env(name):
     """Same key, same states; the reward, success, collision and time-out are RegraspEnv's on the
     same actions (the noisy variant sees the needle elsewhere, but its tool moves as commanded)."""
@@ -66,7 +72,9 @@ def test_a_registered_env_is_deterministic_and_judges_as_regrasp_env(name):
     assert float(state.info["truncation"]) == 1.0  # the horizon of 4, overridden
 
 
-@pytest.mark.parametrize("name", ["NeedleRegraspCalibration", "NeedleRegraspCamera"])
+@pytest.mark.parametrize(
+    "name", [pytest.param("NeedleRegraspCalibration", marks=pytest.mark.slow), "NeedleRegraspCamera"]
+)
 def test_a_robot_error_env_moves_the_tool_as_its_arm_would(name):
     """Without errors it is RegraspEnv; with them, the step is the commanded motion turned by the
     view's orientation error (the same length, as ``robot_errors.executed`` says), judged by RegraspEnv."""
@@ -110,7 +118,13 @@ def test_registry_refuses_what_it_does_not_know():
 # the paper's task, the general one (another observation) and the camera's view (the needle and
 # both tools seen with error: the error views' code path); NeedleRegraspNoisy and
 # NeedleRegraspCalibration differ from these in error sizes and which tool is seen, not in spaces
-@pytest.mark.parametrize("name", ["NeedleRegrasp", "NeedleRegraspGeneral", "NeedleRegraspCamera"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "NeedleRegrasp",
+        *(pytest.param(n, marks=pytest.mark.slow) for n in ("NeedleRegraspGeneral", "NeedleRegraspCamera")),
+    ],
+)
 def test_check_env_passes(name):
     env = gymnasium.make(gym_envs.gym_id(name), config_overrides={"env.horizon": 3})
     with warnings.catch_warnings():
@@ -169,7 +183,7 @@ def _run(venv, steps: int, seed: int):
     return out
 
 
-@pytest.mark.parametrize("mode", ["same_step", "next_step"])
+@pytest.mark.parametrize("mode", ["same_step", pytest.param("next_step", marks=pytest.mark.slow)])
 def test_the_vector_env_autoresets_as_gymnasium_says(mode):
     venv = gymnasium.make_vec(
         "regrasp_mjx/NeedleRegrasp-v0",
@@ -225,6 +239,7 @@ def test_rgb_array_renders_the_scene():
     assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8 and frame.std() > 0
 
 
+@pytest.mark.slow
 def test_ended_episodes_restart_from_new_problems_the_pool_redrawn_when_used_up():
     """Horizon 1: every lane ends every step, so two lanes use up the pool (two problems a lane)
     every other step; twelve restarts are twelve different problems."""

@@ -119,6 +119,7 @@ def test_shield_candidates_order_and_range():
     assert shield_candidates([a], a, jax.random.PRNGKey(0)).shape[0] == 1 + len(SHIELD_NOISE) * SHIELD_PER_NOISE
 
 
+@pytest.mark.slow
 def test_camera_frame_plans_equal_ego_plans(policy, problems):
     """Any camera placement gives the e_g plan, and camera poses = T_c_eg applied to it."""
     rng = np.random.default_rng(0)

@@ -360,6 +360,7 @@ def test_actor_ema_and_cosine_learning_rate(easy_env, easy_demos):
     assert float(m["primary_loss"]) > -cfg.prm_coef * float(m["q_pi"]) + 1e-9
 
 
+@pytest.mark.slow
 def test_settings_train_side_by_side_with_paired_seeds(easy_env, easy_demos):
     cfg = make_config("smoke", "mixed,ddpg_bc", num_seeds=2)
     assert cfg.num_members == 4
@@ -478,6 +479,7 @@ def test_bad_policy_files(tmp_path, easy_env, easy_demos):
         load_policy(tmp_path)
 
 
+@pytest.mark.slow
 def test_observation_noise_randomises_only_what_the_policy_sees_of_the_needle(easy_env, easy_demos):
     """With obs_noise_mm the stored observations carry a noisy needle and the true end-effector;
     off, they are the environment's own."""

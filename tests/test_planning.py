@@ -287,6 +287,7 @@ def _alive(pid: int) -> bool:
         return False
 
 
+@pytest.mark.slow
 def test_demos_cli_killed_and_restarted_ends_with_exactly_n_distinct(tmp_path):
     out = tmp_path / "demos"
     cmd = [

@@ -52,7 +52,7 @@ def test_noisy_observation_moves_only_the_needle_and_the_goal_with_it(paper_test
     np.testing.assert_allclose(np.asarray(grasp[0]), np.asarray(es.goal_needle_pos), atol=1e-6)
 
 
-@pytest.mark.parametrize("mode", ["open", "per-frame"])
+@pytest.mark.parametrize("mode", ["open", pytest.param("per-frame", marks=pytest.mark.slow)])
 def test_no_noise_reproduces_the_plan(paper_testset, mode):
     episodes, _ = paper_testset
     policy = load_policy()
@@ -151,6 +151,7 @@ def test_a_text_file_is_no_test_set(tmp_path, capsys):
     assert "is not an .npz test-set file" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_evaluate_runs_a_noisy_condition_by_test_set_name(capsys):
     assert evaluate.main(["--testset", "paper300", "--noise-mm", "0.1", "--closed-loop", "--json"]) == 0
     r = json.loads(capsys.readouterr().out)

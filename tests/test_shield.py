@@ -58,6 +58,7 @@ def test_shield_rows_takes_each_rows_first_free_allowed_alternative_in_any_chunk
     np.testing.assert_array_equal(np.asarray(a), np.asarray(action))
 
 
+@pytest.mark.slow
 def test_the_closed_loop_shields_colliding_rows_with_shield_rows():
     """The closed loop's action choice: the network's action where it is free; where it collides,
     shield_rows' choice, which steps clear of the needle and the other tool."""
