@@ -171,8 +171,8 @@ LEARNER_SNIPPETS = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "learners
 
 @pytest.mark.parametrize(
     "snippet",
-    # the vector env's snippet compiles a batch of rollouts: in the long tier (see tests/conftest.py)
-    [*LEARNER_SNIPPETS[:2], pytest.param(LEARNER_SNIPPETS[2], marks=pytest.mark.slow)],
+    # the Playground and vector-env snippets compile batches of rollouts: in the long tier (see tests/conftest.py)
+    [pytest.param(s, marks=pytest.mark.slow) if i != 1 else s for i, s in enumerate(LEARNER_SNIPPETS)],
     ids=["playground", "gymnasium", "gymnasium-vector"],
 )
 def test_the_learners_page_snippets_run(snippet, capsys):

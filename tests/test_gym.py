@@ -183,7 +183,8 @@ def _run(venv, steps: int, seed: int):
     return out
 
 
-@pytest.mark.parametrize("mode", ["same_step", pytest.param("next_step", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["same_step", "next_step"])
 def test_the_vector_env_autoresets_as_gymnasium_says(mode):
     venv = gymnasium.make_vec(
         "regrasp_mjx/NeedleRegrasp-v0",

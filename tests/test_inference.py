@@ -193,6 +193,7 @@ def test_onnx_export_matches_jax(policy, tmp_path):
     assert check(general, path, n=500) < 2e-5
 
 
+@pytest.mark.slow
 def test_evaluate_cli_json(tmp_path, capsys):
     from regrasp_mjx import evaluate
     from regrasp_mjx.world.sampling import save_testset

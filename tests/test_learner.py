@@ -297,6 +297,7 @@ def test_a_tiny_problem_is_learned_without_retracing(easy_env, easy_demos):
     assert np.isfinite(float(metrics["critic_loss"][0]))
 
 
+@pytest.mark.slow
 def test_seeds_axis_runs_independent_learners(easy_env, easy_demos):
     """Seed s + 1 of a two-seed program is the one-seed run with seed s + 1."""
     cfg = _tiny_config()  # the programs of the tiny problem's test (one seed) and of the resume test (two)
@@ -496,6 +497,7 @@ def test_observation_noise_randomises_only_what_the_policy_sees_of_the_needle(ea
             assert moved.max() < 6e-3  # at most a 1 mm bias plus a few sigma of 1 mm
 
 
+@pytest.mark.slow
 def test_tool_noise_makes_the_policy_see_its_tool_through_the_camera(easy_env, easy_demos):
     """With obs_tool_noise_mm the stored observations' end-effector (in the seen grasping tool's
     frame) is the camera's, within a few sigma of the truth; the needle too (seen from that frame)."""

@@ -354,6 +354,7 @@ def test_load_demos_errors(tmp_path):
         load_demos(tmp_path)
 
 
+@pytest.mark.slow
 def test_demos_cli_stops_with_the_error_when_every_plan_fails(tmp_path):
     """A machine without OMPL (or a broken planner) must not plan failures forever: the build stops
     after ALL_FAILED errors in a row and says what the error was."""
