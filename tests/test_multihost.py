@@ -87,12 +87,6 @@ def _child(folder: Path, out: Path, process_id: int | None, port: int | None) ->
     import types
 
     import jax
-    from jax._src import distributed as jax_distributed
-
-    # Meet on the coordination service first: the broadcast opens a gloo context, which gives up
-    # when its peer is 30 s late (a CI run: process 0 still finishing the run's files and its
-    # final evaluation while process 1 waited).
-    jax_distributed.global_state.client.wait_at_barrier("broadcast_check", 600_000)
 
     from regrasp_mjx.agents.ddpg_bc.config import make_config
     from regrasp_mjx.agents.ddpg_bc.exchange import PlannerExchange

@@ -17,11 +17,16 @@ CPU devices exchange data through gloo (JAX has no other CPU collectives across 
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import jax
 import numpy as np
+from jax._src import distributed as jax_distributed  # the coordination service's client: no public handle
 from jax.experimental import multihost_utils
+
+MEET_TIMEOUT_S = 600.0
+_MEETINGS = itertools.count()  # every process calls the collectives in the same order: the same ids
 
 
 def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None) -> None:
@@ -58,8 +63,15 @@ def broadcast(tree: Any) -> Any:
     """Process 0's value of ``tree`` (numpy leaves of the same shapes on every process) on all."""
     if not multi_process():
         return tree
-
+    _meet()
     return jax.tree.map(np.asarray, multihost_utils.broadcast_one_to_all(tree))
+
+
+def _meet() -> None:
+    """Waits (up to ``MEET_TIMEOUT_S``) on the coordination service until every process is here.
+    A collective's gloo context gives up when a peer comes 30 s late, and process 0 does work the
+    others do not (the planners, the run's files) before it broadcasts: a CI run lost a broadcast so."""
+    jax_distributed.global_state.client.wait_at_barrier(f"regrasp_mjx_{next(_MEETINGS)}", int(1e3 * MEET_TIMEOUT_S))
 
 
 def sync(name: str) -> None:
