@@ -26,6 +26,7 @@ from regrasp_mjx.robot.psm_timing import (
     time_waypoints,
     tool_poses,
 )
+from regrasp_mjx.robot.topp import Spline
 from regrasp_mjx.world.sampling import episode_poses
 from tests.test_clearance import _as_pose
 
@@ -117,17 +118,18 @@ def test_a_coarse_grid_is_slowed_uniformly_until_every_sample_keeps_the_limits(m
 
 
 def test_the_sampled_trajectory_is_toppra_s_own_constant_acceleration_one():
-    """``sample_const_accel`` (whole arrays) gives what ``toppra.parametrizer.ParametrizeConstAccel``
-    (a loop over samples) gives for the same TOPP-RA velocities, at every sample and order."""
+    """``sample_const_accel`` (compiled, on the compiled spline) gives what
+    ``toppra.parametrizer.ParametrizeConstAccel`` (a loop over samples, on toppra's scipy spline)
+    gives for the same TOPP-RA velocities, at every sample and order."""
     import toppra
     from toppra.parametrizer import ParametrizeConstAccel
 
     rng = np.random.default_rng(5)
     q = dvrk.Q_MIN + (dvrk.Q_MAX - dvrk.Q_MIN) * (0.45 + 0.1 * rng.random((4, 6)))
-    path = toppra.SplineInterpolator(np.linspace(0.0, 1.0, 4), q)
+    path = toppra.SplineInterpolator(np.linspace(0.0, 1.0, 4), q, bc_type="clamped")
     grid = np.linspace(0.0, 1.0, 60)
     sd = 0.5 + np.sin(np.linspace(0.0, 3.0, 60)) ** 2  # any positive path velocities
-    t, position, velocity, acceleration = sample_const_accel(path, grid, sd, 1000.0)
+    t, position, velocity, acceleration = sample_const_accel(Spline(np.linspace(0.0, 1.0, 4), q), grid, sd, 1000.0)
     reference = ParametrizeConstAccel(path, grid, sd)
     assert t[0] == 0.0 and t[-1] == pytest.approx(reference.duration, abs=1e-12)
     assert np.all(np.diff(t[:-1]) == pytest.approx(1e-3))

@@ -7,9 +7,10 @@ tool tip does not move on the checked Cartesian step when its joints are interpo
 executed motion is checked where it goes, not where the plan's steps went:
 
 - :func:`time_joints` fits one C2 spline through the waypoints in joint space (knots spaced by the
-  time each segment needs at the velocity limits) and times it with TOPP-RA (``toppra``: the
-  time-optimal parameterisation of a given path under joint velocity and acceleration limits,
-  Pham and Pham 2018). TOPP-RA, not Ruckig: the motion must pass through every waypoint of a
+  time each segment needs at the velocity limits) and times it with TOPP-RA (the time-optimal
+  parameterisation of a given path under joint velocity and acceleration limits, Pham and Pham
+  2018), compiled in :mod:`regrasp_mjx.robot.topp` (the ``toppra`` library's results in a tenth of
+  its time; ``engine="toppra"`` uses the library). TOPP-RA, not Ruckig: the motion must pass through every waypoint of a
   checked plan, and Ruckig's community edition plans to one target state (its waypoints are a
   paid feature); the path is fixed first and only its timing is optimised, which is what the re-check
   needs.
@@ -43,7 +44,7 @@ import toppra.solverwrapper
 
 from regrasp_mjx.envs.host import quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
 from regrasp_mjx.envs.lean_checker import LeanChecker
-from regrasp_mjx.robot import dvrk, psm_joints
+from regrasp_mjx.robot import dvrk, psm_joints, topp
 from regrasp_mjx.robot.psm_joints import JointTrajectory
 from regrasp_mjx.world.scene import load_scene
 
@@ -61,6 +62,7 @@ MAX_RESCALES = 4  # uniform slow-downs of a timing whose samples pass a limit (o
 # the share of each limit TOPP-RA is given: all of it, since the motion between its grid points is
 # slowed to the limits afterwards (path_ratio); below 1 it leaves room and motion time
 HEADROOM = 1.0
+ENGINES = ("compiled", "toppra")  # time_joints' TOPP-RA: regrasp_mjx.robot.topp, or the toppra library
 TOOL_REACH = 0.3  # m: farther than any point of the tool's capsules from the RCM (insertion <= 0.24 m)
 
 
@@ -82,7 +84,12 @@ class TimedTrajectory:
 
 
 def time_joints(
-    waypoints, rate_hz: float = RATE_HZ, v_max=V_MAX, a_max=A_MAX, gridpoints: int | None = None
+    waypoints,
+    rate_hz: float = RATE_HZ,
+    v_max=V_MAX,
+    a_max=A_MAX,
+    gridpoints: int | None = None,
+    engine: str = "compiled",
 ) -> TimedTrajectory:
     """The time-optimal trajectory through joint ``waypoints`` ``[W, 6]`` (at rest at both ends) under
     ``v_max`` and ``a_max`` (6 each), sampled at ``rate_hz`` (see the module's docstring): TOPP-RA's
@@ -90,7 +97,11 @@ def time_joints(
     excess anywhere between its grid points (:func:`path_ratio`), so that every sample keeps the
     limits. ``gridpoints``: TOPP-RA's grid along the path, that many points spaced evenly (default:
     the knots and :data:`GRID_PER_SEGMENT` points between two, :func:`knot_grid`; a coarser grid is
-    faster to compute and gives longer motion, experiments/RESULTS.md)."""
+    faster to compute and gives longer motion, experiments/RESULTS.md). ``engine``: ``"compiled"``
+    (:mod:`regrasp_mjx.robot.topp`, toppra's algorithm and results in about a tenth of its time) or
+    ``"toppra"`` (the library itself, the reference)."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine={engine!r} is not accepted: one of {', '.join(map(repr, ENGINES))}")
     q = np.asarray(waypoints, np.float64)
     if q.ndim != 2 or q.shape[1] != 6 or len(q) < 1 or not np.all(np.isfinite(q)):
         raise ValueError(f"waypoints of shape {q.shape} are not accepted: [W, 6] finite joint vectors, W >= 1")
@@ -108,7 +119,7 @@ def time_joints(
         return TimedTrajectory(np.zeros(1), q.copy(), zero, zero.copy(), q.copy(), float(rate_hz))
     if gridpoints is not None and not (isinstance(gridpoints, int) and gridpoints >= 2):
         raise ValueError(f"gridpoints={gridpoints!r} is not accepted: an integer >= 2")
-    path, grid, sd = raw_timing(q, gridpoints, v_max, a_max)
+    path, grid, sd = raw_timing(q, gridpoints, v_max, a_max, engine)
     # TOPP-RA holds the limits at its grid points; between them the motion can pass one (the path's
     # curvature changes within an interval): the whole motion is slowed uniformly by the largest
     # excess anywhere along it (velocities / r, accelerations / r^2), then sampled
@@ -122,23 +133,32 @@ def time_joints(
     raise ValueError(f"no timing within the limits after {MAX_RESCALES} uniform slow-downs (last excess {over:.6f})")
 
 
-def raw_timing(q: np.ndarray, gridpoints: int | None = None, v_max=V_MAX, a_max=A_MAX):
+def raw_timing(q: np.ndarray, gridpoints: int | None = None, v_max=V_MAX, a_max=A_MAX, engine: str = "compiled"):
     """TOPP-RA's own timing of distinct waypoints ``q`` ``[W >= 2, 6]``: ``(path, gridpoints, sd)``,
     the C2 spline through them (knots spaced by the time each segment takes at the velocity limits)
     and the path velocities at the grid's points, at :data:`HEADROOM` of the limits; ``gridpoints``
-    None: :func:`knot_grid`, else that many points spaced evenly."""
+    None: :func:`knot_grid`, else that many points spaced evenly; ``engine`` as :func:`time_joints`."""
+    v_max, a_max = np.asarray(v_max, np.float64), np.asarray(a_max, np.float64)
     span = np.max(np.abs(np.diff(q, axis=0)) / v_max, axis=1)
     ss = np.r_[0.0, np.cumsum(span)]
     ss /= ss[-1]
-    path = toppra.SplineInterpolator(ss, q, bc_type="clamped" if len(q) > 2 else "natural")
-    limits = _constraints(tuple(v_max * HEADROOM), tuple(a_max * HEADROOM))
     grid = np.linspace(0.0, 1.0, gridpoints) if gridpoints else knot_grid(ss)
-    solver = toppra.algorithm.TOPPRA(limits, path, gridpoints=grid, solver_wrapper="seidel")
-    solver.compute_parameterization(0.0, 0.0)
-    data = solver.problem_data
-    ok = data.return_code == toppra.algorithm.ParameterizationReturnCode.Ok
-    if ok and len(grid) > 2 and np.all(data.sd_vec[1:-1] > 0):  # 2 points at rest: no motion at all
-        return path, grid, data.sd_vec
+    path = topp.Spline(ss, q)
+    if engine == "toppra":  # the library's spline (scipy's, the same to 1e-15) and passes
+        reference = toppra.SplineInterpolator(ss, q, bc_type="clamped" if len(q) > 2 else "natural")
+        solver = toppra.algorithm.TOPPRA(
+            _constraints(tuple(v_max * HEADROOM), tuple(a_max * HEADROOM)),
+            reference,
+            gridpoints=grid,
+            solver_wrapper="seidel",
+        )
+        solver.compute_parameterization(0.0, 0.0)
+        ok = solver.problem_data.return_code == toppra.algorithm.ParameterizationReturnCode.Ok
+        sd = solver.problem_data.sd_vec if ok else None
+    else:
+        sd = topp.path_velocities(path(grid, 1), path(grid, 2), grid, v_max * HEADROOM, a_max * HEADROOM)
+    if sd is not None and np.all(np.isfinite(sd)) and len(grid) > 2 and np.all(sd[1:-1] > 0):
+        return path, grid, sd  # (2 points at rest: no motion at all)
     raise ValueError("TOPP-RA found no trajectory through these waypoints at these limits")
 
 
@@ -155,22 +175,11 @@ def path_ratio(path, gridpoints: np.ndarray, sd: np.ndarray, v_max, a_max, point
     """:func:`limit_ratio` of the motion TOPP-RA's ``sd`` makes (the path acceleration constant between
     grid points, :func:`sample_const_accel`) at both ends of every grid interval and points inside
     it, about ``points`` in all (at least 2 inside each), where the samples at the controller's rate
-    fall anywhere (a coarse grid's intervals need the most: its curvature changes within them)."""
+    fall anywhere (a coarse grid's intervals need the most: its curvature changes within them);
+    ``path`` a :class:`~regrasp_mjx.robot.topp.Spline` (compiled, :func:`~regrasp_mjx.robot.topp.motion_ratio`)."""
     ss, sd = np.asarray(gridpoints, np.float64), np.asarray(sd, np.float64)
-    per_interval = max(2, points // len(ss))
-    u = 0.5 * np.diff(sd**2) / np.diff(ss)
-    frac = np.linspace(0.0, 1.0, per_interval + 2)
-    s = ss[:-1, None] + frac * np.diff(ss)[:, None]  # [G-1, K]: each interval with its ends
-    v = np.sqrt(np.maximum(sd[:-1, None] ** 2 + 2.0 * u[:, None] * (s - ss[:-1, None]), 0.0))
-    qd, qdd = _joint_rates(path, s.reshape(-1), v.reshape(-1), np.repeat(u, s.shape[1]))
-    return limit_ratio(qd, qdd, v_max, a_max)
-
-
-def _joint_rates(path, s: np.ndarray, v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Joint velocities and accelerations ``[N, 6]`` at path points ``s`` moved along at path velocity
-    ``v`` and path acceleration ``u`` ``[N]``: ``q' v`` and ``q'' v^2 + q' u``."""
-    dq = path(s, 1)
-    return dq * v[:, None], path(s, 2) * (v**2)[:, None] + dq * u[:, None]
+    v_max, a_max = np.asarray(v_max, np.float64), np.asarray(a_max, np.float64)
+    return topp.motion_ratio(path.knots, path.coef, ss, sd, max(2, points // len(ss)), v_max, a_max)
 
 
 def limit_ratio(qd: np.ndarray, qdd: np.ndarray, v_max=V_MAX, a_max=A_MAX) -> float:
@@ -205,21 +214,13 @@ def _constraints(v: tuple[float, ...], a: tuple[float, ...]) -> list:
 
 
 def sample_const_accel(path, gridpoints: np.ndarray, sd: np.ndarray, rate_hz: float):
-    """Times and joint positions, velocities and accelerations at ``rate_hz`` along ``path`` timed by
-    TOPP-RA's path velocities ``sd`` at ``gridpoints``, the path acceleration constant between grid
-    points: ``toppra.parametrizer.ParametrizeConstAccel``'s trajectory, evaluated in whole arrays
-    (its own loop over samples took two thirds of a plan's timing, experiments/RESULTS.md)."""
+    """Times and joint positions, velocities and accelerations at ``rate_hz`` along ``path`` (a
+    :class:`~regrasp_mjx.robot.topp.Spline`) timed by TOPP-RA's path velocities ``sd`` at
+    ``gridpoints``, the path acceleration constant between grid points:
+    ``toppra.parametrizer.ParametrizeConstAccel``'s trajectory, compiled (:func:`~regrasp_mjx.robot.topp.sample`;
+    toppra's own loop over samples took two thirds of a plan's timing, experiments/RESULTS.md)."""
     ss, sd = np.asarray(gridpoints, np.float64), np.asarray(sd, np.float64)
-    ds = np.diff(ss)
-    u = 0.5 * np.diff(sd**2) / ds  # the path acceleration of each interval
-    knots = np.r_[0.0, np.cumsum(2.0 * ds / (sd[:-1] + sd[1:]))]
-    t = np.r_[np.arange(0.0, knots[-1], 1.0 / rate_hz), knots[-1]]
-    if len(t) > 1 and t[-1] - t[-2] < 1e-9:
-        t = t[:-1]
-    i = np.minimum(np.searchsorted(knots, t, side="right") - 1, len(u) - 1)
-    dt = t - knots[i]
-    s = ss[i] + dt * sd[i] + 0.5 * dt**2 * u[i]
-    return t, path(s), *_joint_rates(path, s, sd[i] + dt * u[i], u[i])
+    return topp.sample(path.knots, path.coef, ss, sd, float(rate_hz))
 
 
 @dataclasses.dataclass(frozen=True)
