@@ -503,6 +503,42 @@ def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     assert f"took about {whole / 60:.0f} minutes on one H100" in text
 
 
+def test_the_general_recipe_s_times_and_comparison_in_the_training_docs_are_their_result_files():
+    """docs/training.md's `recipe general` on one H100: the stages as the recipe printed them (its two
+    calls' logs), the whole as their sum and with the first call's cut job added, both its recipe.json's;
+    the comparison with the shipped `general` counted from the two robustness files."""
+    folder = ROOT / "experiments" / "results" / "recipe" / "general_h100_2026-11-28"
+    runs = json.loads((folder / "recipe.json").read_text())["runs"]
+    stage = {}
+    for call in ("call1.log", "call2.log"):
+        text = (folder / call).read_text()
+        stage |= {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", text, re.M)}
+    cut = runs[0]["jobs"]["select/teacher_s0"]
+    assert cut["exit"] == "stopped" and all(j["exit"] == 0 for j in runs[1]["jobs"].values())
+    whole = sum(stage.values())
+    assert abs(runs[0]["wall_s"] - cut["wall_s"] + runs[1]["wall_s"] - whole) < 3  # the stages fill the calls
+    doc = _prose("training.md")
+    assert (
+        f"The whole `general` recipe took {whole} s on one H100 (2026-11-28, in two calls, the first cut by its "
+        f"limit during selection; {whole + cut['wall_s']:.0f} s with the cut job's lost {cut['wall_s']:.0f} s): "
+        f"demonstrations {stage['demos']} s, teachers {stage['teachers']} s, selection {stage['selection']} s, "
+        f"the closed loop's choice {stage['choose']} s, the report {stage['report']} s" in doc
+    )
+    shipped, rebuilt = (
+        {(r["condition"], r["mode"]): r["success_rate"] for r in json.loads(p.read_text())["tables"][0]["rows"]}
+        for p in (
+            ROOT / "experiments/results/continuous/directional/robustness/general.json",
+            folder / "robustness.json",
+        )
+    )
+    gaps = [rebuilt[k] - shipped[k] for k in shipped if k in rebuilt]
+    within, better = sum(abs(g) <= 0.01 + 1e-9 for g in gaps), sum(g > 0.01 + 1e-9 for g in gaps)
+    assert (
+        f"within 0.01 of the shipped `general` on {within} of its {len(gaps)} robustness rows, better by more on "
+        f"{better} and worse on {len(gaps) - within - better}" in doc
+    )
+
+
 def test_table_two_s_rrt_connect_and_earlier_policy_rows_are_their_result_files():
     """docs/results.md's Table II: the RRT-Connect rows (forward / reverse: rrt_connect/*.csv over
     OMPL's MuJoCo checker, lean_checker/dev_amd/bench_plan.json over the lean one), BIT* (R) over the
