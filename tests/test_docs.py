@@ -436,7 +436,8 @@ def test_the_networks_of_2026_11_24_in_the_history_are_their_result_files():
     """docs/results.md's table of the shipped networks as they stood on 2026-11-24: the success cells
     (bare / shielded on paper300 and the held-out 3000), steps and path of the rows whose runs are
     committed: the default then (default_v3, seed 0), `decay` (decay_vs_base, seed 1), `student_v1`
-    and the ensemble (shipping/policies.json; no steps shown)."""
+    and the ensemble (shipping/policies.json; no steps shown), `student_v2` (policies_conservative.json,
+    seed 2) and the generalist then (general/general.json, seed 0; no held-out cell)."""
     results = ROOT / "experiments" / "results"
     text = (ROOT / "docs" / "results.md").read_text().replace("**", "")
     history = text.split("The shipped networks as they stood on 2026-11-24")[1].splitlines()
@@ -460,21 +461,91 @@ def test_the_networks_of_2026_11_24_in_the_history_are_their_result_files():
             "old_shipped_ensemble",
             False,
         ),
+        ("earlier default `student_v2`", "shipping/policies_conservative.json", "student_s2", True),
+        ("the generalist then (now `general_v1`)", "general/general.json", "seed0", True),
     ):
+        data = json.loads((results / path).read_text())
         rows = {
             (r["testset"].split(" (")[0], r["rollout"]): r
-            for r in json.loads((results / path).read_text())
+            for r in (data["rows"] if isinstance(data, dict) else data)
             if r["policy"] == policy
         }
         cells = [c.strip() for c in next(line for line in history if line.startswith(f"| {lead} |")).split("|")[1:-1]]
         for column, testset in ((1, "paper300"), (2, "held-out 3000")):
-            shown = " / ".join(f"{rows[testset, kind]['success_rate']:.3f}" for kind in ("bare", "shielded"))
+            kinds = [rows.get((testset, kind)) for kind in ("bare", "shielded")]
+            shown = " / ".join(f"{r['success_rate']:.3f}" for r in kinds) if all(kinds) else ""
             assert cells[column] == shown, (lead, testset)
         shielded = rows["paper300", "shielded"]
         assert (
             cells[4] == (f"{shielded['steps']:.1f}" if steps else "")
             and cells[5] == f"{shielded['path_length_mm']:.2f}"
         ), lead
+
+
+def test_the_planning_times_and_path_columns_of_the_shipped_networks_tables_are_their_files():
+    """docs/results.md's two tables of the shipped networks: every planning-time cell from the timing
+    files of one core of the H100 host (default_v3's four runs before the packed output and four after
+    it, the ensemble's and `student_v1`'s inference files; an empty cell where no file holds a
+    paper300 time), the prose that cites them, and the current table's steps and path from the
+    comparison file (paper300, shielded)."""
+    results = ROOT / "experiments" / "results"
+    v3 = results / "default_v3"
+
+    def medians(name: str) -> list[dict]:
+        rows = [json.loads(x) for x in (v3 / name).read_text().splitlines() if x.strip()]
+        return [{**r, "ms": r.get("median_ms", r.get("planning_time_ms_median"))} for r in rows]
+
+    packed = medians("timing_h100_packed.jsonl")
+    before = medians("timing_h100_call1.jsonl") + medians("timing_h100_rounds.jsonl")
+
+    def times(rows, policy, shield=True):
+        return [r["ms"] for r in rows if r["policy"].endswith(policy) and r["shield"] == shield]
+
+    def span(values):
+        return f"{min(values):.2f}-{max(values):.2f}"
+
+    v2, old_default = times(before, "student_v2"), times(before, "policies/default")
+    assert len(v2) == len(old_default) == 4
+    exact = f"0.44-0.60 (H100 host, 4 runs; bare {span(times(packed, 'default', False))})"
+    assert exact.startswith(span(times(packed, "default")))
+    expected = {
+        "exact": exact,
+        "decay": f"{times(before, 'decay')[0]:.2f} (H100 host, 1 run)",
+        "general": "",
+        "general_v1": "",
+        "student_v2": f"{np.median(v2):.2f} (H100 host, median of 4 runs: {span(v2)})",
+        "ensemble3": f"{json.loads((results / 'inference' / 'eval_cpu1_ensemble3_shield.json').read_text())['planning_time_ms_median']:.2f} (H100 host)",
+        "student_v1": f"{json.loads((results / 'shipping' / 'timing_cpu1.jsonl').read_text().splitlines()[0])['planning_time_ms_median']:.2f} (H100 host)",
+    }
+    compare = json.loads((results / "continuous" / "compare.json").read_text())["rows"]
+    walks = {r["policy"]: r for r in compare if r["testset"].startswith("paper300") and r["rollout"] == "shielded"}
+    text = (ROOT / "docs" / "results.md").read_text().replace("**", "")
+    now, history = text.split("The shipped networks as they stood on 2026-11-24")
+    names = {"the default then (now `exact`)": "exact", "the generalist then (now `general_v1`)": "general_v1"}
+    seen = []
+    for table, part in (("now", now[: now.index("## How we got there")]), ("history", history)):
+        for line in part.splitlines():
+            named = re.match(
+                r'\| (?:`load_policy\("(\w+)"\)`|earlier default[^`|]*`(\w+)`|(the \w+ then \(now `\w+`\)))', line
+            )
+            if not named:
+                continue
+            policy = named.group(1) or named.group(2) or names[named.group(3)]
+            cells = [c.strip() for c in line.split("|")[1:-1]]
+            assert cells[3] == expected[policy], (table, policy)
+            if table == "now":
+                steps = f"{walks[policy]['steps']:.1f}" if policy != "ensemble3" else ""
+                assert cells[4:6] == [steps, f"{walks[policy]['path_length_mm']:.2f}"], policy
+            seen.append((table, policy))
+    assert len(seen) == 12, seen
+    prose = " ".join(text.split())
+    assert f"took {span(old_default)} ms over four runs against {span(v2)} ms for `student_v2`" in prose
+    shown = ", ".join(f"{x:.2f}" for x in sorted(old_default)[:-1]) + f" and {max(old_default):.2f} ms"
+    assert f"gave medians of {shown} (the earlier default in the same calls: {span(v2)} ms)" in prose
+    runs = ", ".join(f"{x:.2f}" for x in times(packed, "default")[:-1]) + f" and {times(packed, 'default')[-1]:.2f} ms"
+    assert f"four runs gave {runs} shielded, {span(times(packed, 'default', False))} ms bare" in prose
+    default = walks["default"]
+    assert f"| {default['steps']:.1f} | {default['path_length_mm']:.2f} |" in now
 
 
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
