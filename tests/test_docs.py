@@ -578,6 +578,35 @@ def test_the_demonstration_times_in_the_results_are_the_recipes_files():
     assert f"in {demos('general_h100_2026-11-28'):.0f} s for the general task" in text
 
 
+def test_the_batched_throughput_in_the_results_is_its_profile_files():
+    """docs/results.md's "Batches on a GPU": the five shielded measurements at 65,536 queries (two
+    profiles, three evaluate runs) as a range, the program alone, and the generalist's three (its
+    profiled shielded batch and two evaluate runs), from experiments/results/profile_plan/."""
+    folder = ROOT / "experiments" / "results" / "profile_plan"
+
+    def load(name: str) -> dict:
+        return json.loads((folder / f"{name}.json").read_text())
+
+    def profiled(name: str, batch: int | None = 65536) -> list[dict]:
+        return [r for r in load(name)["rows"] if r["shield"] and (batch is None or r["batch"] == batch)]
+
+    default = [r["plans_per_s"] for name in ("profile_plan", "uncompacted") for r in profiled(name)]
+    default += [
+        load(n)["batch_plans_per_s"] for n in ("eval_default", "uncompacted_eval_default", "eval_default_final")
+    ]
+    general = [r["plans_per_s"] for r in profiled("profile_plan_general", None)]
+    general += [load(n)["batch_plans_per_s"] for n in ("eval_general", "eval_general_final")]
+    program = profiled("profile_plan")[0]["program_plans_per_s"]
+    text = _prose("results.md")
+    assert len(default) == 5 and len(general) == 3
+    assert (
+        f"plans {min(default) / 1e6:.2f}-{max(default) / 1e6:.2f} M shielded queries a second at a batch of 65,536"
+        in text
+    )
+    assert f"the program alone {program / 1e6:.0f} M a second" in text
+    assert f"the whole horizon, {min(general) / 1e6:.2f}-{max(general) / 1e6:.2f} M" in text
+
+
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     """docs/training.md's recipe times on one H100: each stage's longest job from the recipe's own
     recipe.json (the runs of one folder), the students' and selection's stage from the first student's
