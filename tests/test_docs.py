@@ -548,22 +548,6 @@ def test_the_planning_times_and_path_columns_of_the_shipped_networks_tables_are_
     assert f"| {default['steps']:.1f} | {default['path_length_mm']:.2f} |" in now
 
 
-def test_the_readme_s_xla_flags_speed_up_is_the_training_benchmark_files():
-    """README.md's "a training iteration 1.3x faster on an H100" with the package's XLA flags: the
-    iteration time without them over the time with them (experiments/results/continuous/subtree/ and
-    its flags/ run of bench_train.py), at 512 and at 8,192 environments, both rounding to it."""
-    folder = ROOT / "experiments" / "results" / "continuous" / "subtree"
-    without, with_flags = (
-        {r["num_envs"]: r["iteration_ms"] for r in json.loads((f / "bench_train_h100.json").read_text())["rows"]}
-        for f in (folder, folder / "flags")
-    )
-    ratios = {f"{without[n] / with_flags[n]:.1f}" for n in (512, 8192)}
-    assert len(ratios) == 1
-    assert f"a training iteration {ratios.pop()}x faster on an H100" in " ".join(
-        (ROOT / "README.md").read_text().split()
-    )
-
-
 def test_the_demonstration_times_in_the_results_are_the_recipes_files():
     """docs/results.md's demonstration times: the demos job of each recipe run it names, from its
     recipe.json (the paper task's on one and two H100s as a range, the general task's alone)."""
