@@ -591,6 +591,37 @@ def test_the_batched_throughput_in_the_results_is_its_profile_files():
     assert f"the whole horizon, {min(general) / 1e6:.2f}-{max(general) / 1e6:.2f} M" in text
 
 
+def test_the_training_program_numbers_in_the_results_are_their_benchmark_files():
+    """docs/results.md's "Training program": one seed at 512 and 8,192 environments and 8 seeds in one
+    program (bench_train.json), two H200s against one (multi_gpu/bench_train_*seed*.json), and the
+    whole runs with the seeds over two H100s (multi_gpu_seeds/multi_gpu_seeds.json)."""
+    results = ROOT / "experiments" / "results"
+    rows = {(r["seeds"], r["num_envs"]): r for r in json.loads((results / "bench_train.json").read_text())["rows"]}
+    one, big, eight = rows[1, 512], rows[1, 8192], rows[8, 512]
+    text = _prose("results.md")
+    assert (
+        f"{one['env_steps_per_s'] / 1e6:.1f} M env-steps/s and {round(one['updates_per_s'], -3):,.0f} updates/s at the "
+        f"`fast` preset's 512 environments (one seed); {big['env_steps_per_s'] / 1e6:.1f} M env-steps/s at 8,192 "
+        f"environments; 8 seeds in one program: {eight['env_steps_per_s'] / 1e6:.1f} M env-steps/s and "
+        f"{round(eight['updates_per_s'], -2):,.0f} updates/s ({eight['updates_per_s'] / one['updates_per_s']:.1f}x one "
+        f"seed), {eight['peak_memory_gb']:.1f} GB peak" in text
+    )
+    x2 = {}
+    for name in ("bench_train_1seed", "bench_train_8seeds"):
+        for r in json.loads((results / "multi_gpu" / f"{name}.json").read_text())["rows"]:
+            x2[r["seeds"], r["num_envs"], r["devices"]] = r["iteration_ms"]
+    speed = [f"{x2[1, n, 1] / x2[1, n, 2]:.2f}x" for n in (512, 8192, 32768)]
+    assert f"{speed[0]} at 512 environments, {speed[1]} at 8,192, {speed[2]} at 32,768" in text
+    pairs = json.loads((results / "multi_gpu_seeds" / "multi_gpu_seeds.json").read_text())["pairs"]
+    eight_runs = next(p for p in pairs if p["label"] == "pipelined" and p["seeds"] == 8)
+    many = next(p for p in pairs if p["label"] == "pipelined" and p["seeds"] == 32)
+    assert (
+        f"8 seeds in {eight_runs['time_2gpu_s']:.0f} s against {eight_runs['time_1gpu_s']:.0f} s on one GPU "
+        f"({eight_runs['speedup']:.2f}x; an epoch {eight_runs['epoch_speedup']:.2f}x faster), 32 seeds for 12 epochs "
+        f"{many['speedup']:.2f}x (an epoch {many['epoch_speedup']:.2f}x)" in text
+    )
+
+
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     """docs/training.md's recipe times on one H100: each stage's longest job from the recipe's own
     recipe.json (the runs of one folder), the students' and selection's stage from the first student's
