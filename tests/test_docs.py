@@ -622,6 +622,32 @@ def test_the_training_program_numbers_in_the_results_are_their_benchmark_files()
     )
 
 
+def test_the_planners_line_and_the_needle_error_prose_in_the_results_are_their_files():
+    """docs/results.md's BIT* (R) line (planners.csv, 20° jaws), the default's held-out 3000 success
+    beside the robustness block (the comparison file) and the generalist's fused success at sigma 0.25
+    mm on general1000 (its robustness table under the continuous test)."""
+    results = ROOT / "experiments" / "results"
+    with (results / "planners.csv").open() as f:
+        bit = next(r for r in csv.DictReader(f) if r["algorithm"] == "BIT* (R)" and float(r["jaw_angle_deg"]) == 20.0)
+    text = _prose("results.md")
+    assert (
+        f"BIT* (R): {float(bit['success_rate']):.2f} success, {float(bit['plan_time_mean_s']):.3f} s mean, "
+        f"{float(bit['path_length_mm']):.2f} mm" in text
+    )
+    rows = json.loads((results / "continuous" / "compare.json").read_text())["rows"]
+    held = {
+        r["rollout"]: r["success_rate"]
+        for r in rows
+        if r["policy"] == "default" and r["testset"].startswith("held-out")
+    }
+    assert f"Held-out 3000: {held['shielded']:.3f} shielded ({held['bare']:.3f} bare)" in text
+    general = json.loads((results / "continuous" / "directional" / "robustness" / "general.json").read_text())[
+        "tables"
+    ][0]
+    fused = next(r for r in general["rows"] if r["condition"] == "sigma 0.25 mm" and r["mode"] == "fused")
+    assert f"The generalist reaches {fused['success_rate']:.3f} fused at 0.25 mm on general1000" in text
+
+
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     """docs/training.md's recipe times on one H100: each stage's longest job from the recipe's own
     recipe.json (the runs of one folder), the students' and selection's stage from the first student's
