@@ -648,6 +648,31 @@ def test_the_planners_line_and_the_needle_error_prose_in_the_results_are_their_f
     assert f"The generalist reaches {fused['success_rate']:.3f} fused at 0.25 mm on general1000" in text
 
 
+def test_why_the_paper_s_learner_decayed_is_its_result_files():
+    """docs/results.md's account of the paper's learner's decay and the fix: the critic's over-estimate
+    on the failed starts and the success curve at the paper's scale (decay/decay.json, mean of 3
+    seeds per epoch), and the ablation's last-epoch means and validation gaps (ablation/ablation.json)."""
+    results = ROOT / "experiments" / "results"
+    paper = json.loads((results / "decay" / "decay.json").read_text())["paper_learner_paper_scale"]
+    success = np.array(paper["test.success_rate"])
+    over = float(np.mean(paper["validation.q_bias_failed"][10:]))
+    text = _prose("results.md")
+    assert f"(Q above the return by about {over:.1f}:" in text
+    peak = int(np.argmax(success))
+    assert (
+        f"success peaks at {success[peak]:.2f} (epoch {paper['epoch'][peak]:.0f}) and sinks to {success[-1]:.2f} by "
+        f"epoch {paper['epoch'][-1]:.0f}" in text
+    )
+    runs = json.loads((results / "ablation" / "ablation.json").read_text())
+    last = {name.split(" (")[0]: float(np.mean(r["last"])) for name, r in runs.items()}
+    ours, floor = last["ours: all four changes"], last["without the exploration floor"]
+    assert f"(without it: {last['without TD3']:.3f}, with it: {ours:.3f} at 512 environments" in text
+    assert f"a Gaussian exploration floor adds about {ours - floor:.3f}" in text
+    ours = runs["ours: all four changes"]
+    gap = max(b - a for a, b in zip(ours["val_last"], ours["val_best"]))
+    assert f"keep the last epoch within {gap:.3f} of the best on validation" in text
+
+
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     """docs/training.md's recipe times on one H100: each stage's longest job from the recipe's own
     recipe.json (the runs of one folder), the students' and selection's stage from the first student's
