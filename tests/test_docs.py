@@ -186,6 +186,12 @@ def test_the_generalist_section_is_its_result_files():
     radius = " / ".join(f"{v:.3f}" for v in by["by_radius_mm"][1])
     alpha = " / ".join(f"{v:.3f}" for v in by["by_alpha_rad"][1])
     assert f"10-12 mm: {radius}; by alpha* 200-215 / 215-230 / 230-245 / 245-260°: {alpha} (mean" in text
+    steps = {(r["policy"], r["testset"]): r["steps"] for r in data["rows"] if r["rollout"] == "bare"}
+    assert f"37 inputs, {steps['seed0', 'general1000']:.1f} steps a plan on general1000" in text
+    assert (
+        f"(1.000 against {rate['specialist', 'paper300', 'bare']:.3f}), in {steps['seed0', 'paper300']:.1f} steps "
+        f"against {steps['specialist', 'paper300']:.1f}" in text
+    )
 
 
 def test_table_one_in_the_docs_is_its_result_file():
