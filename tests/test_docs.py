@@ -361,6 +361,17 @@ def test_the_first_shipped_students_in_the_history_are_their_result_files():
         shown = [f"{x:.3f}" for x in shielded]  # "all 1.000 (one 0.999) with the shield"; "all 1.000 shielded"
         assert len(shown) == 6 and shown.count("0.999") == (1 if name == "policies" else 0)
         assert set(shown) <= {"1.000", "0.999"}
+    # one seed's wall: where the run was when its call ended (one_wall.txt, the log's last iteration)
+    wall = re.search(r"after (\d+) s", (folder / "one_seed" / "one_wall.txt").read_text()).group(1)
+    last = re.findall(r"^distill (\d+)/(\d+) ", (folder / "one_seed" / "train.log").read_text(), re.M)[-1]
+    assert f"reached distillation iteration {last[0]} of {last[1]} in {wall} s" in text
+    # student_v2 (seed 2 of the conservative students): its bare collisions on paper300
+    v2 = next(
+        r
+        for r in json.loads((folder / "policies_conservative.json").read_text())
+        if r["policy"] == "student_s2" and r["testset"] == "paper300" and r["rollout"] == "bare"
+    )
+    assert f"bare, {100 * v2['collision_rate']:.1f} % of its plans collide" in text
 
 
 def test_the_long_runs_drift_and_scale_sweep_in_the_history_are_their_result_files():
