@@ -690,6 +690,42 @@ def test_why_the_paper_s_learner_decayed_is_its_result_files():
     assert f"keep the last epoch within {gap:.3f} of the best on validation" in text
 
 
+def test_the_calibration_prose_in_the_results_is_its_result_files():
+    """docs/results.md's prose after the calibration block: the default's held-out 3000 rows
+    (robot_errors_heldout.json), its camera-view rows and the generalist's (the block's own tables,
+    continuous/directional/robustness/), and the closed-loop selection lines (robot_errors/selection.md)."""
+    folder = ROOT / "experiments" / "results" / "robot_errors"
+
+    def fused(path, policy: str) -> dict[str, float]:
+        tables = json.loads(path.read_text())["tables"]
+        table = next(t for t in tables if t["policy"] == policy)
+        return {r["condition"]: r["success_rate"] for r in table["rows"] if r["mode"] == "fused"}
+
+    held = fused(folder / "robot_errors_heldout.json", "default")
+    block = ROOT / "experiments" / "results" / "continuous" / "directional" / "robustness"  # the block's tables
+    default, general = fused(block / "default.json", "default"), fused(block / "general.json", "general")
+    camera = {f"{v:.3f}" for k, v in held.items() if k.startswith("calibration") and k.endswith("(camera)")}
+    kinematic = [v for k, v in held.items() if k.startswith("calibration") and k.endswith("(kinematic)")]
+    assert len(camera) == 1 and len(kinematic) == 4
+    text = _prose("results.md")
+    assert (
+        f"the default scores {camera.pop()} in the camera view at every calibration row and "
+        f"{held['tools tracked (camera)']:.3f} with the tools tracked and no calibration error; "
+        f"{min(kinematic):.3f} to {max(kinematic):.3f} through the kinematics" in text
+    )
+    ten, five = default["calibration 10 mm 5 deg (camera)"], default["calibration 5 mm 3 deg (camera)"]
+    assert f"5 deg is reached ({ten:.3f}, held-out {held['calibration 10 mm 5 deg (camera)']:.3f})" in text
+    assert f"on general1000 (`general`: {general['calibration 5 mm 3 deg (camera)']:.3f})" in text
+    assert f"not reached: 0.99 at 5 mm / 3 deg ({five:.3f}) and 0.995 without a" in text
+    assert f"calibration error ({default['tools tracked (camera)']:.3f})" in text
+    lines = [[c.strip() for c in line.split("|")[1:-1]] for line in (folder / "selection.md").read_text().splitlines()]
+    rows = [c for c in lines if len(c) == 6 and c[1].isdigit()]
+    students = [float(c[5]) for c in rows if c[0].startswith("student") and c[2] == "0.8"]
+    twenty = next(c for c in rows if c[1] == "20")
+    assert f"did worse on validation problems ({min(students):.2f}-{max(students):.2f})" in text
+    assert f"lift the default to {min(twenty[3:5])}-{max(twenty[3:5])} there" in text
+
+
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     """docs/training.md's recipe times on one H100: each stage's longest job from the recipe's own
     recipe.json (the runs of one folder), the students' and selection's stage from the first student's
