@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 
 def rows(path: str) -> dict[tuple[str, str], float]:
     """``(condition, mode) -> success_rate`` of the file's first table."""
-    table = json.loads(open(path).read())["tables"][0]
+    table = json.loads(Path(path).read_text())["tables"][0]
     return {(r["condition"], r["mode"]): r["success_rate"] for r in table["rows"]}
 
 

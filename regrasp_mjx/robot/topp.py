@@ -99,24 +99,6 @@ def _segment(knots, s):
 
 
 @njit(cache=True)
-def spline_eval(knots, coef, s, order):
-    """The spline's ``order``-th derivative (0, 1 or 2) at points ``s`` ``[N]``: ``[N, D]`` (a point
-    past the ends is on the end segment's polynomial, as scipy extrapolates)."""
-    out = np.empty((len(s), coef.shape[2]))
-    for k in range(len(s)):
-        i = _segment(knots, s[k])
-        t = s[k] - knots[i]
-        for j in range(coef.shape[2]):
-            if order == 0:
-                out[k, j] = coef[i, 0, j] + t * (coef[i, 1, j] + t * (coef[i, 2, j] + t * coef[i, 3, j]))
-            elif order == 1:
-                out[k, j] = coef[i, 1, j] + t * (2.0 * coef[i, 2, j] + 3.0 * t * coef[i, 3, j])
-            else:
-                out[k, j] = 2.0 * coef[i, 2, j] + 6.0 * t * coef[i, 3, j]
-    return out
-
-
-@njit(cache=True)
 def _eval_all(knots, coef, s, q, dq, ddq, row):
     """The spline's value and first two derivatives at ``s`` into row ``row`` of ``q``, ``dq``, ``ddq``."""
     i = _segment(knots, s)
@@ -125,6 +107,17 @@ def _eval_all(knots, coef, s, q, dq, ddq, row):
         q[row, j] = coef[i, 0, j] + t * (coef[i, 1, j] + t * (coef[i, 2, j] + t * coef[i, 3, j]))
         dq[row, j] = coef[i, 1, j] + t * (2.0 * coef[i, 2, j] + 3.0 * t * coef[i, 3, j])
         ddq[row, j] = 2.0 * coef[i, 2, j] + 6.0 * t * coef[i, 3, j]
+
+
+@njit(cache=True)
+def spline_eval(knots, coef, s, order):
+    """The spline's ``order``-th derivative (0, 1 or 2) at points ``s`` ``[N]``: ``[N, D]`` (a point
+    past the ends is on the end segment's polynomial, as scipy extrapolates)."""
+    shape = (len(s), coef.shape[2])
+    q, dq, ddq = np.empty(shape), np.empty(shape), np.empty(shape)
+    for k in range(len(s)):
+        _eval_all(knots, coef, s[k], q, dq, ddq, k)
+    return q if order == 0 else dq if order == 1 else ddq
 
 
 @njit(cache=True)
@@ -167,7 +160,8 @@ def sample(knots, coef, grid, sd, rate_hz):
     t = np.empty(count if end_is_sampled else count + 1)
     for k in range(count):
         t[k] = k * step
-    t[len(t) - 1] = t[len(t) - 1] if end_is_sampled else at[n]
+    if not end_is_sampled:
+        t[count] = at[n]
     d = coef.shape[2]
     q, qd, qdd = np.empty((len(t), d)), np.empty((len(t), d)), np.empty((len(t), d))
     for k in range(len(t)):
@@ -182,10 +176,12 @@ def sample(knots, coef, grid, sd, rate_hz):
 
 
 @njit(cache=True)
-def _stage_rows(dq, ddq, i, delta, a_max, alpha, beta, gamma):
-    """The acceleration rows ``alpha u + beta x <= gamma`` of grid point ``i`` (both signs, at ``s_i``
-    and, for ``(u_i, x_{i+1})``, at ``s_{i+1}``) written into the arrays; their count."""
+def _stage_rows(dq, ddq, grid, i, a_max, k_lo, k_hi, alpha, beta, gamma):
+    """The rows ``alpha u + beta x <= gamma`` of grid point ``i``'s LP written into the arrays, their
+    count returned: the acceleration limits (both signs, at ``s_i`` and, for ``(u_i, x_{i+1})``, at
+    ``s_{i+1}``) and ``x_{i+1} = x + 2 d u`` within ``[k_lo, k_hi]`` of grid point ``i + 1``."""
     d = dq.shape[1]
+    delta = grid[i + 1] - grid[i]
     r = 0
     for at in range(2):
         j_at = i + at
@@ -195,7 +191,9 @@ def _stage_rows(dq, ddq, i, delta, a_max, alpha, beta, gamma):
             alpha[r], beta[r], gamma[r] = a, b, a_max[j]
             alpha[r + 1], beta[r + 1], gamma[r + 1] = -a, -b, a_max[j]
             r += 2
-    return r
+    alpha[r], beta[r], gamma[r] = 2.0 * delta, 1.0, k_hi[i + 1]
+    alpha[r + 1], beta[r + 1], gamma[r + 1] = -2.0 * delta, -1.0, -k_lo[i + 1]
+    return r + 2
 
 
 @njit(cache=True)
@@ -259,11 +257,8 @@ def path_velocities(dq, ddq, grid, v_max, a_max):
     k_lo, k_hi = np.zeros(n + 1), np.zeros(n + 1)
     failed = np.full(n + 1, np.nan)
     for i in range(n - 1, -1, -1):  # the controllable sets, backward from K_N = {0}
-        delta = grid[i + 1] - grid[i]
-        r = _stage_rows(dq, ddq, i, delta, a_max, alpha, beta, gamma)
-        alpha[r], beta[r], gamma[r] = 2.0 * delta, 1.0, k_hi[i + 1]  # x + 2 d u <= max K_{i+1}
-        alpha[r + 1], beta[r + 1], gamma[r + 1] = -2.0 * delta, -1.0, -k_lo[i + 1]  # and >= min K_{i+1}
-        lo, hi = _x_interval(alpha, beta, gamma, r + 2, 0.0, xmax[i])
+        rows = _stage_rows(dq, ddq, grid, i, a_max, k_lo, k_hi, alpha, beta, gamma)
+        lo, hi = _x_interval(alpha, beta, gamma, rows, 0.0, xmax[i])
         if not lo <= hi:
             return failed
         k_lo[i], k_hi[i] = lo, hi
@@ -272,11 +267,8 @@ def path_velocities(dq, ddq, grid, v_max, a_max):
     xs = np.zeros(n + 1)
     i, tries = 0, 0
     while i < n:  # forward: the fastest u that stays controllable
-        delta = grid[i + 1] - grid[i]
-        r = _stage_rows(dq, ddq, i, delta, a_max, alpha, beta, gamma)
-        alpha[r], beta[r], gamma[r] = 2.0 * delta, 1.0, k_hi[i + 1]
-        alpha[r + 1], beta[r + 1], gamma[r + 1] = -2.0 * delta, -1.0, -k_lo[i + 1]
-        u_lo, u_hi = _u_range(alpha, beta, gamma, r + 2, xs[i])
+        rows = _stage_rows(dq, ddq, grid, i, a_max, k_lo, k_hi, alpha, beta, gamma)
+        u_lo, u_hi = _u_range(alpha, beta, gamma, rows, xs[i])
         if not u_lo <= u_hi:  # just infeasible by rounding: toppra's remedy, x lowered a little
             if tries >= MAX_TRIES:
                 return failed
@@ -284,7 +276,7 @@ def path_velocities(dq, ddq, grid, v_max, a_max):
             tries += 1
             continue
         tries = 0
-        x_next = xs[i] + 2.0 * delta * u_hi
+        x_next = xs[i] + 2.0 * (grid[i + 1] - grid[i]) * u_hi
         x_next = max(x_next - TINY, SHAVE * x_next)
         xs[i + 1] = min(k_hi[i + 1], max(k_lo[i + 1], x_next))
         i += 1
