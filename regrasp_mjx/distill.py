@@ -48,9 +48,13 @@ def distill(
     testset: Episode,
     teacher_name: str = "",
     quiet: bool = False,
+    precompile: bool = False,
 ) -> dict[str, Any]:
     """Distils ``teacher`` into a student in ``out`` (see the module docstring); returns the
-    contents of ``distill_eval.json``."""
+    contents of ``distill_eval.json``. ``precompile``: stop after the first iteration and its
+    evaluations, still exporting and testing the student as the end does, so every program of this
+    distillation has run once and sits in the compilation cache (an untrained teacher of the same
+    shape compiles the same programs); writes ``precompile.json`` instead of ``distill_eval.json``."""
 
     log = (lambda msg: None) if quiet else (lambda msg: print(msg, flush=True))
     env_cfg = teacher.env_config
@@ -94,7 +98,7 @@ def distill(
     save = lambda folder, ds, extra: save_policy(  # noqa: E731
         folder, ds.params, ds.normalizer, cfg.hidden, env_cfg, extra={"training": {**training, **extra}}
     )
-    for it in range(cfg.iterations):
+    for it in range(1 if precompile else cfg.iterations):
         t_it = time.perf_counter()
         with phases("iterations"):
             ds, metrics = distiller.iteration(ds, it == 0)
@@ -141,7 +145,7 @@ def distill(
             f"overridden {metrics['overridden']:.3f}  teacher reaches {metrics['teacher_reaches']:.3f}  "
             f"loss {metrics['loss']:.5f}  {row['iteration_s']:.1f} s/it  {eta(it + 1, cfg.iterations, row['wall_s'])}"
         )
-    save(out / "policy_last", ds, {"iteration": cfg.iterations})
+    save(out / "policy_last", ds, {"iteration": it + 1})
     final = {
         "teacher": teacher_name,
         "teacher_validation": teacher_val,
@@ -154,6 +158,10 @@ def distill(
         "compile_s": compile_s,
         "wall_s": time.perf_counter() - t0,
     }
+    if precompile:
+        write_json(out / "precompile.json", {**final, "precompile": True})
+        log(f"precompiled this distillation's programs in {final['wall_s']:.0f} s (one iteration; {out})")
+        return final
     write_json(out / "distill_eval.json", final)
     st, tt = final["test"], final["teacher_test"]
     log(
@@ -165,7 +173,7 @@ def distill(
 
 
 # what a distillation writes into OUT: an earlier one's is refused without --overwrite
-DISTILL_OUTPUTS = ("distill_log.jsonl", "policy", "policy_last", "distill_eval.json")
+DISTILL_OUTPUTS = ("distill_log.jsonl", "policy", "policy_last", "distill_eval.json", "precompile.json")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -184,6 +192,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--overwrite", action="store_true", help="replace an earlier distillation's outputs in OUT (default: refuse)"
+    )
+    p.add_argument(
+        "--precompile",
+        action="store_true",
+        help="run one iteration, export and test that student, and stop: every program of this distillation is "
+        "then in the compilation cache (an untrained teacher of the teacher's shape will do; writes "
+        "precompile.json, not distill_eval.json)",
     )
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -205,7 +220,9 @@ def main(argv: list[str] | None = None) -> int:
             teacher = teacher.with_env(clearance_mm=args.clearance_mm)
         testset, _ = load_testset(args.testset)
         with folder_lock(out):
-            final = distill(teacher, out, cfg, testset, teacher_name=args.teacher, quiet=args.quiet)
+            final = distill(
+                teacher, out, cfg, testset, teacher_name=args.teacher, quiet=args.quiet, precompile=args.precompile
+            )
     except (ConfigError, PolicyError, TestsetError, FolderInUse) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -4,6 +4,7 @@ end, killed mid-way and resumed."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -97,6 +98,62 @@ def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
     )
 
 
+def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_networks(tmp_path):
+    """Each precompile job runs the command of the jobs it helps with an untrained network of the
+    same shape (so the same compiled programs; tests/test_recipe.py's slow check shows they are),
+    shares their programs key, and starts with the teachers; without a GPU there are none."""
+    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["iterations=5"], 3, gpus=True)
+    jobs = {j.name: j for j in plan.jobs()}
+    pre = [n for n in jobs if n.startswith("precompile/")]
+    assert pre[:3] == ["precompile/students/t07", "precompile/students/t07n075", "precompile/select"]
+    assert len(pre) == 3 + 15 and list(jobs)[:2] == ["demos", "teachers"]  # the teachers start first
+    untrained = str(tmp_path / "precompile" / "teacher")
+    for variant in ("t07", "t07n075"):
+        job, real = jobs[f"precompile/students/{variant}"], jobs[f"students/{variant}/s0"]
+        argv, want = job.argv(), real.argv()
+        assert argv[argv.index("--teacher") + 1] == untrained and "--precompile" in argv
+        assert [a for a in argv if a.startswith(("hidden", "iterations", "obs_"))] == [
+            a for a in want if a.startswith(("hidden", "iterations", "obs_"))
+        ]
+        assert (job.programs, job.compiled, job.share) == (real.programs, real.compiled, real.share)
+        assert job.helps == tuple(f"students/{variant}/s{s}" for s in range(3)) and job.needs == ("demos",)
+    sel, real = jobs["precompile/select"], jobs["select/t07_s0"]
+    strip = lambda a: [x for x in a[a.index("--heldout") : a.index("--out")]]  # noqa: E731
+    assert strip(sel.argv()) == strip(real.argv()) and sel.programs == real.programs == "select"
+    assert sel.argv()[sel.argv().index("--policy") + 1] == f"untrained={tmp_path / 'precompile/students/t07/policy'}"
+    assert sel.needs == ("precompile/students/t07",) and set(sel.helps) == {n for n in jobs if n.startswith("select/")}
+    for i in range(15):
+        job, real = jobs[f"precompile/report/{i:02d}"], jobs[f"report/part{i:02d}"]
+        a, b = job.argv(), real.argv()
+        assert a[a.index("--modes") : a.index("--out")] == b[b.index("--modes") : b.index("--out")]
+        assert job.programs == real.programs and job.helps == (real.name,) and job.share == real.share
+    # the untrained teacher is written before the jobs start, with the teachers' shape, numpy only
+    plan.prepare()
+    teacher = load_policy(untrained)
+    assert teacher.hidden == plan.teacher_cfg.hidden and teacher.contract["training"]["untrained"] is True
+    # a generalist's candidates are teachers: its selection and report precompile on the untrained teacher
+    general = {j.name: j for j in recipe_cli.Plan(RECIPES["general"], tmp_path / "g", [], 3, gpus=True).jobs()}
+    g = general["precompile/select"]
+    assert g.needs == ("demos",) and f"untrained={tmp_path / 'g/precompile/teacher'}" in g.argv()
+    assert not any(n.startswith("precompile/students") for n in general)
+    assert not any(j.stage == "precompile" for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3).jobs())
+
+
+def test_a_helper_job_fails_nothing_and_is_not_run_once_what_it_helps_has_finished(tmp_path):
+    helper = dataclasses.replace(_job(tmp_path, "h", 0.1, code=1, seconds=1.0), helps=("w",), programs="p")
+    real = dataclasses.replace(_job(tmp_path, "w", 0.1), programs="p")
+    lines = []
+    out = run_jobs([helper, real], ["0"], lines.append, heartbeat_s=1e9)
+    assert out["h"]["exit"] == 1 and out["w"]["exit"] == 0 and real.done()
+    assert any("h FAILED" in x and "the jobs it helps compile their own programs" in x for x in lines)
+    assert lines.index(next(x for x in lines if x.startswith("started w"))) > lines.index(
+        next(x for x in lines if x.startswith("h FAILED"))
+    )  # w shares h's programs: it waited for h to compile them (here: to end)
+    spared = []
+    assert run_jobs([helper, real], ["0"], spared.append, heartbeat_s=1e9) == {}  # w finished: h not needed
+    assert spared[0].startswith("2 jobs: 1 finished already, 1 no longer needed")
+
+
 def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):
     """A job that records when it ran and which GPU it was given, then exits with ``code``."""
     done = tmp_path / f"{name}.done"
@@ -111,9 +168,9 @@ def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):
 def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp_path, monkeypatch):
     monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)  # another test's process may have set it
     jobs = [
-        _job(tmp_path, "a", 0.5),
-        _job(tmp_path, "b", 0.5),
-        _job(tmp_path, "c", 0.5),  # a and b fill GPU 0 and 1 half each: c fits beside one of them
+        _job(tmp_path, "a", 0.45),
+        _job(tmp_path, "b", 0.45),
+        _job(tmp_path, "c", 0.45),  # a and b fill GPU 0 and 1 under half each: c fits beside one of them
         _job(tmp_path, "d", 0.9, needs=("a", "b", "c")),
         _job(tmp_path, "e", 0.1, needs=("d",), code=3),
         _job(tmp_path, "f", 0.1, needs=("e",)),
@@ -139,6 +196,11 @@ def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp
     spared = []
     assert run_jobs([made, uses], ["0"], spared.append, heartbeat_s=1e9) == {}
     assert spared[0].startswith("2 jobs: 1 finished already, 1 no longer needed") and not made.done()
+    # each process's CUDA context counts too: two halves do not fit on one GPU, they run in turn
+    halves = [_job(tmp_path / "halves", n, 0.5) for n in "pq"]
+    run_jobs(halves, ["0"], lambda _: None, heartbeat_s=1e9)
+    p, q = (j.finished.read_text().split() for j in halves)
+    assert float(q[0]) >= float(p[1])
     # no GPU: one job at a time, no memory fraction set
     cpu = [_job(tmp_path / "cpu", n, 0.1) for n in "xy"]
     run_jobs(cpu, [None], lambda _: None, heartbeat_s=1e9)
@@ -268,3 +330,38 @@ def test_the_smoke_recipe_builds_on_the_cpu_and_resumes_after_a_kill(tmp_path):
     other = _recipe(out, "--set", "iterations=3")
     text = other.communicate(timeout=300)[0]
     assert other.returncode == 2 and text.strip().count("\n") == 0 and "holds recipe smoke with overrides []" in text
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_a_precompiled_distillation_and_candidate_leave_nothing_to_compile(tmp_path):
+    """What ``recipe``'s precompile jobs rely on: a distillation and a selection candidate run on an
+    untrained network of the teacher's shape compile every program that the real ones (another
+    teacher, another seed) then run: the real ones add nothing to the compilation cache."""
+    from regrasp_mjx.agents.ddpg_bc.config import make_config
+    from regrasp_mjx.inference.policy_file import untrained_policy
+
+    cfg = make_config("smoke")
+    for seed in (0, 1):
+        untrained_policy(tmp_path / f"t{seed}", cfg.hidden, cfg.env, seed=seed)
+    smoke = RECIPES["smoke"].students
+    sets = [x for k, v in (*smoke.settings, *smoke.variants[0][1]) for x in ("--set", f"{k}={v!r}".replace(" ", ""))]
+    env = {**os.environ, "REGRASP_JAX_CACHE": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu"}
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+
+    def run(*argv):
+        done = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, env=env, cwd=ROOT)
+        assert done.returncode == 0, done.stdout + done.stderr
+        return sorted(os.listdir(tmp_path / "cache"))
+
+    distill = ["regrasp_mjx.distill", "--testset", "paper300", *sets]
+    warm = run(*distill, "--teacher", str(tmp_path / "t0"), "--out", str(tmp_path / "w"), "--precompile")
+    assert (tmp_path / "w" / "precompile.json").is_file() and not (tmp_path / "w" / "distill_eval.json").exists()
+    assert len(warm) >= 4  # the iteration, the evaluations, the test set's plans
+    real = run(*distill, "--teacher", str(tmp_path / "t1"), "--out", str(tmp_path / "r"), "--seed", "1")
+    assert real == warm and (tmp_path / "r" / "distill_eval.json").is_file()
+    compare = ["regrasp_mjx.compare", "--robustness", "--heldout", "20:7", "--no-testset", "--modes", "fused"]
+    compare += ["--conditions", "sigma 0.25 mm", "--out", str(tmp_path / "sel")]
+    warm = run(*compare, "--policy", f"u={tmp_path / 'w' / 'policy'}", "--name", "u")
+    assert len(warm) > len(real)
+    assert run(*compare, "--policy", f"s={tmp_path / 'r' / 'policy'}", "--name", "s") == warm

@@ -14,6 +14,11 @@ at a time until one of them has compiled (its log shows ``Job.compiled``, or it 
 then load the programs from the persistent compilation cache the commands share
 (:func:`regrasp_mjx.core.xla_flags.cache_folder`) instead of compiling them side by side, which
 on the GPU machine's CPU cores took several minutes for six students at once.
+
+A job that ``helps`` others runs only to save them time (a recipe's precompile jobs compile their
+programs ahead, on an untrained network of their shape, while the teachers train): it is run only
+while a job it helps is still to run, none waits for it to finish, and its failure fails nothing
+(those jobs compile their own programs).
 """
 
 from __future__ import annotations
@@ -29,6 +34,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 HEARTBEAT_S = 60.0  # how often the running jobs' last log lines are shown
+# of a GPU's memory each process takes outside its share (its CUDA context and libraries, about 0.5 GB
+# on an 80 GB H100): fifteen processes whose shares summed to 0.9 ran out of memory starting
+CONTEXT_SHARE = 0.01
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,7 +45,8 @@ class Job:
     can add ``--resume``); ``finished`` exists once it has finished; ``needs`` names jobs that must
     finish first; ``share`` is the fraction of one GPU's memory it may take; ``stage`` groups jobs
     for the progress lines; its output goes to ``log``; jobs of one ``programs`` key wait for one of
-    them to print ``compiled`` (see the module's docstring)."""
+    them to print ``compiled`` (see the module's docstring); ``helps`` names the jobs it only saves
+    time for (its failure fails nothing)."""
 
     name: str
     stage: str
@@ -48,6 +57,7 @@ class Job:
     needs: tuple[str, ...] = ()
     programs: str | None = None
     compiled: str | None = None
+    helps: tuple[str, ...] = ()
 
     def done(self) -> bool:
         return self.finished.is_file()
@@ -109,7 +119,7 @@ def run_jobs(
     resume when started again."""
     by_name = {j.name: j for j in jobs}
     for j in jobs:
-        unknown = [n for n in j.needs if n not in by_name]
+        unknown = [n for n in j.needs + j.helps if n not in by_name]
         if unknown:
             raise ValueError(f"job {j.name} needs unknown jobs {unknown}")
     todo = _needed(jobs)
@@ -163,7 +173,7 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
                 continue
             if _waits(job, running, warmed):
                 continue
-            slot = _place(job, load, gpu, busy=bool(running))
+            slot = _place(job, load, gpu, running)
             if slot is False:
                 continue
             todo.remove(job)
@@ -198,6 +208,8 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
                 failed.add(r.job.name)
                 why = f"exit {code}" if code != 0 else f"exit 0 without {r.job.finished.name}"
                 verdict = f"FAILED ({why}; its output: {r.job.log})"
+                if r.job.helps:
+                    verdict += "; the jobs it helps compile their own programs"
             left = len(todo) + len(running)
             log(
                 f"{r.job.name} {verdict} after {wall:.0f} s; {len(out)} done, {left} left, {(now - t0) / 60:.1f} min in"
@@ -213,8 +225,10 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
 def _needed(jobs: list[Job]) -> list[Job]:
     """The unfinished jobs that something still needs: every unfinished job that no other job needs
     (an end of the schedule), and the unfinished needs of a needed job (a job whose every dependent
-    has finished, e.g. demonstrations deleted after training, is not run again)."""
-    dependents = {j.name: [d for d in jobs if j.name in d.needs] for j in jobs}
+    has finished, e.g. demonstrations deleted after training, is not run again); a job that helps
+    others counts them as its dependents."""
+    by_name = {j.name: j for j in jobs}
+    dependents = {j.name: [d for d in jobs if j.name in d.needs] + [by_name[h] for h in j.helps] for j in jobs}
     memo: dict[str, bool] = {}
 
     def needed(j: Job) -> bool:
@@ -230,13 +244,15 @@ def _where(slots: list[str | None]) -> str:
     return "this machine (no GPU: one job at a time)" if slots == [None] else f"GPU(s) {', '.join(slots)}"
 
 
-def _place(job: Job, load: dict, gpu: bool, busy: bool):
-    """The least-loaded GPU where the job's share fits, else False; a job larger than a whole GPU
-    runs alone on an idle one."""
+def _place(job: Job, load: dict, gpu: bool, running: list[_Running]):
+    """The least-loaded GPU where the job's share fits beside the shares and CUDA contexts
+    (:data:`CONTEXT_SHARE`) of the jobs on it, else False; a job larger than a whole GPU runs
+    alone on an idle one."""
     if not gpu:
-        return None if not busy else False
+        return None if not running else False
     slot = min(load, key=load.get)
-    if load[slot] + job.share <= 1.0 + 1e-9 or load[slot] == 0.0:
+    processes = 1 + sum(r.slot == slot for r in running)
+    if load[slot] + job.share + CONTEXT_SHARE * processes <= 1.0 + 1e-9 or load[slot] == 0.0:
         return slot
     return False
 

@@ -130,6 +130,37 @@ def save_policy(
     return out
 
 
+def untrained_policy(
+    out_dir: str | os.PathLike, hidden: tuple[int, ...], env_config: Any, seed: int = 0, note: str = ""
+) -> Path:
+    """Writes an untrained network of ``hidden`` layers for ``env_config``'s task as
+    :func:`save_policy` writes a trained one: the same arrays, shapes and contract, so every program
+    that runs it is the program a trained policy of that shape runs (its weights are arguments,
+    never constants). What it is for: compiling those programs before any policy is trained
+    (``python -m regrasp_mjx.recipe`` fills the compilation cache with one while its teachers train);
+    its actions mean nothing. Numpy only: writing it starts no JAX backend, so a process that must
+    leave the GPU to its jobs can."""
+    rng = np.random.default_rng(seed)
+    sizes = (obs_size(env_config), *(int(h) for h in hidden), 6)
+    params = {
+        "params": {
+            f"hidden_{i}": {
+                "bias": np.zeros(b, np.float32),
+                "kernel": (rng.standard_normal((a, b)) / np.sqrt(a)).astype(np.float32),
+            }
+            for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True))
+        }
+    }
+    normalizer = running_statistics.RunningStatisticsState(
+        count=np.zeros((), np.float32),
+        mean=np.zeros(sizes[0], np.float32),
+        summed_variance=np.zeros(sizes[0], np.float32),
+        std=np.ones(sizes[0], np.float32),
+    )
+    training = {"untrained": True, "seed": seed, "note": note or "untrained: its actions mean nothing"}
+    return save_policy(out_dir, params, normalizer, tuple(hidden), env_config, extra={"training": training})
+
+
 # a closed loop's settings where a policy file names none (regrasp_mjx.inference.closed_loop.execute)
 DEFAULT_STOP, DEFAULT_WARMUP = 0.7, 10
 
