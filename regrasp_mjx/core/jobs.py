@@ -13,7 +13,8 @@ Jobs that compile the same programs (``Job.programs``, e.g. one student variant'
 at a time until one of them has compiled (its log shows ``Job.compiled``, or it ends): the others
 then load the programs from the persistent compilation cache the commands share
 (:func:`regrasp_mjx.core.xla_flags.cache_folder`) instead of compiling them side by side, which
-on the GPU machine's CPU cores took several minutes for six students at once.
+on the GPU machine's CPU cores took several minutes for six students at once. A key one of whose
+jobs finished in an earlier call counts as compiled (the cache is kept on the same machine).
 
 A job that ``helps`` others runs only to save them time (a recipe's precompile jobs compile their
 programs ahead, on an untrained network of their shape, while the teachers train): it is run only
@@ -142,7 +143,9 @@ def run_jobs(
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:
-        return _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end)
+        # a key one of whose jobs finished in an earlier call is in the cache (on the same machine)
+        warmed = {j.programs for j in jobs if j.programs and j.done()}
+        return _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end, warmed)
     finally:
         signal.signal(signal.SIGTERM, previous)
         now = time.perf_counter()
@@ -153,11 +156,11 @@ def run_jobs(
             on_end(out)
 
 
-def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end) -> dict[str, dict]:
+def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end, warmed) -> dict[str, dict]:
     """Starts and reaps jobs until none is left to start or running (``running`` and ``out`` are the
-    caller's, so a stopped loop leaves them as they were)."""
+    caller's, so a stopped loop leaves them as they were); ``warmed``: the programs keys some job
+    has compiled (see Job.programs)."""
     gpu = slots != [None]
-    warmed: set[str] = set()  # programs keys some job has compiled (see Job.programs)
     stage_left = {s: sum(1 for j in todo if j.stage == s) for s in dict.fromkeys(j.stage for j in todo)}
     stage_t0: dict[str, float] = {}
     t0 = last_beat = time.perf_counter()
