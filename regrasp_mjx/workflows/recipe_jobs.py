@@ -198,35 +198,43 @@ class Plan:
         return {"programs": f"report/{i:02d}"} if self.gpus else {}
 
     # ---- precompile: the later stages' programs compiled while the teachers train ------------
-    def untrained_teacher(self) -> Path:
-        """Where the precompile jobs' untrained network of the teachers' shape and task is."""
-        return self.out / "precompile" / "teacher"
+    def untrained(self) -> dict[str, Path]:
+        """Where the precompile jobs' untrained networks are: ``teacher`` (the teachers' shape and
+        task) and ``candidate`` (a selection candidate's: a student's, or a teacher's without students)."""
+        pre = self.out / "precompile"
+        return {"teacher": pre / "teacher", "candidate": pre / ("student" if self.recipe.students else "teacher")}
 
     def prepare(self) -> None:
-        """Writes the untrained teacher the precompile jobs start from (numpy only: this process
-        leaves the GPUs to its jobs)."""
-        folder = self.untrained_teacher()
-        if self.gpus and not (folder / "policy.json").is_file():
-            untrained_policy(folder, self.teacher_cfg.hidden, self.teacher_cfg.env, note="recipe precompile")
+        """Writes the untrained networks the precompile jobs run (numpy only: this process leaves
+        the GPUs to its jobs). A student's is written as ``distill`` exports one: its hidden layers,
+        its teacher's task."""
+        if not self.gpus:
+            return
+        cfg, students = self.teacher_cfg, self.recipe.students
+        hidden = {"teacher": cfg.hidden}
+        if students is not None:
+            hidden["candidate"] = self.recipe.student_config(students.variants[0][0], self.routed["students"]).hidden
+        for kind, folder in self.untrained().items():
+            if kind in hidden and not (folder / "policy.json").is_file():
+                untrained_policy(folder, hidden[kind], cfg.env, note="recipe precompile")
 
     def precompile_jobs(self, job, jobs: list[Job]) -> list[Job]:
         """On GPUs, jobs that run each later stage's programs once on untrained networks of the
         right shapes while the teachers train (their weights are arguments, so the compiled
         programs are the ones the real jobs then load from the cache): one distillation iteration
-        per student variant, one selection candidate, every report part. They help those jobs
-        and fail nothing (:mod:`regrasp_mjx.core.jobs`). The report's are made only where the
-        exported policy's warm-up frames are the untrained candidate's (a constant of its programs)."""
-        r, pre = self.recipe, self.out / "precompile"
+        per student variant from an untrained teacher, one selection candidate and every report
+        part on an untrained candidate. They help those jobs and fail nothing
+        (:mod:`regrasp_mjx.core.jobs`); all start once the demonstrations (which take every core)
+        are made, beside the teachers. The report's are made only where the exported policy's
+        warm-up frames are the untrained candidate's (a constant of its programs)."""
+        r, pre, untrained = self.recipe, self.out / "precompile", self.untrained()
         names = [j.name for j in jobs]
         out: list[Job] = []
-        candidate, cand_needs = None, ("demos",)
-        if r.students is None:
-            candidate = pre / "teacher"
         for variant, _ in r.students.variants if r.students is not None else ():
             student = next(j for j in jobs if j.name.startswith(f"students/{variant}/"))
             folder = pre / "students" / variant
             argv = [*student.argv(), "--precompile", "--overwrite"]
-            argv[argv.index("--teacher") + 1] = str(self.untrained_teacher())
+            argv[argv.index("--teacher") + 1] = str(untrained["teacher"])
             argv[argv.index("--out") + 1] = str(folder)
             out.append(
                 job(
@@ -241,20 +249,15 @@ class Plan:
                     helps=tuple(n for n in names if n.startswith(f"students/{variant}/")),
                 )
             )
-            if candidate is None:
-                candidate, cand_needs = folder / "policy", (out[-1].name,)
-
-        def untrained() -> str:
-            return f"untrained={self.untrained_teacher() if r.students is None else candidate}"
-
+        candidate = f"untrained={untrained['candidate']}"
         out.append(
             job(
                 "precompile/select",
                 "precompile",
-                lambda: self.select_argv(untrained(), pre / "select", "untrained"),
+                lambda: self.select_argv(candidate, pre / "select", "untrained"),
                 pre / "select" / "untrained.json",
                 r.selection.share,
-                cand_needs,
+                ("demos",),
                 programs="select",
                 helps=tuple(n for n in names if n.startswith("select/")),
             )
@@ -269,11 +272,11 @@ class Plan:
                     f"precompile/report/{i:02d}",
                     "precompile",
                     lambda modes=modes, conditions=conditions, i=i: self.report_argv(
-                        untrained(), modes, conditions, pre / "report", f"part{i:02d}"
+                        candidate, modes, conditions, pre / "report", f"part{i:02d}"
                     ),
                     pre / "report" / f"part{i:02d}.json",
                     r.report.share / len(groups),
-                    cand_needs,
+                    ("demos",),
                     **self.same(i),
                     helps=(real,),
                 )
