@@ -224,8 +224,8 @@ class Plan:
         programs are the ones the real jobs then load from the cache): one distillation iteration
         per student variant from an untrained teacher, one selection candidate and every report
         part on an untrained candidate. They help those jobs and fail nothing
-        (:mod:`regrasp_mjx.core.jobs`); all start once the demonstrations (which take every core)
-        are made, beside the teachers. The report's are made only where the exported policy's
+        (:mod:`regrasp_mjx.core.jobs`); the distillations start beside the teachers once the
+        demonstrations (which take every core) are made, the rest after the first of them. The report's are made only where the exported policy's
         warm-up frames are the untrained candidate's (a constant of its programs)."""
         r, pre, untrained = self.recipe, self.out / "precompile", self.untrained()
         names = [j.name for j in jobs]
@@ -250,6 +250,9 @@ class Plan:
                 )
             )
         candidate = f"untrained={untrained['candidate']}"
+        # after the first student variant's: all eighteen at once beside the teachers slowed the teacher
+        # run from 293 to 369 s on one H100 (2026-11-28), three at a time left it as fast as alone
+        after = (out[0].name,) if out else ("demos",)
         out.append(
             job(
                 "precompile/select",
@@ -257,7 +260,7 @@ class Plan:
                 lambda: self.select_argv(candidate, pre / "select", "untrained"),
                 pre / "select" / "untrained.json",
                 r.selection.share,
-                ("demos",),
+                after,
                 programs="select",
                 helps=tuple(n for n in names if n.startswith("select/")),
             )
@@ -276,7 +279,7 @@ class Plan:
                     ),
                     pre / "report" / f"part{i:02d}.json",
                     r.report.share / len(groups),
-                    ("demos",),
+                    after,
                     **self.same(i),
                     helps=(real,),
                 )
