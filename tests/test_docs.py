@@ -752,6 +752,28 @@ def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     assert f"took about {whole / 60:.0f} minutes on one H100" in text
 
 
+def test_the_precompiled_recipe_s_times_in_the_training_docs_are_their_result_files():
+    """docs/training.md's `recipe default` with precompile jobs: each stage as the recipe printed it
+    (its two calls' logs), the critical path as their sum, the calls' walls and the first call's wait
+    after the teachers from its recipe.json."""
+    folder = ROOT / "experiments" / "results" / "recipe" / "default_h100_2026-11-28" / "run1"
+    runs = json.loads((folder / "recipe.json").read_text())["runs"]
+    stage = {}
+    for call in ("call1.log", "call2.log"):
+        text = (folder / call).read_text()
+        stage |= {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", text, re.M)}
+    assert all(j["exit"] == 0 for r in runs for j in r["jobs"].values())
+    path = sum(v for k, v in stage.items() if k != "precompile")
+    first, second = (r["wall_s"] for r in runs)
+    wait = first - stage["demos"] - stage["teachers"]
+    assert (
+        f"demonstrations {stage['demos']} s, teachers {stage['teachers']} s, then students {stage['students']} s, "
+        f"selection {stage['selection']} s, the closed loop's choice {stage['choose']} s, the report "
+        f"{stage['report']} s, {path} s on the critical path; the two calls took {first:.0f} s and {second:.0f} s, "
+        f"the first waiting {wait:.0f} s after the teachers" in _prose("training.md")
+    )
+
+
 def test_the_general_recipe_s_times_and_comparison_in_the_training_docs_are_their_result_files():
     """docs/training.md's `recipe general` on one H100: the stages as the recipe printed them (its two
     calls' logs), the whole as their sum and with the first call's cut job added, both its recipe.json's;
