@@ -208,38 +208,18 @@ def test_table_one_in_the_docs_is_its_result_file():
 
 
 def test_table_one_s_wall_time_and_the_paper_scale_drift_in_the_docs_are_their_result_files():
-    """docs/results.md's paragraph under Table I: its wall time (table1_paper/table1.md), the 500-epoch
-    runs (table1_paper500/long_run.json), the drift runs (drift/drift.json, and the BC-and-penalty
-    run's own log for seed 1 after epoch 325) and the scale sweep (scale/scale.md)."""
+    """docs/results.md's paragraph under Table I, what the long runs' test below does not hold: its wall
+    time (table1_paper/table1.md), the BC loss of the 500-epoch mixed run (its log), and the BC-and-penalty
+    run (drift/drift.json, and its own log for seed 1 after epoch 325)."""
     results = ROOT / "experiments" / "results"
     text = _prose("results.md")
     wall = re.search(r"Training wall-clock .*: ([\d.]+) min", (results / "table1_paper" / "table1.md").read_text())
     assert f"program, {wall.group(1)} min on one H100" in text
-    long = json.loads((results / "table1_paper500" / "long_run.json").read_text())
-    ms = lambda xs: f"{np.mean(xs):.3f} ± {np.std(xs):.3f}"  # noqa: E731
-    mixed, plain = long["mixed"], long["ddpg_bc"]
-    assert f"stopped by the device's time limit at epochs {mixed['epochs']} and {plain['epochs']}" in text
-    assert f"drift down to {ms(mixed['last10'])} (mixed) and {ms(plain['last10'])} (DDPG+BC)" in text
-    epochs = mixed["best_val_epoch"] + plain["best_val_epoch"]
-    best = {f"{np.mean(r['best_val']):.3f}" for r in (mixed, plain)}
-    assert len(best) == 1 and f"epochs {min(epochs)}-{max(epochs)}) keeps {best.pop()} on validation" in text
     with gzip.open(results / "table1_paper500" / "mixed.log.jsonl.gz", "rt") as f:
         mixed_log = [json.loads(line) for line in f if line.strip()]
     bc = {e: np.mean([r["bc_loss"] for r in mixed_log if r.get("epoch") == e and "bc_loss" in r]) for e in (50, 425)}
     assert f"(BC loss {bc[50]:.3f} at epoch 50, {bc[425]:.4f} at 425)" in text
-    drift = json.loads((results / "drift" / "drift.json").read_text())
-    base = drift["baseline (5 envs)"]["at"]
-    first, last = (
-        f"{np.mean(base[e]['collision']):.3f}" for e in ("50", str(drift["baseline (5 envs)"]["last_epoch"]))
-    )
-    assert f"collisions creep up ({first} to {last})" in text
-    bc0 = [drift["BC to 0 by epoch 100"], drift["BC to 0 by epoch 100, second run"]]
-    at100 = [x for r in bc0 for x in r["at"]["100"]["validation success"]]
-    assert f"validation success to {min(at100):.3f}-{max(at100):.3f} on every seed at epoch 100" in text
-    steps = [np.mean(a["steps"]) for r in bc0 for e, a in r["at"].items() if int(e) >= 100]
-    stall = max(x for r in bc0 for e, a in r["at"].items() if int(e) >= 150 for x in a["time-out"])
-    assert f"takes {int(min(steps))}-{round(max(steps))} smaller steps" in text and f"up to {stall:.2f} of" in text
-    penalty = drift["BC and action penalty to 0 by epoch 100"]
+    penalty = json.loads((results / "drift" / "drift.json").read_text())["BC and action penalty to 0 by epoch 100"]
     steps = [np.mean(a["steps"]) for e, a in penalty["at"].items() if int(e) >= 100]
     assert f"the policy takes {int(min(steps))}-{round(max(steps))} steps instead of 10" in text
     mid = [np.mean(penalty["at"][e]["validation success"]) for e in ("200", "250", "300")]
@@ -252,18 +232,6 @@ def test_table_one_s_wall_time_and_the_paper_scale_drift_in_the_docs_are_their_r
         f"({min(mid):.3f}-{max(mid):.3f} mean validation at epochs 200-300, then seed 1 falls to {seed1[325]:.2f} at "
         f"epoch 325 and stays between {min(after):.2f} and {max(after):.2f} to epoch {penalty['last_epoch']}; seeds 0 "
         f"and 2 end at {end[0]:.3f} and {end[2]:.3f})" in text
-    )
-    scale = {
-        int(c[0]): c
-        for c in (line.strip("|").split(" | ") for line in (results / "scale" / "scale.md").read_text().splitlines())
-        if c[0].strip().isdigit()
-    }
-    mean = lambda cell: float(cell.split("±")[0])  # noqa: E731
-    rest = [mean(scale[n][k]) for n in (32, 128, 512) for k in (2, 3)]
-    gaps = [mean(c[4]) for c in scale.values()]
-    assert (
-        f"{mean(scale[5][2]):.3f} / {mean(scale[5][3]):.3f} at 5 environments and {min(rest):.3f}-{max(rest):.3f} for "
-        f"both at 32 and more; mixed minus DDPG+BC is {min(gaps):.3f}-{max(gaps):.3f} at every scale" in text
     )
 
 
