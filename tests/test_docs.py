@@ -195,6 +195,45 @@ def test_the_generalist_section_is_its_result_files():
     )
 
 
+def test_the_generalist_s_history_is_its_result_files():
+    """docs/results.md's "One network for any goal grasp and needle" in the history: the run's
+    demonstrations and training time (its stdout and log), its table (general.json, planners_general.csv)
+    and the breakdowns, as that section writes them (the current section's test is above)."""
+    folder = ROOT / "experiments" / "results" / "general"
+    text = _prose("results.md")
+    demos = next(
+        json.loads(x) for x in (folder / "train_stdout.txt").read_text().splitlines() if x.startswith('{"out"')
+    )
+    log = [json.loads(x) for x in (folder / "train_log.jsonl").read_text().splitlines() if x.strip()]
+    assert (
+        f"{demos['demos']:,} BIT* (R) demonstrations on the same ranges built by the run in {demos['wall_s']:.0f} s on 31 "
+        f"planner processes, then {log[-1]['wall_s']:.0f} s of training for the three seeds" in text
+    )
+    data = json.loads((folder / "general.json").read_text())
+    rate = {(r["policy"], r["testset"], r["rollout"]): r["success_rate"] for r in data["rows"]}
+    cell = lambda t, roll: " / ".join(f"{rate[f'seed{s}', t, roll]:.3f}" for s in range(3))  # noqa: E731
+    assert (
+        f"| {cell('general1000', 'bare')}; {cell('general1000', 'shielded')} | {cell('paper300', 'bare')}; "
+        f"{cell('paper300', 'shielded')} |" in text
+    )
+    specialist = f"{rate['specialist', 'paper300', 'bare']:.3f} / {rate['specialist', 'paper300', 'shielded']:.3f}"
+    assert f"(trained for one goal grasp and needle) | {specialist} |" in text
+    rows = {r["algorithm"]: r for r in csv.DictReader((folder / "planners_general.csv").open())}
+    bit, line = rows["BIT* (R)"], rows["straight line"]
+    assert (
+        f"| {float(bit['success_rate']):.3f} (mean {1e3 * float(bit['plan_time_mean_s']):.0f} ms, median "
+        f"{1e3 * float(bit['plan_time_median_s']):.0f} ms, path {float(bit['path_length_mm']):.2f} mm) | |" in text
+    )
+    assert f"| straight line | {float(line['success_rate']):.3f} | |" in text
+    by = data["breakdown"]
+    radius = " / ".join(f"{v:.3f}" for v in by["by_radius_mm"][1])
+    alpha = " / ".join(f"{v:.3f}" for v in by["by_alpha_rad"][1])
+    assert (
+        f"the generalists' bare success is {radius}, by goal angle alpha* (200-215 / 215-230 / 230-245 / 245-260°) "
+        f"{alpha} (mean of three seeds" in text
+    )
+
+
 def test_table_one_in_the_docs_is_its_result_file():
     """docs/results.md's Table I at the paper's scale (last epoch, exported, the paper's number per
     setting) is experiments/results/table1_paper/table1.md's."""
