@@ -75,6 +75,7 @@ def test_the_shipped_networks_table_is_the_comparison_file():
         (ROOT / "experiments" / "results" / "continuous" / "directional" / "bench_plan_after_dev.json").read_text()
     )
     lean = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, lean path"))
+    jax_path = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, JAX path"))
     names = {"shipped default": "default"}
     checked = set()
     text = (ROOT / "docs" / "results.md").read_text()
@@ -95,6 +96,9 @@ def test_the_shipped_networks_table_is_the_comparison_file():
             assert (float(bare), float(shielded)) == expect, line
         if policy == "default":
             assert cells[4].strip().startswith(f"**{lean['median_ms']:.3f}**"), line
+            assert (
+                f"JAX path {jax_path['median_ms']:.3f};" in cells[4] and f"1 run of {bench['repeats']} repeats" in line
+            )
         checked.add(policy)
     assert checked == {"default", "exact", "decay", "general", "general_v1", "student_v2", "ensemble3"}
 
