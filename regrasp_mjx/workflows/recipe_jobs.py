@@ -225,8 +225,9 @@ class Plan:
         per student variant from an untrained teacher, one selection candidate and every report
         part on an untrained candidate. They help those jobs and fail nothing
         (:mod:`regrasp_mjx.core.jobs`); the distillations start beside the teachers once the
-        demonstrations (which take every core) are made, the rest after the first of them. The report's are made only where the exported policy's
-        warm-up frames are the untrained candidate's (a constant of its programs)."""
+        demonstrations (which take every core) are made, the rest after the first of them. The
+        report's are made only where the exported policy's warm-up frames are the untrained
+        candidate's (a constant of its programs)."""
         r, pre, untrained = self.recipe, self.out / "precompile", self.untrained()
         names = [j.name for j in jobs]
         out: list[Job] = []
@@ -250,8 +251,8 @@ class Plan:
                 )
             )
         candidate = f"untrained={untrained['candidate']}"
-        # after the first student variant's: all eighteen at once beside the teachers slowed the teacher
-        # run from 293 to 369 s on one H100 (2026-11-28), three at a time left it as fast as alone
+        # after the first distillation: all eighteen at once beside the teachers slowed the teacher run
+        # from 293 to 369 s on one H100 (2026-11-28); with only the two distillations beside it, 293 s
         after = (out[0].name,) if out else ("demos",)
         out.append(
             job(
