@@ -213,6 +213,11 @@ def test_the_generalist_s_history_is_its_result_files():
         f"{demos['demos']:,} BIT* (R) demonstrations on the same ranges built by the run in {demos['wall_s']:.0f} s on 31 "
         f"planner processes, then {log[-1]['wall_s']:.0f} s of training for the three seeds" in text
     )
+    # the current section's summary of the same run
+    assert (
+        f"{demos['demos']:,} BIT* (R) demonstrations on the same ranges built in {demos['wall_s']:.0f} s, training "
+        f"{log[-1]['wall_s']:.0f} s;" in text
+    )
     data = json.loads((folder / "general.json").read_text())
     rate = {(r["policy"], r["testset"], r["rollout"]): r["success_rate"] for r in data["rows"]}
     cell = lambda t, roll: " / ".join(f"{rate[f'seed{s}', t, roll]:.3f}" for s in range(3))  # noqa: E731
