@@ -348,7 +348,10 @@ def test_a_precompiled_distillation_and_candidate_leave_nothing_to_compile(tmp_p
         untrained_policy(tmp_path / f"t{seed}", cfg.hidden, cfg.env, seed=seed)
     smoke = RECIPES["smoke"].students
     sets = [x for k, v in (*smoke.settings, *smoke.variants[0][1]) for x in ("--set", f"{k}={v!r}".replace(" ", ""))]
+    # every program cached, however fast it compiled: at JAX's default (1 s) a small program that
+    # compiled in 0.9 s in one run and 1.1 s in the other (a loaded machine) was written only once
     env = {**os.environ, "REGRASP_JAX_CACHE": str(tmp_path / "cache"), "JAX_PLATFORMS": "cpu"}
+    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
 
     def run(*argv):
