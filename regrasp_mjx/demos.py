@@ -181,7 +181,10 @@ def build(
         ) as bar,
     ):
         while len(verified) < n:
-            while pool.in_flight < 4 * workers:
+            # at most one refill per pass: a "while in flight < 4 workers" loop never ended where the
+            # workers finished plans as fast as this process submitted them (31 lean-checker workers on
+            # 32 cores planned 142,198 problems for 9,900 demonstrations, nothing verified until the end)
+            for _ in range(4 * workers - pool.in_flight):
                 while next_index in done:
                     next_index += 1
                 block = next_index // 1024

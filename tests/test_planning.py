@@ -377,3 +377,46 @@ def test_demos_cli_stops_with_the_error_when_every_plan_fails(tmp_path):
     r = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 2, r.stderr
     assert "the first 16 plans all failed with an error, the last: ImportError: no OMPL on this machine" in r.stderr
+
+
+class _InstantPool:
+    """A PlannerPool whose workers finish every plan the moment it is submitted (so nothing is ever
+    in flight): the demonstration builder once refilled "while in flight < 4 workers" and never
+    stopped submitting when its workers kept up (31 lean-checker workers on 32 cores)."""
+
+    def __init__(self, workers, options, timeout_s):
+        self.options, self.submitted, self._done = options, 0, []
+        from regrasp_mjx.planning.pool import JobResult, plan_with_ompl
+
+        self._plan, self._result = plan_with_ompl, JobResult
+
+    def submit(self, problem, payload=None):
+        self.submitted += 1
+        if self.submitted > 100:
+            raise AssertionError("the builder kept submitting without collecting")
+        self._done.append(self._result(self.submitted, True, self._plan(problem, self.options), "", payload))
+        return self.submitted
+
+    def collect(self):
+        out, self._done = self._done, []
+        return out
+
+    in_flight = 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+
+@pytest.mark.slow  # 17 s on the 2-core VM (the replay's compile)
+def test_demos_stop_submitting_when_the_workers_keep_up(tmp_path, monkeypatch):
+    from regrasp_mjx import demos
+
+    pools = []
+    monkeypatch.setattr(demos, "PlannerPool", lambda *a, **k: pools.append(_InstantPool(*a, **k)) or pools[-1])
+    path = demos.build(6, tmp_path / "d", workers=2, budget_s=2.0, checker="lean", quiet=True)
+    assert load_demos(path).num_episodes == 6
+    # one refill of 4 x workers, collected and verified: not a plan more
+    assert pools[0].submitted == 8
