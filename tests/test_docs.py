@@ -980,3 +980,30 @@ def test_the_notebook_times_are_the_ci_logs():
     times = [float(t) for t in re.findall(r"^([\d.]+)s call\s+notebooks/\w+\.ipynb::", log, re.M)]
     assert len(times) == len(list((ROOT / "notebooks").glob("*.ipynb"))), times
     assert (int(m.group(1)), int(m.group(2))) == (round(min(times)), round(max(times))), (m.group(0), times)
+
+
+def test_the_one_call_recipe_times_in_the_training_docs_are_their_result_files():
+    """docs/training.md's `recipe default` and `recipe general` in one call each on an H200, and
+    `recipe default` on both GPUs: the stages and the walls as the recipe printed them."""
+    folder = ROOT / "experiments" / "results" / "recipe" / "h200x2_2026-11-28"
+
+    def printed(run):
+        log = (folder / run / "call.log").read_text()
+        stage = {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", log, re.M)}
+        wall = int(re.search(r"^recipe wall (\d+) s;", log, re.M).group(1))
+        assert log.rstrip().endswith("rc=0") and all(
+            j["exit"] == 0
+            for j in json.loads((folder / run / "recipe.json").read_text())["runs"][0]["jobs"].values()
+            if j["stage"] != "precompile"
+        )
+        return stage, wall
+
+    (one, one_wall), (two, two_wall), (_, general_wall) = (printed(r) for r in ("d1", "d2", "g1"))
+    doc = _prose("training.md")
+    assert (
+        f"demonstrations {one['demos']} s, teachers {one['teachers']} s, students {one['students']} s, selection "
+        f"{one['selection']} s, the closed loop's choice {one['choose']} s, the report {one['report']} s, the "
+        f"recipe's wall {one_wall} s" in doc
+    )
+    assert f"On both GPUs (`--workers 31`): {two_wall} s, the demonstrations {two['demos']} s of it" in doc
+    assert f"`recipe general` in the same call on the other GPU: {general_wall} s" in doc
