@@ -1007,3 +1007,47 @@ def test_the_one_call_recipe_times_in_the_training_docs_are_their_result_files()
     )
     assert f"On both GPUs (`--workers 31`): {two_wall} s, the demonstrations {two['demos']} s of it" in doc
     assert f"`recipe general` in the same call on the other GPU: {general_wall} s" in doc
+
+
+def test_the_paper_s_and_bit_star_s_rows_of_the_results_tables_are_their_sources():
+    """docs/results.md's rows of the paper (every copy: the shipped networks' table, its 2026-11-24
+    history, Table II) are the paper's Table II as the project records it (analysis.PAPER_TABLE2), and
+    the BIT* (R) row of the shipped networks' tables is planners.csv's (20-degree jaws)."""
+    from regrasp_mjx.workflows.analysis import PAPER_TABLE2
+
+    paper = {r["method"]: r for r in PAPER_TABLE2}
+    mixed, bit = paper["paper: DDPG+BC (mixed)"], paper["paper: BIT* (R)"]
+    want = [
+        f"{mixed['success']} / {bit['success']}",
+        f"{mixed['mean_ms']} / {bit['mean_ms']:.0f}",
+        f"{mixed['path_mm']} / {bit['path_mm']:g}",
+    ]
+    text = (ROOT / "docs" / "results.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| paper: DDPG+BC (mixed) / BIT* (R) |")]
+    assert len(rows) == 3, rows
+    for row in rows:
+        cells = [c.strip().removesuffix(" (means)") for c in row.split("|")[2:-1] if c.strip()]
+        assert cells == want, row
+    with (ROOT / "experiments" / "results" / "planners.csv").open() as f:
+        planner = next(
+            r for r in csv.DictReader(f) if r["algorithm"] == "BIT* (R)" and float(r["jaw_angle_deg"]) == 20.0
+        )
+    cells = (
+        f"| BIT* (R) | {float(planner['success_rate']):.3f} | | {1e3 * float(planner['plan_time_median_s']):.1f} "
+        f"(H100 host) | | {float(planner['path_length_mm']):.2f} |"
+    )
+    assert text.count(cells) == 2, cells
+
+
+def test_the_default_s_unreached_targets_are_its_robustness_rows():
+    """docs/results.md's "Not reached" sentence under the robustness block: the shipped default's fused
+    row with the 0.25 mm bias and its per-frame rows at 0.25 mm (its table under the continuous test)."""
+    table = json.loads((ROOT / "experiments/results/continuous/directional/robustness/default.json").read_text())[
+        "tables"
+    ][0]
+    row = {(r["condition"], r["mode"]): r["success_rate"] for r in table["rows"]}
+    assert (
+        f"Not reached: 0.99 fused with a 0.25 mm bias ({row['bias 0.25 mm + sigma 0.25 mm', 'fused']:.3f})\nand 0.95 "
+        f"per frame at 0.25 mm ({row['sigma 0.25 mm', 'per-frame']:.3f}; "
+        f"{row['sigma 0.25 mm', 'per-frame-stop']:.3f} at its own stop)"
+    ) in (ROOT / "docs" / "results.md").read_text()
