@@ -156,6 +156,16 @@ def test_the_environment_speed_in_the_docs_is_the_benchmark_file():
     was = {r["num_envs"]: f"{r['iteration_ms']:.1f} ms" for r in printed if r["code"].startswith("4acb4a5")}
     assert f"a training iteration at 512 environments takes {ms[512]} on one H100, against {was[512]}" in environment
     assert f"{ms[512]} against {was[512]} at 512 environments and {ms[8192]} against {was[8192]} at 8,192" in results
+    slower = [r["iteration_ms"] / p["iteration_ms"] for r in train for p in printed if p["code"].startswith("4acb4a5")
+              and p["num_envs"] == r["num_envs"]]  # fmt: skip
+    assert f"an iteration takes {min(slower):.1f}-{max(slower):.1f}x as long: {ms[512]}" in results
+    # the first landing of the continuous test (the motion bound alone), against the code before it, same session
+    bound = [
+        {r["num_envs"]: r["iteration_ms"] for r in json.loads((folder.parent / f"{n}.json").read_text())["rows"]}
+        for n in ("bench_train_before_rerun_h100", "bench_train_pending_h100")
+    ]
+    alone = [bound[1][n] / bound[0][n] for n in bound[0]]
+    assert f"{min(alone):.1f}-{max(alone):.1f}x with the motion bound alone)" in results
 
 
 def test_the_generalist_section_is_its_result_files():
@@ -381,6 +391,7 @@ def test_the_november_24_default_s_students_in_the_history_are_their_result_file
     held = " / ".join(f"{pick(s, 'held-out 3000', 'bare')['success_rate']:.3f}" for s in range(3))
     assert f"three 2x256 students, bare, {paper} on paper300 and {held} on the held-out 3000" in text
     assert all(r["success_rate"] == 1.0 for r in rows if r["rollout"] == "shielded")
+    assert "on the held-out 3000; 1.000 shielded on both, every seed" in text
     steps = [r["steps"] for r in rows]
     assert f"every seed; {min(steps):.1f}-{max(steps):.1f} steps a plan" in text
     chosen = {
@@ -419,6 +430,12 @@ def test_the_decay_recipe_in_the_history_is_its_result_file():
     held = " / ".join(f"{r['success_rate']:.3f}" for r in of("decay", "held-out 3000"))
     hits = [100 * r["collision_rate"] for r in of("decay", "held-out 3000")]
     steps = np.mean([r["steps"] for r in of("decay", "")])
+    worst = min(r["success_rate"] for r in of("decay", "paper300"))
+    assert f"The `decay` recipe: one network, bare, at {worst:.3f}" in text  # the section's title: every seed
+    run = [
+        json.loads(x) for x in gzip.open(ROOT / "experiments/results/decay/fast_decay.log.jsonl.gz", "rt") if x.strip()
+    ]
+    assert f"of {run[-1]['epoch']} epochs; {run[-1]['wall_s']:.0f} s for three seeds on one H200" in text
     assert (
         f"{paper} on paper300, {held} on the held-out 3000, collisions {min(hits):g}-{max(hits):.2f} % on the held-out "
         f"3000, {steps:.1f} steps per plan"
@@ -452,6 +469,9 @@ def test_the_first_shipped_students_in_the_history_are_their_result_files():
         paper = " / ".join(f"{x:.3f}" for x in success("paper300", "bare"))
         held = " / ".join(f"{x:.3f}" for x in success("held-out 3000", "bare"))
         assert f"{lead}{paper} {paper_words.format(held=held)}" in text, name
+        if name == "policies":  # the section's title: the three students' worst bare success, to 2 digits
+            worst = min(success("paper300", "bare") + success("held-out 3000", "bare"))
+            assert f"One network at {worst:.2f}, shipped" in text
         shielded = success("paper300", "shielded") + success("held-out 3000", "shielded")
         shown = [f"{x:.3f}" for x in shielded]  # "all 1.000 (one 0.999) with the shield"; "all 1.000 shielded"
         assert len(shown) == 6 and set(shown) <= {"1.000", "0.999"}
@@ -488,6 +508,8 @@ def test_the_long_runs_drift_and_scale_sweep_in_the_history_are_their_result_fil
     assert f"stopped by the device's time limit at epochs {mixed['epochs']} and {ddpg['epochs']}" in text
     assert f"drift down to {ms(mixed['last10'])} (mixed) and {ms(ddpg['last10'])} (DDPG+BC)" in text
     epochs = mixed["best_val_epoch"] + ddpg["best_val_epoch"]
+    peaks = mixed["best_val"] + ddpg["best_val"]
+    assert f"peak on validation at {min(peaks):.3f}-{max(peaks):.3f} (epochs {min(epochs)}-{max(epochs)})" in text
     assert (
         f"(best on validation, epochs {min(epochs)}-{max(epochs)}) keeps {np.mean(mixed['best_val']):.3f} on validation"
         in text
@@ -661,6 +683,7 @@ def test_the_planning_times_and_path_columns_of_the_shipped_networks_tables_are_
     assert f"took {span(old_default)} ms over four runs against {span(v2)} ms for `student_v2`" in prose
     shown = ", ".join(f"{x:.2f}" for x in sorted(old_default)[:-1]) + f" and {max(old_default):.2f} ms"
     assert f"gave medians of {shown} (the earlier default in the same calls: {span(v2)} ms)" in prose
+    assert f"(one policy's four runs spanning {span(old_default)} ms) was larger than the two defaults'" in prose
     runs = ", ".join(f"{x:.2f}" for x in times(packed, "default")[:-1]) + f" and {times(packed, 'default')[-1]:.2f} ms"
     assert f"four runs gave {runs} shielded, {span(times(packed, 'default', False))} ms bare" in prose
     default = walks["default"]
@@ -765,6 +788,9 @@ def test_the_planners_line_and_the_needle_error_prose_in_the_results_are_their_f
     ][0]
     fused = next(r for r in general["rows"] if r["condition"] == "sigma 0.25 mm" and r["mode"] == "fused")
     assert f"The generalist reaches {fused['success_rate']:.3f} fused at 0.25 mm on general1000" in text
+    loop = json.loads((ROOT / "regrasp_mjx" / "policies" / "general" / "policy.json").read_text())["closed_loop"]
+    assert "validation problems" in loop["chosen_on"]
+    assert f"at its own closed-loop stop ({loop['stop_tolerance']:g}, chosen on validation problems)" in text
 
 
 def test_why_the_paper_s_learner_decayed_is_its_result_files():
@@ -1074,3 +1100,43 @@ def test_the_default_s_unreached_targets_are_its_robustness_rows():
         f"per frame at 0.25 mm ({row['sigma 0.25 mm', 'per-frame']:.3f}; "
         f"{row['sigma 0.25 mm', 'per-frame-stop']:.3f} at its own stop)"
     ) in (ROOT / "docs" / "results.md").read_text()
+
+
+def test_what_two_gpus_do_not_shrink_is_the_runs_wall_less_their_epochs():
+    """docs/results.md's and docs/training.md's part of a whole `--preset decay` run that two GPUs do
+    not shrink: each pipelined run's wall less its epochs at their median time
+    (experiments/results/multi_gpu_seeds/multi_gpu_seeds.json)."""
+    from regrasp_mjx.agents.ddpg_bc.config import PRESETS
+
+    runs = json.loads((ROOT / "experiments/results/multi_gpu_seeds/multi_gpu_seeds.json").read_text())["runs"]
+    rest = []
+    for r in runs:
+        if r["label"] == "pipelined" and r["seeds"] >= 8:
+            epochs = next(
+                (int(x.split("=")[1]) for x in r["set"] if x.startswith("epochs=")), PRESETS[r["preset"]].epochs
+            )
+            rest.append(r["wall_s"] - epochs * r["epoch_s_median"])
+    span = f"{min(rest):.0f}-{max(rest):.0f} s"
+    assert len(rest) == 4
+    assert f"{span} of each run besides its epochs (the wall less its epochs at their median time" in _prose(
+        "results.md"
+    )
+    assert f"because {span} of every run besides its epochs" in _prose("training.md")
+
+
+def test_the_jaws_room_at_the_goal_in_the_docs_is_measured_on_the_test_set():
+    """docs/results.md's and docs/inference.md's room the jaws have around the needle at the goal: the
+    clearance of every paper300 goal pose to the needle model (HostChecker), its range and median."""
+    from regrasp_mjx.envs.host import HostChecker
+    from regrasp_mjx.world.sampling import load_testset
+
+    episodes, _ = load_testset(ROOT / "regrasp_mjx" / "data" / "paper300.npz")
+    checker = HostChecker()
+    room = []
+    for i in range(len(episodes)):
+        job = episodes.problem(i)
+        needle, goal = job["needle"], job["goal"]
+        room.append(1e3 * checker.clearance(needle[:3], needle[3:], goal[:3], goal[3:]))
+    said = f"{min(room):.2f}-{max(room):.2f} mm (median {np.median(room):.2f})"
+    assert f"room around the needle at the goal: {said} on paper300" in _prose("results.md")
+    assert f"around the needle at the goal, {said} on paper300" in _prose("inference.md")
