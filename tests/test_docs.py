@@ -1140,3 +1140,48 @@ def test_the_jaws_room_at_the_goal_in_the_docs_is_measured_on_the_test_set():
     said = f"{min(room):.2f}-{max(room):.2f} mm (median {np.median(room):.2f})"
     assert f"room around the needle at the goal: {said} on paper300" in _prose("results.md")
     assert f"around the needle at the goal, {said} on paper300" in _prose("inference.md")
+
+
+def test_the_settings_docs_results_names_are_the_code_s():
+    """The settings docs/results.md states in prose (not in a command) are the presets', the task's,
+    the planners' file's and the robot error model's: a preset changed without its docs fails here."""
+    import math
+
+    from regrasp_mjx.agents.ddpg_bc.config import PRESETS
+    from regrasp_mjx.core.config import GENERAL_TASK
+    from regrasp_mjx.inference.robustness import ROBOT_CONDITIONS
+
+    text = _prose("results.md")
+    paper, fast, decay, general, distilled = (PRESETS[k] for k in ("paper", "fast", "decay", "general", "distilled"))
+    assert (
+        f"{paper.num_envs} environments, {paper.updates_per_iteration} updates x {paper.iterations_per_epoch} "
+        f"iterations per epoch, 200 epochs (the paper: {paper.epochs})" in text
+    )
+    assert f"At {fast.num_envs} environments it is our best recipe" in text
+    scale = json.loads((ROOT / "experiments/results/scale/scale.json").read_text())
+    assert f"at {', '.join(list(scale)[:-1])} and {list(scale)[-1]} environments per iteration" in text
+    assert f"our learner for {distilled.epochs} epochs at {distilled.num_envs} environments" in text
+    assert f"decayed to 0 over the first {decay.bc_decay_epochs} of {decay.epochs} epochs" in text
+    assert (
+        f"{general.epochs} epochs, BC and the action penalty decayed over the first {general.bc_decay_epochs}" in text
+    )
+    deg = lambda r: f"{math.degrees(r):.0f}°"  # noqa: E731
+    t = GENERAL_TASK
+    assert t.goal_theta_range_rad == (0.0, 2 * math.pi)  # "theta* any"
+    assert (
+        f"goal alpha* in [{deg(t.goal_alpha_range_rad[0])}, {deg(t.goal_alpha_range_rad[1])}], theta* any, phi* in "
+        f"[{deg(t.goal_phi_range_rad[0])}, {deg(t.goal_phi_range_rad[1])}], d* in [{t.goal_depth_mm[0]:g}, "
+        f"{t.goal_depth_mm[1]:g}] mm, needle radius {t.needle_radius_range_mm[0]:g}-{t.needle_radius_range_mm[1]:g} mm, "
+        f"wire {t.wire_radius_range_mm[0]:g}-{t.wire_radius_range_mm[1]:g} mm" in text
+    )
+    with (ROOT / "experiments" / "results" / "planners.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if float(r["jaw_angle_deg"]) == 20.0 and r["budget_s"]]
+    budgets, problems = {float(r["budget_s"]) for r in rows}, {int(r["problems"]) for r in rows}
+    assert len(budgets) == len(problems) == 1
+    assert f"budget {budgets.pop():g} s, {problems.pop()} test problems, 20° jaws" in text
+    calibrated = [c.robot for c in ROBOT_CONDITIONS if c.robot.calibration_mm]
+    (offset,), (noise,) = {r.joint_offset for r in calibrated}, {r.tool_noise_mm for r in calibrated}
+    assert (
+        f"joint offsets up to {offset:g} (degrees, mm for the insertion), needle and tool tracking noise {noise:g} mm"
+        in text
+    )
