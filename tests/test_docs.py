@@ -1185,3 +1185,32 @@ def test_the_settings_docs_results_names_are_the_code_s():
         f"joint offsets up to {offset:g} (degrees, mm for the insertion), needle and tool tracking noise {noise:g} mm"
         in text
     )
+
+
+def test_the_settings_the_readme_names_are_the_code_s():
+    """README.md's settings in prose (the smoke run, the grasp geometry, the action scale, the planners'
+    box, rotation weight and shortcutting, the general task's needles) are the code's and the model's."""
+    import xml.etree.ElementTree as ET
+
+    from regrasp_mjx.agents.ddpg_bc.config import PRESETS
+    from regrasp_mjx.core.config import GENERAL_TASK, EnvConfig, SceneConfig
+    from regrasp_mjx.planning.ompl_planner import PlannerConfig
+
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    smoke, env, planner = PRESETS["smoke"], EnvConfig(), PlannerConfig()
+    jaw = next(
+        g
+        for g in ET.parse(ROOT / "regrasp_mjx/models/regrasp_scene.xml").iter("geom")
+        if g.get("name") == "grasp_jaw_a"
+    )
+    assert f"a short training run ({smoke.num_demos} demonstrations planned with BIT*, {smoke.epochs} epochs" in readme
+    assert (
+        f"{SceneConfig().jaw_angle_deg:g}° jaw opening, {1e3 * float(jaw.get('size')):g} mm jaw radius; actions of "
+        f"{env.max_dp_mm:g} mm and {env.max_drot_deg:g}° per unit and axis" in readme
+    )
+    assert (
+        f"a box around start and goal grown by {planner.margin_mm:g} mm, rotation weighted by the "
+        f"{planner.rotation_weight_mm:g} mm jaw, first solution then {planner.simplify_s:g} s of shortcutting" in readme
+    )
+    low, high = GENERAL_TASK.needle_radius_range_mm
+    assert f"needles of {low:g} to {high:g} mm" in readme
