@@ -319,7 +319,13 @@ def _prose(name: str) -> str:
 def test_the_one_query_speeds_in_the_history_are_their_benchmark_files():
     """docs/results.md's "One query on one core, now": the lean path's medians on the dev machine and
     the H100 host, the code before issue 31, and the ratios to the JAX path and RRT-Connect (F)
-    (experiments/results/bench_plan/)."""
+    (experiments/results/bench_plan/), and the plans whose verdicts the JAX program shares."""
+    agreement = json.loads((ROOT / "experiments/results/bench_plan/agreement.json").read_text())["rows"]
+    assert all(r["verdicts_differ"] == 0 for r in agreement)
+    plans = f"{sum(r['n'] for r in agreement):,}"
+    assert f"verdict on all {plans} plans (shield on and off) of paper300, held-out 3000 and general1000" in _prose(
+        "results.md"
+    )
     folder = ROOT / "experiments" / "results" / "bench_plan"
     rows = lambda path: {r["method"]: r for r in json.loads((folder / path).read_text())["rows"]}  # noqa: E731
     dev, host = rows("fewer_tests/bench_plan.json"), rows("fewer_tests/h100_host/bench_plan.json")
@@ -1158,6 +1164,7 @@ def test_the_settings_docs_results_names_are_the_code_s():
         f"iterations per epoch, 200 epochs (the paper: {paper.epochs})" in text
     )
     assert f"At {fast.num_envs} environments it is our best recipe" in text
+    assert f"bound by the latency of its {fast.updates_per_iteration} sequential small updates" in text
     scale = json.loads((ROOT / "experiments/results/scale/scale.json").read_text())
     assert f"at {', '.join(list(scale)[:-1])} and {list(scale)[-1]} environments per iteration" in text
     assert f"our learner for {distilled.epochs} epochs at {distilled.num_envs} environments" in text
