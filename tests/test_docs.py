@@ -1221,3 +1221,17 @@ def test_the_settings_the_readme_names_are_the_code_s():
     )
     low, high = GENERAL_TASK.needle_radius_range_mm
     assert f"needles of {low:g} to {high:g} mm" in readme
+
+
+def test_the_notebooks_page_s_counts_are_the_notebooks():
+    """docs/notebooks.md's counts of what notebooks 03 and 04 draw are the notebooks' own."""
+
+    def code(name: str) -> str:
+        cells = json.loads((ROOT / "notebooks" / name).read_text())["cells"]
+        return "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "code")
+
+    page = _prose("notebooks.md")
+    n = re.search(r"^N = (\d+)$", code("03_planners_vs_policy.ipynb"), re.M).group(1)
+    assert f"re-measured on this machine on {n} test problems" in page
+    drawn = re.search(r'"(\d+) of the \d+ plans in the needle frame', code("04_policy.ipynb")).group(1)
+    assert f"{drawn} trajectories in the needle frame" in page
