@@ -190,7 +190,8 @@ def build(
                 block = next_index // 1024
                 if block not in batch_cache:
                     batch_cache = {block: sample(np.arange(block * 1024, block * 1024 + 1024))}
-                pool.submit(batch_cache[block].problem(next_index % 1024), payload=next_index)
+                if pool.submit(batch_cache[block].problem(next_index % 1024), payload=next_index) is None:
+                    break  # the pool's queue is full: this problem goes in the next pass
                 done.add(next_index)
             for r in pool.collect():
                 result = r.result if r.ok else None
