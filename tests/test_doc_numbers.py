@@ -5,7 +5,7 @@ tests/test_docs.py that read it, and the robustness blocks' test) are run on the
 of them must fail. Not checked, because they are not results: a command's arguments (inside
 backticks or a code block), a link's target, identifiers (dates, issues, commits, seeds, test sets,
 the needle models' chord counts, notebooks, the paper's venue, Python versions) and the settings,
-targets and values of the paper listed in ``NOT_RESULTS`` with why. About 2 minutes on the 2-core
+targets and values of the paper listed in ``NOT_RESULTS`` with why. 2-3.5 minutes on the 2-core
 machine, so in the long tier.
 """
 
