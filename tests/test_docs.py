@@ -860,6 +860,11 @@ def test_the_calibration_prose_in_the_results_is_its_result_files():
     assert f"lift the default to {min(twenty[3:5])}-{max(twenty[3:5])} there" in text
 
 
+def _stages(log: str) -> dict[str, int]:
+    """A recipe's printed stage times: ``stage NAME: N s`` lines of its output."""
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", log, re.M)}
+
+
 def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     """docs/training.md's recipe times on one H100: each stage's longest job from the recipe's own
     recipe.json (the runs of one folder), the students' and selection's stage from the first student's
@@ -867,7 +872,7 @@ def test_the_recipe_s_stage_times_in_the_training_docs_are_their_result_files():
     folder = ROOT / "experiments" / "results" / "recipe" / "h100_2026-11-27b"
     runs = json.loads((folder / "recipe.json").read_text())["runs"]
     log = (folder / "call2.log").read_text()
-    stage = {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", log, re.M)}
+    stage = _stages(log)
     text = _prose("training.md")
     demos, teachers = (runs[0]["jobs"][n]["wall_s"] for n in ("demos", "teachers"))
     choose = runs[1]["jobs"]["choose"]["wall_s"]
@@ -895,7 +900,7 @@ def test_the_precompiled_recipe_s_times_in_the_training_docs_are_their_result_fi
     stage = {}
     for call in ("call1.log", "call2.log"):
         text = (folder / call).read_text()
-        stage |= {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", text, re.M)}
+        stage |= _stages(text)
     assert all(j["exit"] == 0 for r in runs for j in r["jobs"].values())
     path = sum(v for k, v in stage.items() if k != "precompile")
     first, second = (r["wall_s"] for r in runs)
@@ -917,7 +922,7 @@ def test_the_general_recipe_s_times_and_comparison_in_the_training_docs_are_thei
     stage = {}
     for call in ("call1.log", "call2.log"):
         text = (folder / call).read_text()
-        stage |= {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", text, re.M)}
+        stage |= _stages(text)
     cut = runs[0]["jobs"]["select/teacher_s0"]
     assert cut["exit"] == "stopped" and all(j["exit"] == 0 for j in runs[1]["jobs"].values())
     whole = sum(stage.values())
@@ -1044,7 +1049,7 @@ def test_the_one_call_recipe_times_in_the_training_docs_are_their_result_files()
 
     def printed(run):
         log = (folder / run / "call.log").read_text()
-        stage = {m.group(1): int(m.group(2)) for m in re.finditer(r"^stage (\w+): (\d+) s$", log, re.M)}
+        stage = _stages(log)
         wall = int(re.search(r"^recipe wall (\d+) s;", log, re.M).group(1))
         assert log.rstrip().endswith("rc=0") and all(
             j["exit"] == 0

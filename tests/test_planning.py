@@ -18,7 +18,7 @@ from regrasp_mjx.envs.host import HostChecker, quat_conj, quat_from_rotvec, quat
 from regrasp_mjx.envs.lean_checker import LeanChecker
 from regrasp_mjx.planning.episodes import DemosError, load_demos, make_replay, path_to_actions, replay_paths
 from regrasp_mjx.planning.ompl_planner import OmplPlanner, PlannerConfig, straight_line
-from regrasp_mjx.planning.pool import PlannerPool
+from regrasp_mjx.planning.pool import JobResult, PlannerPool, plan_with_ompl
 from tests.fresh_planner import plan_fresh
 from tests.pool_faults import faulty_plan
 
@@ -386,15 +386,12 @@ class _InstantPool:
 
     def __init__(self, workers, options, timeout_s):
         self.options, self.submitted, self._done = options, 0, []
-        from regrasp_mjx.planning.pool import JobResult, plan_with_ompl
-
-        self._plan, self._result = plan_with_ompl, JobResult
 
     def submit(self, problem, payload=None):
         self.submitted += 1
         if self.submitted > 100:
             raise AssertionError("the builder kept submitting without collecting")
-        self._done.append(self._result(self.submitted, True, self._plan(problem, self.options), "", payload))
+        self._done.append(JobResult(self.submitted, True, plan_with_ompl(problem, self.options), "", payload))
         return self.submitted
 
     def collect(self):
