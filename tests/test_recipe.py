@@ -17,7 +17,7 @@ import pytest
 
 from regrasp_mjx import recipe as recipe_cli
 from regrasp_mjx.core.config import ConfigError
-from regrasp_mjx.core.jobs import Job, run_jobs
+from regrasp_mjx.core.jobs import REFERENCE_MIB, Job, run_jobs
 from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.policy_file import resolve
@@ -101,7 +101,8 @@ def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
 def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_networks(tmp_path):
     """Each precompile job runs the command of the jobs it helps with an untrained network of the
     same shape (so the same compiled programs; tests/test_recipe.py's slow check shows they are),
-    shares their programs key, and starts with the teachers; without a GPU there are none."""
+    shares their programs key; the distillations start beside the teachers, the rest beside the
+    students (a generalist's, without students, beside the teachers); without a GPU there are none."""
     plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["iterations=5"], 3, gpus=True)
     jobs = {j.name: j for j in plan.jobs()}
     pre = [n for n in jobs if n.startswith("precompile/")]
@@ -121,12 +122,13 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
     strip = lambda a: [x for x in a[a.index("--heldout") : a.index("--out")]]  # noqa: E731
     assert strip(sel.argv()) == strip(real.argv()) and sel.programs == real.programs == "select"
     assert sel.argv()[sel.argv().index("--policy") + 1] == f"untrained={tmp_path / 'precompile/student'}"
-    assert sel.needs == ("precompile/students/t07",) and set(sel.helps) == {n for n in jobs if n.startswith("select/")}
+    assert sel.needs == ("teachers",) and set(sel.helps) == {n for n in jobs if n.startswith("select/")}
     for i in range(15):
         job, real = jobs[f"precompile/report/{i:02d}"], jobs[f"report/part{i:02d}"]
         a, b = job.argv(), real.argv()
         assert a[a.index("--modes") : a.index("--out")] == b[b.index("--modes") : b.index("--out")]
         assert job.programs == real.programs and job.helps == (real.name,) and job.share == real.share
+        assert job.needs == ("teachers",)
     # the untrained networks are written before the jobs start, with the teachers' and the students'
     # shapes and the teachers' task (as distill exports a student), numpy only
     plan.prepare()
@@ -142,18 +144,44 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
 
 
 def test_a_helper_job_fails_nothing_and_is_not_run_once_what_it_helps_has_finished(tmp_path):
-    helper = dataclasses.replace(_job(tmp_path, "h", 0.1, code=1, seconds=1.0), helps=("w",), programs="p")
-    real = dataclasses.replace(_job(tmp_path, "w", 0.1), programs="p")
+    helper = dataclasses.replace(_job(tmp_path, "h", 0.1, code=1, seconds=1.5), helps=("w",), programs="p")
+    first = _job(tmp_path, "x", 0.1, seconds=0.3)  # w is ready while h still runs
+    real = dataclasses.replace(_job(tmp_path, "w", 0.1, needs=("x",)), programs="p")
     lines = []
-    out = run_jobs([helper, real], ["0"], lines.append, heartbeat_s=1e9)
+    out = run_jobs([helper, first, real], ["0"], lines.append, heartbeat_s=1e9)
     assert out["h"]["exit"] == 1 and out["w"]["exit"] == 0 and real.done()
     assert any("h FAILED" in x and "the jobs it helps compile their own programs" in x for x in lines)
     assert lines.index(next(x for x in lines if x.startswith("started w"))) > lines.index(
         next(x for x in lines if x.startswith("h FAILED"))
     )  # w shares h's programs: it waited for h to compile them (here: to end)
     spared = []
-    assert run_jobs([helper, real], ["0"], spared.append, heartbeat_s=1e9) == {}  # w finished: h not needed
-    assert spared[0].startswith("2 jobs: 1 finished already, 1 no longer needed")
+    assert run_jobs([helper, first, real], ["0"], spared.append, heartbeat_s=1e9) == {}  # w finished: h not needed
+    assert spared[0].startswith("3 jobs: 2 finished already, 1 no longer needed")
+
+
+def test_helpers_yield_to_the_jobs_that_do_the_work_and_shares_are_of_an_80_gb_gpu(tmp_path, monkeypatch):
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
+    # a and b do not fit side by side; the helper h (listed first, and small enough to fit beside a)
+    # waits while b is ready and waits for memory, then starts beside b, while c, which it helps, is
+    # still to start; g's helped job has started by the time g could: g is not run
+    a, b = _job(tmp_path, "a", 0.6, seconds=1.5), _job(tmp_path, "b", 0.6, seconds=1.5)
+    c = _job(tmp_path, "c", 0.1, needs=("b",))
+    h = dataclasses.replace(_job(tmp_path, "h", 0.1), helps=("c",))
+    g = dataclasses.replace(_job(tmp_path, "g", 0.1, needs=("a",)), helps=("quick",))
+    quick = _job(tmp_path, "quick", 0.1)
+    lines = []
+    out = run_jobs([h, g, a, b, c, quick], ["0"], lines.append, heartbeat_s=1e9, memory_mib={})
+    t = {j.name: [float(x) for x in j.finished.read_text().split()[:2]] for j in (a, b, c, h)}
+    assert t["a"][1] <= t["h"][0] < t["b"][1] and t["h"][0] < t["c"][0]
+    assert t["b"][0] >= t["a"][1]  # a's and b's shares with their contexts exceed the GPU
+    assert not g.done() and "g" not in out and "g not started: the jobs it helps have started" in lines
+    # on a GPU of twice the memory the same shares fit side by side, each with half the fraction
+    big = [_job(tmp_path / "big", n, 0.6, seconds=1.5) for n in "pq"]
+    lines = []
+    run_jobs(big, ["0"], lines.append, heartbeat_s=1e9, memory_mib={"0": 2 * REFERENCE_MIB})
+    p, q = (j.finished.read_text().split() for j in big)
+    assert float(q[0]) < float(p[1]) and p[3] == q[3] == "0.300"
+    assert "started p on GPU 0, 30% of its memory" in lines
 
 
 def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):

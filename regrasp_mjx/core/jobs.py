@@ -18,8 +18,14 @@ jobs finished in an earlier call counts as compiled (the cache is kept on the sa
 
 A job that ``helps`` others runs only to save them time (a recipe's precompile jobs compile their
 programs ahead, on an untrained network of their shape, while the teachers train): it is run only
-while a job it helps is still to run, none waits for it to finish, and its failure fails nothing
-(those jobs compile their own programs).
+while a job it helps is still to start, none waits for it to finish, and its failure fails nothing
+(those jobs compile their own programs). It yields to the jobs that do the work: each pass places
+those first, and no helper starts while one of them is ready and waits for GPU memory.
+
+A share is of an 80 GB GPU's memory (:data:`REFERENCE_MIB`, the H100 the recipes were sized on), so
+a job takes the same bytes on any GPU: on a 141 GB H200 its fraction is 0.57 of the share, and
+more jobs fit side by side (measured as fractions, the recipe's helpers held 65 % of an H200 while
+two selection candidates ran at a time, 2026-11-28).
 """
 
 from __future__ import annotations
@@ -38,13 +44,16 @@ HEARTBEAT_S = 60.0  # how often the running jobs' last log lines are shown
 # of a GPU's memory each process takes outside its share (its CUDA context and libraries, about 0.5 GB
 # on an 80 GB H100): fifteen processes whose shares summed to 0.9 ran out of memory starting
 CONTEXT_SHARE = 0.01
+# the memory the shares are of: an 80 GB H100 as nvidia-smi reports it [MiB]
+REFERENCE_MIB = 81_559.0
 
 
 @dataclasses.dataclass(frozen=True)
 class Job:
     """One process. ``argv`` makes its ``python -m ...`` arguments when it starts (so a restart
     can add ``--resume``); ``finished`` exists once it has finished; ``needs`` names jobs that must
-    finish first; ``share`` is the fraction of one GPU's memory it may take; ``stage`` groups jobs
+    finish first; ``share`` is the fraction of an 80 GB GPU's memory it may take (scaled to the
+    GPU it runs on, module docstring); ``stage`` groups jobs
     for the progress lines; its output goes to ``log``; jobs of one ``programs`` key wait for one of
     them to print ``compiled`` (see the module's docstring); ``helps`` names the jobs it only saves
     time for (its failure fails nothing)."""
@@ -84,6 +93,27 @@ def gpu_slots(requested: str | None) -> list[str | None]:
     return gpus or [None]
 
 
+def gpu_memory_mib(slots: list[str | None]) -> dict[str, float]:
+    """Each GPU slot's total memory [MiB] as ``nvidia-smi`` reports it (by index); a slot it does
+    not list, or a machine without it, is left out (its shares are taken as they are)."""
+    smi = shutil.which("nvidia-smi")
+    if smi is None or slots == [None]:
+        return {}
+    query = [smi, "--query-gpu=index,memory.total", "--format=csv,noheader,nounits"]
+    try:
+        lines = subprocess.run(query, capture_output=True, text=True, timeout=30).stdout.splitlines()
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    total = {}
+    for line in lines:
+        index, _, mib = line.partition(",")
+        try:
+            total[index.strip()] = float(mib)
+        except ValueError:
+            continue
+    return {s: total[s] for s in slots if s in total and total[s] > 0}
+
+
 def last_line(path: Path, size: int = 4096) -> str:
     """The last non-empty line of a log (progress bars write ``\\r``-separated updates)."""
     try:
@@ -112,12 +142,14 @@ def run_jobs(
     log: Callable[[str], None],
     heartbeat_s: float = HEARTBEAT_S,
     on_end: Callable[[dict[str, dict]], None] | None = None,
+    memory_mib: dict[str, float] | None = None,
 ) -> dict[str, dict]:
     """Runs the jobs not finished yet (see the module's docstring); returns, per job this call
     started, ``{"exit": code, "wall_s": seconds, "stage": stage}`` (exit None: not started because
     a job it needs failed; "stopped": running when this call was stopped), and passes the same
     record to ``on_end`` each time a job ends. A SIGTERM or Ctrl-C stops the running jobs; they
-    resume when started again."""
+    resume when started again. ``memory_mib``: each GPU's memory (None: asked of ``nvidia-smi``,
+    :func:`gpu_memory_mib`), which turns shares into fractions of it."""
     by_name = {j.name: j for j in jobs}
     for j in jobs:
         unknown = [n for n in j.needs + j.helps if n not in by_name]
@@ -132,6 +164,8 @@ def run_jobs(
         + f"{len(todo)} to run on {_where(slots)}"
     )
     load = {s: 0.0 for s in slots}
+    mib = gpu_memory_mib(slots) if memory_mib is None else memory_mib
+    scale = {s: REFERENCE_MIB / mib[s] if s in mib else 1.0 for s in slots}
     running: list[_Running] = []
     failed: set[str] = set()
     out: dict[str, dict] = {}
@@ -145,7 +179,7 @@ def run_jobs(
     try:
         # a key one of whose jobs finished in an earlier call is in the cache (on the same machine)
         warmed = {j.programs for j in jobs if j.programs and j.done()}
-        return _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end, warmed)
+        return _loop(todo, finished, failed, running, out, load, scale, log, heartbeat_s, on_end, warmed)
     finally:
         signal.signal(signal.SIGTERM, previous)
         now = time.perf_counter()
@@ -156,34 +190,49 @@ def run_jobs(
             on_end(out)
 
 
-def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, on_end, warmed) -> dict[str, dict]:
+def _loop(todo, finished, failed, running, out, load, scale, log, heartbeat_s, on_end, warmed) -> dict[str, dict]:
     """Starts and reaps jobs until none is left to start or running (``running`` and ``out`` are the
-    caller's, so a stopped loop leaves them as they were); ``warmed``: the programs keys some job
-    has compiled (see Job.programs)."""
-    gpu = slots != [None]
+    caller's, so a stopped loop leaves them as they were); ``scale``: each slot's shares to
+    fractions of its memory; ``warmed``: the programs keys some job has compiled (see Job.programs)."""
+    gpu = list(scale) != [None]
     stage_left = {s: sum(1 for j in todo if j.stage == s) for s in dict.fromkeys(j.stage for j in todo)}
     stage_t0: dict[str, float] = {}
     t0 = last_beat = time.perf_counter()
+
+    def end_of(job: Job, now: float) -> None:
+        stage_left[job.stage] -= 1
+        if stage_left[job.stage] == 0 and job.stage in stage_t0:
+            log(f"stage {job.stage}: {now - stage_t0[job.stage]:.0f} s")
+
     while todo or running:
-        for job in list(todo):
+        waiting = False  # a job that does the work is ready and waits for GPU memory: helpers hold off
+        for job in sorted(todo, key=lambda j: bool(j.helps)):  # the real jobs first, each in its order
             if any(n in failed for n in job.needs):
                 todo.remove(job)
                 failed.add(job.name)
                 out[job.name] = {"exit": None, "wall_s": 0.0, "stage": job.stage}
                 log(f"{job.name} not started: a job it needs failed")
+                end_of(job, time.perf_counter())
+                continue
+            if job.helps and not any(t.name in job.helps for t in todo):  # what it helps has started
+                todo.remove(job)
+                log(f"{job.name} not started: the jobs it helps have started")
+                end_of(job, time.perf_counter())
                 continue
             if not all(n in finished for n in job.needs):
                 continue
-            if _waits(job, running, warmed):
+            if _waits(job, running, warmed) or (job.helps and waiting):
                 continue
-            slot = _place(job, load, gpu, running)
+            slot = _place(job, load, scale, running)
             if slot is False:
+                waiting = waiting or not job.helps
                 continue
             todo.remove(job)
-            running.append(_start(job, slot, gpu))
-            load[slot] += job.share if gpu else 1.0
+            share = job.share * scale[slot] if gpu else 1.0
+            running.append(_start(job, slot, share))
+            load[slot] += share
             stage_t0.setdefault(job.stage, time.perf_counter())
-            where = f"GPU {slot}, {job.share:.0%} of its memory" if gpu else "this machine"
+            where = f"GPU {slot}, {share:.0%} of its memory" if gpu else "this machine"
             log(f"started {job.name} on {where}")
         time.sleep(0.5)
         now = time.perf_counter()
@@ -198,7 +247,7 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
         for r in [r for r in running if r.proc.poll() is not None]:
             running.remove(r)
             r.stdout.close()
-            load[r.slot] -= r.job.share if gpu else 1.0
+            load[r.slot] -= r.job.share * scale[r.slot] if gpu else 1.0
             wall = now - r.started
             code = r.proc.returncode
             if r.job.programs and code == 0:  # what it compiled is in the cache (failed: the next one compiles)
@@ -217,9 +266,7 @@ def _loop(todo, finished, failed, running, out, load, slots, log, heartbeat_s, o
             log(
                 f"{r.job.name} {verdict} after {wall:.0f} s; {len(out)} done, {left} left, {(now - t0) / 60:.1f} min in"
             )
-            stage_left[r.job.stage] -= 1
-            if stage_left[r.job.stage] == 0:
-                log(f"stage {r.job.stage}: {now - stage_t0[r.job.stage]:.0f} s")
+            end_of(r.job, now)
             if on_end is not None:
                 on_end(out)
     return out
@@ -247,15 +294,15 @@ def _where(slots: list[str | None]) -> str:
     return "this machine (no GPU: one job at a time)" if slots == [None] else f"GPU(s) {', '.join(slots)}"
 
 
-def _place(job: Job, load: dict, gpu: bool, running: list[_Running]):
+def _place(job: Job, load: dict, scale: dict, running: list[_Running]):
     """The least-loaded GPU where the job's share fits beside the shares and CUDA contexts
-    (:data:`CONTEXT_SHARE`) of the jobs on it, else False; a job larger than a whole GPU runs
-    alone on an idle one."""
-    if not gpu:
+    (:data:`CONTEXT_SHARE`) of the jobs on it, each scaled to the GPU's memory, else False; a job
+    larger than a whole GPU runs alone on an idle one."""
+    if list(scale) == [None]:
         return None if not running else False
     slot = min(load, key=load.get)
     processes = 1 + sum(r.slot == slot for r in running)
-    if load[slot] + job.share + CONTEXT_SHARE * processes <= 1.0 + 1e-9 or load[slot] == 0.0:
+    if load[slot] + (job.share + CONTEXT_SHARE * processes) * scale[slot] <= 1.0 + 1e-9 or load[slot] == 0.0:
         return slot
     return False
 
@@ -279,11 +326,12 @@ def _printed(r: _Running, text: str | None) -> bool:
         return False
 
 
-def _start(job: Job, slot: str | None, gpu: bool) -> _Running:
+def _start(job: Job, slot: str | None, fraction: float) -> _Running:
+    """Starts the job's process; on a GPU ``slot`` with ``fraction`` of its memory."""
     env = dict(os.environ)
-    if gpu:
+    if slot is not None:
         env["CUDA_VISIBLE_DEVICES"] = slot
-        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{min(job.share, 0.95):.3f}"
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{min(fraction, 0.95):.3f}"
     job.log.parent.mkdir(parents=True, exist_ok=True)
     stdout = open(job.log, "a")  # noqa: SIM115 - closed when the job ends
     stdout.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started\n")

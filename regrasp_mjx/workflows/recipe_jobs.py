@@ -225,7 +225,8 @@ class Plan:
         per student variant from an untrained teacher, one selection candidate and every report
         part on an untrained candidate. They help those jobs and fail nothing
         (:mod:`regrasp_mjx.core.jobs`); the distillations start beside the teachers once the
-        demonstrations (which take every core) are made, the rest after the first of them. The
+        demonstrations (which take every core) are made, the rest beside the students (without
+        students, beside the teachers: the candidates are the teachers). The
         report's are made only where the exported policy's warm-up frames are the untrained
         candidate's (a constant of its programs)."""
         r, pre, untrained = self.recipe, self.out / "precompile", self.untrained()
@@ -251,9 +252,11 @@ class Plan:
                 )
             )
         candidate = f"untrained={untrained['candidate']}"
-        # after the first distillation: all eighteen at once beside the teachers slowed the teacher run
-        # from 293 to 369 s on one H100 (2026-11-28); with only the two distillations beside it, 293 s
-        after = (out[0].name,) if out else ("demos",)
+        # with students, after the teachers, beside the students: all eighteen at once beside the teachers
+        # slowed the teacher run from 293 to 369 s on one H100 (2026-11-28; with only the two distillations
+        # beside it, 293 s), and after the first distillation (which compiles its tests for minutes beside
+        # the teachers) the selection's waited for memory and ended after the students (one H200)
+        after = ("teachers",) if out else ("demos",)
         out.append(
             job(
                 "precompile/select",
