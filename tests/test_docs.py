@@ -1069,6 +1069,32 @@ def test_the_one_call_recipe_times_in_the_training_docs_are_their_result_files()
     assert f"`recipe general` in the same call on the other GPU: {general_wall} s" in doc
 
 
+def test_the_one_h200_recipe_times_in_the_training_docs_are_their_result_files():
+    """docs/training.md's `recipe default` as it runs now, two runs in one call each on one H200: the
+    stages and the walls as the recipe printed them, every job finished."""
+    folder = ROOT / "experiments" / "results" / "recipe" / "h200_2026-11-28b"
+    runs = []
+    for run in ("d1", "d2"):
+        log = (folder / run / "call.log").read_text()
+        jobs = json.loads((folder / run / "recipe.json").read_text())["runs"][0]["jobs"]
+        assert log.rstrip().endswith("rc=0") and len(jobs) == 49 and all(j["exit"] == 0 for j in jobs.values())
+        runs.append(_stages(log) | {"wall": int(re.search(r"^recipe wall (\d+) s;", log, re.M).group(1))})
+    both = lambda key: " / ".join(str(r[key]) for r in runs)  # noqa: E731
+    assert (
+        f"demonstrations {both('demos')} s, teachers {both('teachers')} s, students {both('students')} s, "
+        f"selection {both('selection')} s, the closed loop's choice {both('choose')} s, the report "
+        f"{both('report')} s, the recipe's wall {both('wall')} s" in _prose("training.md")
+    )
+    # the shares as fractions of the H200 the runs had: the fraction the docs give, and the one the runs used
+    from regrasp_mjx.core.jobs import REFERENCE_MIB
+    from regrasp_mjx.workflows.recipes import RECIPES
+
+    mib = float(re.search(r"NVIDIA H200, (\d+) MiB", (folder / "README.md").read_text()).group(1))
+    assert f"on a 141 GB H200 it is given {REFERENCE_MIB / mib:.2f} of its share" in _prose("training.md")
+    share = RECIPES["default"].students.share * REFERENCE_MIB / mib
+    assert f"started students/t07/s0 on GPU 0, {share:.0%} of its memory" in (folder / "d1" / "call.log").read_text()
+
+
 def test_the_paper_s_and_bit_star_s_rows_of_the_results_tables_are_their_sources():
     """docs/results.md's rows of the paper (every copy: the shipped networks' table, its 2026-11-24
     history, Table II) are the paper's Table II as the project records it (analysis.PAPER_TABLE2), and
