@@ -182,6 +182,10 @@ def test_helpers_yield_to_the_jobs_that_do_the_work_and_shares_are_of_an_80_gb_g
     p, q = (j.finished.read_text().split() for j in big)
     assert float(q[0]) < float(p[1]) and p[3] == q[3] == "0.300"
     assert "started p on GPU 0, 30% of its memory" in lines
+    # a whole GPU (a sweep's point, share 1) stays a whole GPU on any
+    whole = _job(tmp_path / "whole", "w", 1.0)
+    run_jobs([whole], ["0"], lambda _: None, heartbeat_s=1e9, memory_mib={"0": 2 * REFERENCE_MIB})
+    assert whole.finished.read_text().split()[3] == "0.950"
 
 
 def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):

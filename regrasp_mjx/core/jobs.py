@@ -25,7 +25,8 @@ those first, and no helper starts while one of them is ready and waits for GPU m
 A share is of an 80 GB GPU's memory (:data:`REFERENCE_MIB`, the H100 the recipes were sized on), so
 a job takes the same bytes on any GPU: on a 141 GB H200 its fraction is 0.57 of the share, and
 more jobs fit side by side (measured as fractions, the recipe's helpers held 65 % of an H200 while
-two selection candidates ran at a time, 2026-11-28).
+two selection candidates ran at a time, 2026-11-28). A share of 1 (a sweep's point) is a whole GPU
+of any size.
 """
 
 from __future__ import annotations
@@ -228,7 +229,7 @@ def _loop(todo, finished, failed, running, out, load, scale, log, heartbeat_s, o
                 waiting = waiting or not job.helps
                 continue
             todo.remove(job)
-            share = job.share * scale[slot] if gpu else 1.0
+            share = _fraction(job.share, scale[slot]) if gpu else 1.0
             running.append(_start(job, slot, share))
             load[slot] += share
             stage_t0.setdefault(job.stage, time.perf_counter())
@@ -247,7 +248,7 @@ def _loop(todo, finished, failed, running, out, load, scale, log, heartbeat_s, o
         for r in [r for r in running if r.proc.poll() is not None]:
             running.remove(r)
             r.stdout.close()
-            load[r.slot] -= r.job.share * scale[r.slot] if gpu else 1.0
+            load[r.slot] -= _fraction(r.job.share, scale[r.slot]) if gpu else 1.0
             wall = now - r.started
             code = r.proc.returncode
             if r.job.programs and code == 0:  # what it compiled is in the cache (failed: the next one compiles)
@@ -302,9 +303,16 @@ def _place(job: Job, load: dict, scale: dict, running: list[_Running]):
         return None if not running else False
     slot = min(load, key=load.get)
     processes = 1 + sum(r.slot == slot for r in running)
-    if load[slot] + (job.share + CONTEXT_SHARE * processes) * scale[slot] <= 1.0 + 1e-9 or load[slot] == 0.0:
+    need = _fraction(job.share, scale[slot]) + CONTEXT_SHARE * processes * scale[slot]
+    if load[slot] + need <= 1.0 + 1e-9 or load[slot] == 0.0:
         return slot
     return False
+
+
+def _fraction(share: float, scale: float) -> float:
+    """A share of an 80 GB GPU as a fraction of one whose memory is ``1 / scale`` of that; a share
+    of 1 or more is the whole GPU, whatever its size."""
+    return share if share >= 1.0 else share * scale
 
 
 def _waits(job: Job, running: list[_Running], warmed: set[str]) -> bool:
