@@ -6,6 +6,13 @@ and reports ms per step; ``--profile`` traces one rollout of the full test and s
 and copy time per step, with the busiest kernels.
 
     python experiments/probe_continuous.py --batch 32768 --profile --out experiments/results/continuous/subtree
+
+``--count`` instead counts, on the same rollout, which test settles each step: its end pose in a
+collision, the end pose clear by each capsule's ``v_t`` (what stands in for the root), every pair
+clear by ``v_t`` at the step's start or its end (a stand-in from both ends, not in the package), the
+root interval, or else the walk; as shares of all steps.
+
+    python experiments/probe_continuous.py --count --batch 4096 --steps 60 --out experiments/results/continuous/stand_ins
 """
 
 from __future__ import annotations
@@ -21,7 +28,9 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
+from regrasp_mjx.core import geometry
 from regrasp_mjx.core.atomic import machine, write_json
 from regrasp_mjx.core.config import EnvConfig
 from regrasp_mjx.envs.env import RegraspEnv
@@ -120,6 +129,46 @@ def profile(batch: int, steps: int, seed: int, top: int = 25) -> dict:
     }
 
 
+COUNTS = ("ends in a collision", "end pose by v_t", "start or end pose by v_t, per pair", "root interval", "walk")
+
+
+def count_settled(batch: int, steps: int, seed: int) -> dict[str, float]:
+    """The share of a random-action rollout's steps each test settles (module docstring); the shares
+    overlap but for the walk's (the steps none of the others settles)."""
+    env = RegraspEnv(EnvConfig(check_actions=False))
+    wrapped = AutoResetWrapper(VmapWrapper(env))
+
+    def settled(es, a):  # one environment's step, as RegraspEnv.move tests it
+        dp, rotvec = a[:3] * env.max_dp, a[3:] * env.max_drot
+        placed = env._place_others(es.needle_pos, es.needle_quat)
+        end_quat = geometry.quat_mul(geometry.quat_from_rotvec(rotvec), es.ee_quat)
+        end = env._gaps(placed, es.ee_pos + dp, end_quat)
+        speed = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * env.levers
+        by = lambda d: d.reshape(speed.shape[0], -1) - speed[:, None] - env.clearance  # noqa: E731
+        start = by(env._gaps(placed, es.ee_pos, es.ee_quat))
+        ends_in = jnp.any(end < env.clearance)
+        either = jnp.all(jnp.maximum(by(end), start) >= continuous.SLACK)
+        half = jnp.float32(0.5)
+        _, low = env._bounds_along((placed, es.ee_pos, es.ee_quat, dp, rotvec), half, half)
+        root = jnp.all(low - env.clearance >= continuous.SLACK)
+        end_ok = jnp.all(by(end) >= continuous.SLACK)
+        return jnp.stack([ends_in, end_ok, either, root, ~(ends_in | either | root)])
+
+    @jax.jit
+    def rollout(key):
+        k_reset, k_act = jax.random.split(key)
+        state = wrapped.reset(jax.random.split(k_reset, batch))
+
+        def body(state, k):
+            action = jax.random.uniform(k, (batch, env.action_size), minval=-1.0, maxval=1.0)
+            shares = jnp.mean(jax.vmap(settled)(state.pipeline_state, action), axis=0)
+            return wrapped.step(state, action), shares
+
+        return jnp.mean(jax.lax.scan(body, state, jax.random.split(k_act, steps))[1], axis=0)
+
+    return {name: round(float(v), 4) for name, v in zip(COUNTS, rollout(jax.random.PRNGKey(seed)))}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--batch", type=int, default=32768)
@@ -130,8 +179,16 @@ def main() -> None:
         "--walk", default=None, help="the test's walk, as bench_env.py --walks names one (default: the module's)"
     )
     p.add_argument("--profile", action="store_true")
+    p.add_argument("--count", action="store_true", help="count which test settles each step (no timing)")
     p.add_argument("--out", default=None)
     args = p.parse_args()
+    if args.count:
+        result = {"machine": f"{machine()}; jax {jax.__version__}", "batch": args.batch, "steps": args.steps}
+        result |= {"seed": args.seed, "shares": count_settled(args.batch, args.steps, args.seed)}
+        print(json.dumps(result, indent=1))
+        if args.out:
+            write_json(Path(args.out) / f"count_{args.batch}x{args.steps}.json", result)
+        return
     walk = set_walk(args.walk)
     result = {"machine": f"{machine()}; jax {jax.__version__}", "batch": args.batch, "walk": walk, "variants": {}}
     print(result["machine"], flush=True)
