@@ -35,7 +35,10 @@ POSE_FIELDS = ("needle_pos", "needle_quat", "start_pos", "start_quat")
 RAW_CALLS = 2
 
 
-def make_rollout(env: RegraspEnv, batch: int, steps: int):
+def make_rollout(env: RegraspEnv, batch: int, steps: int, record=None):
+    """The rollout (module docstring) as one jitted function of a key: the sums of rewards, episode
+    ends and successes; with ``record(states, actions)`` (the batch's pipeline states and actions
+    before each step) also its value at every step, stacked."""
     wrapped = AutoResetWrapper(VmapWrapper(env))
 
     @jax.jit
@@ -45,11 +48,12 @@ def make_rollout(env: RegraspEnv, batch: int, steps: int):
 
         def body(state, k):
             action = jax.random.uniform(k, (batch, env.action_size), minval=-1.0, maxval=1.0)
+            seen = () if record is None else (record(state.pipeline_state, action),)
             state = wrapped.step(state, action)
-            return state, (jnp.sum(state.reward), jnp.sum(state.done), jnp.sum(state.metrics["success"]))
+            return state, (jnp.sum(state.reward), jnp.sum(state.done), jnp.sum(state.metrics["success"]), *seen)
 
-        _, (reward, done, success) = jax.lax.scan(body, state, jax.random.split(k_act, steps))
-        return jnp.sum(reward), jnp.sum(done), jnp.sum(success)
+        _, (reward, done, success, *seen) = jax.lax.scan(body, state, jax.random.split(k_act, steps))
+        return (jnp.sum(reward), jnp.sum(done), jnp.sum(success), *seen)
 
     return rollout
 

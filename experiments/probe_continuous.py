@@ -28,7 +28,6 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-from brax.envs.wrappers.training import AutoResetWrapper, VmapWrapper
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.atomic import machine, write_json
@@ -136,7 +135,6 @@ def count_settled(batch: int, steps: int, seed: int) -> dict[str, float]:
     """The share of a random-action rollout's steps each test settles (module docstring); the shares
     overlap but for the walk's (the steps none of the others settles)."""
     env = RegraspEnv(EnvConfig(check_actions=False))
-    wrapped = AutoResetWrapper(VmapWrapper(env))
 
     def settled(es, a):  # one environment's step, as RegraspEnv.move tests it
         dp, rotvec = a[:3] * env.max_dp, a[3:] * env.max_drot
@@ -154,19 +152,9 @@ def count_settled(batch: int, steps: int, seed: int) -> dict[str, float]:
         end_ok = jnp.all(by(end) >= continuous.SLACK)
         return jnp.stack([ends_in, end_ok, either, root, ~(ends_in | either | root)])
 
-    @jax.jit
-    def rollout(key):
-        k_reset, k_act = jax.random.split(key)
-        state = wrapped.reset(jax.random.split(k_reset, batch))
-
-        def body(state, k):
-            action = jax.random.uniform(k, (batch, env.action_size), minval=-1.0, maxval=1.0)
-            shares = jnp.mean(jax.vmap(settled)(state.pipeline_state, action), axis=0)
-            return wrapped.step(state, action), shares
-
-        return jnp.mean(jax.lax.scan(body, state, jax.random.split(k_act, steps))[1], axis=0)
-
-    return {name: round(float(v), 4) for name, v in zip(COUNTS, rollout(jax.random.PRNGKey(seed)))}
+    shares = lambda states, actions: jnp.mean(jax.vmap(settled)(states, actions), axis=0)  # noqa: E731
+    per_step = make_rollout(env, batch, steps, record=shares)(jax.random.PRNGKey(seed))[3]
+    return {name: round(float(v), 4) for name, v in zip(COUNTS, jnp.mean(per_step, axis=0))}
 
 
 def main() -> None:
