@@ -26,7 +26,7 @@ from regrasp_mjx.core.atomic import machine, write_json, write_text
 from regrasp_mjx.core.config import EnvConfig
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.host import HostEnv
-from regrasp_mjx.world import continuous
+from regrasp_mjx.world import continuous, walk_kernel
 from regrasp_mjx.world.testsets import make_testset
 
 POSE_FIELDS = ("needle_pos", "needle_quat", "start_pos", "start_quat")
@@ -58,10 +58,20 @@ def make_rollout(env: RegraspEnv, batch: int, steps: int, record=None):
     return rollout
 
 
+KERNEL_SIZES = (walk_kernel.BLOCK, walk_kernel.NUM_WARPS)  # the module's: ``kernel`` alone asks for them
+
+
 def set_walk(walk: str | None) -> str:
-    """The continuous test's walk on an accelerator (read when the step is traced): ``chunk``
+    """The continuous test's walk on an accelerator (read when the step is traced): ``kernel[:BLOCK[:WARPS]]``
+    (one Pallas kernel, :mod:`regrasp_mjx.world.walk_kernel`, BLOCK lanes a program on WARPS warps), ``chunk``
     (WALK_CHUNK intervals one after another a loop iteration) or ``DEPTH:HEAD:TAIL_DEPTH``
-    (SUBTREE_DEPTH, HEAD_STEPS, TAIL_DEPTH); None: the module's. Returns it as such a string."""
+    (SUBTREE_DEPTH, HEAD_STEPS, TAIL_DEPTH), the XLA walks; None: the module's. Returns it as such a string."""
+    walk_kernel.KERNEL = None if walk is None else walk.startswith("kernel")
+    if walk is not None and walk.startswith("kernel"):
+        sizes = [int(x) for x in walk.split(":")[1:]]
+        walk_kernel.BLOCK, walk_kernel.NUM_WARPS = sizes + list(KERNEL_SIZES)[len(sizes) :]
+    if walk_kernel.use_kernel():
+        return f"kernel:{walk_kernel.BLOCK}:{walk_kernel.NUM_WARPS}"
     if walk == "chunk":
         continuous.SUBTREE_DEPTH = None
     elif walk is not None:
@@ -172,7 +182,8 @@ def main() -> None:
     p.add_argument(
         "--walks",
         default=None,
-        help="comma-separated walks of the continuous test on an accelerator: chunk (WALK_CHUNK intervals a loop "
+        help="comma-separated walks of the continuous test on an accelerator: kernel[:BLOCK[:WARPS]] (one Pallas kernel, "
+        "BLOCK lanes a program on WARPS warps), chunk (WALK_CHUNK intervals a loop "
         "iteration) or DEPTH:HEAD:TAIL_DEPTH (regrasp_mjx.world.continuous.SUBTREE_DEPTH, HEAD_STEPS, TAIL_DEPTH); "
         "default: the module's",
     )

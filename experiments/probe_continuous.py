@@ -164,7 +164,7 @@ def main() -> None:
     p.add_argument("--rollouts", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
-        "--walk", default=None, help="the test's walk, as bench_env.py --walks names one (default: the module's)"
+        "--walk", default=None, help="the test's XLA walk, as bench_env.py --walks names one (default: the module's)"
     )
     p.add_argument("--profile", action="store_true")
     p.add_argument("--count", action="store_true", help="count which test settles each step (no timing)")
@@ -177,7 +177,10 @@ def main() -> None:
         if args.out:
             write_json(Path(args.out) / f"count_{args.batch}x{args.steps}.json", result)
         return
-    walk = set_walk(args.walk)
+    if args.walk is not None and args.walk.startswith("kernel"):
+        p.error("--walk: the variants replace parts of the XLA walk; accepted: chunk or DEPTH:HEAD:TAIL_DEPTH")
+    # the XLA walk, which the variants take apart (on a GPU the package tests with the kernel)
+    walk = set_walk(args.walk or f"{continuous.SUBTREE_DEPTH}:{continuous.HEAD_STEPS}:{continuous.TAIL_DEPTH}")
     result = {"machine": f"{machine()}; jax {jax.__version__}", "batch": args.batch, "walk": walk, "variants": {}}
     print(result["machine"], flush=True)
     # the first program timed in a process runs slow (seen on an H100: 1.64 against 1.07 ms a step for

@@ -22,7 +22,7 @@ from flax import struct
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError, EnvConfig
-from regrasp_mjx.world import continuous
+from regrasp_mjx.world import continuous, walk_kernel
 from regrasp_mjx.world.sampling import Episode, sample_episode
 from regrasp_mjx.world.scene import Scene, load_scene
 
@@ -114,6 +114,8 @@ class RegraspEnv(Env):
         self.levers = jnp.asarray(levers, jnp.float32)
         self.distances = self.scene.distance_fn()
         self._place_others, self._gaps, self._interval = self.scene.motion_distance_fn()
+        # the same test as one Pallas kernel a batch (where walk_kernel.use_kernel(): on a GPU)
+        self._walk_kernel = walk_kernel.make_kernel(frames.tool_ends, frames.tool_radii, levers, self.clearance)
         # what the validity tests use: clearances less the margin (negative = colliding)
         distances, margin = self.distances, self.clearance
         self._free_distances = distances if margin == 0.0 else (lambda *pose: distances(*pose) - margin)
@@ -240,9 +242,16 @@ class RegraspEnv(Env):
         ends_in = jnp.any(end < self.clearance)  # a collision whatever the motion before: not walked
         # the end pose clear by v_t: clear along the whole step (s = 1 back to 0), the root not tested
         clear = jnp.all(end.reshape(speed.shape[0], -1) - speed[:, None] - self.clearance >= continuous.SLACK)
-        collision = continuous.motion_collides(
-            self._bounds_along, motion, jnp.max(speed), self.clearance, known=ends_in, proved=clear
-        )
+        if walk_kernel.use_kernel():  # the root and walk where neither end pose decides, one kernel a batch
+            walk = walk_kernel.lane_fn(self._walk_kernel, interpret=jax.default_backend() != "gpu")
+            ends, radii = placed
+            radii = jnp.broadcast_to(radii, ends.shape[1:2])
+            pending = ~ends_in & ~clear
+            collision = ends_in | walk(ends[0], radii, es.ee_pos, es.ee_quat, dp, rotvec, jnp.max(speed), pending)
+        else:
+            collision = continuous.motion_collides(
+                self._bounds_along, motion, jnp.max(speed), self.clearance, known=ends_in, proved=clear
+            )
 
         es = es.replace(
             ee_pos=end_pos,
