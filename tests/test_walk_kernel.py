@@ -115,3 +115,26 @@ def test_steps_beside_the_wire_by_hand(action, collides, monkeypatch):
         moved = jax.jit(fresh.step)(_state(fresh, NEEDLE, START), jnp.asarray(action, jnp.float32))
         verdicts.append(float(moved.metrics["collision"]))
     assert verdicts == [float(collides)] * 2
+
+
+def test_seeds_by_environments_step_alike_with_the_kernel(env, monkeypatch):
+    # a training program vmaps its seeds over its environments: the kernel's rule then runs under a
+    # second vmap (on a GPU, one kernel call with the seeds as a second grid axis)
+    def collisions(kernel: bool):
+        monkeypatch.setattr(walk_kernel, "KERNEL", kernel)
+
+        @jax.jit
+        def run(key):
+            state = jax.vmap(jax.vmap(env.reset))(jax.random.split(key, 2 * 64).reshape(2, 64, 2))
+            out = []
+            for t in range(4):
+                action = jax.random.uniform(jax.random.fold_in(key, t), (2, 64, 6), minval=-1.0, maxval=1.0)
+                state = jax.vmap(jax.vmap(env.step))(state, action)
+                out.append(state.metrics["collision"])
+            return jnp.stack(out)
+
+        return np.asarray(run(jax.random.PRNGKey(0)))
+
+    with_kernel, without = collisions(True), collisions(False)
+    np.testing.assert_array_equal(with_kernel, without)
+    assert 0 < without.sum() < without.size

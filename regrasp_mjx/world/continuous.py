@@ -34,7 +34,7 @@ motion: each of the steps that replay it, :func:`pieces`). So:
   prove it (conservative).
 
 The verdict is a function of the motion alone (the intervals are visited in one fixed order), so the MJX
-environment (:func:`motion_collides`, here), the host checker
+environment (:func:`motion_collides`, here; on a GPU one Pallas kernel, :mod:`~regrasp_mjx.world.walk_kernel`), the host checker
 (:meth:`regrasp_mjx.envs.host.HostChecker.motion_collides`) and the compiled one
 (:func:`regrasp_mjx.envs.lean_collision.motion_collides`) give the same verdicts. A test that proves
 more than the root interval's (e.g. the end pose clear by ``v_t``, which implies the midpoint
