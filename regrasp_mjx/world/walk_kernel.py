@@ -4,21 +4,25 @@
 the whole batch: every loop iteration is a chain of small kernels and a wait for the device, and a
 batch of 32,768 has a lane that grazes the wire every step (issue 44: about 280 kernels a step). Here
 the root test and the walk of :func:`~regrasp_mjx.world.continuous.motion_collides_host` run in one
-kernel (Pallas, lowered to Triton on a GPU): a program takes :data:`BLOCK` lanes, poses each lane's
-tool at the interval's midpoint, computes every pair's distance and both lower bounds
-(:func:`~regrasp_mjx.world.continuous.interval_low`, the same formulas in the same order, float32)
-and advances the depth-first walk (:func:`~regrasp_mjx.world.continuous._advance`), looping until
-its own lanes are done: a grazing lane holds up its block alone.
+kernel (Pallas, lowered to Triton on a GPU): a program takes :data:`BLOCK` lanes (one: a warp a
+lane), lays each lane's counted capsules across its threads, poses the lane's tool at the interval's
+midpoint, computes every pair's distance and both lower bounds
+(:func:`~regrasp_mjx.world.continuous.interval_low`, the same formulas in the same order, float32),
+takes the least over the pairs and advances the depth-first walk
+(:func:`~regrasp_mjx.world.continuous._advance`), looping until its own lanes are done: a grazing
+lane holds up its own program alone, where an XLA loop holds up the batch.
 
 The verdicts are those of the XLA path up to float32 rounding (the kernel's compiler may contract
-products and sums differently): both are within :data:`~regrasp_mjx.world.continuous.SLACK` of the
-exact bounds, and tests/test_walk_kernel.py compares them lane by lane.
+products and sums differently; both are within :data:`~regrasp_mjx.world.continuous.SLACK` of the
+exact bounds): 0 of 655,360 random-action steps differ on an H200 (experiments/walk_kernel_check.py),
+and tests/test_walk_kernel.py compares them lane by lane in Pallas's interpreter.
 
-Data are passed lane-minor (a lane's values down a column) so that a block's loads are contiguous:
-``lanes [16, B]`` (position, quaternion, translation, rotation vector, fastest ``v_t``, pending) and
-``others [O, 8, B]`` (each counted capsule's two end points and radius, per lane: the needle's chords
-move with the lane's needle). The regrasping tool's capsules (end points in its frame, radii, levers)
-and the margin are constants of the scene, compiled into the kernel.
+Data: ``lanes [16, B]`` (position, quaternion, translation, rotation vector, fastest ``v_t``,
+pending: a lane's values down a column) and ``others [B, 8, W]`` (each counted capsule's two end
+points and radius, per lane, as the needle's chords move with the lane's needle; W the count rounded
+up to a power of two, Triton's tiles, the spare columns far away). The regrasping tool's capsules
+(end points in its frame, radii, levers) and the margin are constants of the scene, compiled into
+the kernel.
 """
 
 from __future__ import annotations
