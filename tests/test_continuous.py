@@ -33,6 +33,25 @@ def _pose_at(start: np.ndarray, dp: np.ndarray, w: np.ndarray, s: float) -> tupl
     return start[:3] + s * dp, quat_mul(quat_from_rotvec(s * w), start[3:] / np.linalg.norm(start[3:]))
 
 
+def random_steps(env: RegraspEnv, batch: int, steps: int, record, key: int):
+    """``record(state, action)`` (the batch's brax state and actions before each step) at every step
+    of ``batch`` environments reset from the paper's distributions and stepped by uniformly random
+    actions, stacked (one jitted scan)."""
+
+    @jax.jit
+    def run(key):
+        k_reset, k_act = jax.random.split(key)
+        state = jax.vmap(env.reset)(jax.random.split(k_reset, batch))
+
+        def body(state, k):
+            action = jax.random.uniform(k, (batch, 6), minval=-1.0, maxval=1.0)
+            return jax.vmap(env.step)(state, action), record(state, action)
+
+        return jax.lax.scan(body, state, jax.random.split(k_act, steps))[1]
+
+    return run(jax.random.PRNGKey(key))
+
+
 def _state(env: RegraspEnv, needle: np.ndarray, start: np.ndarray):
     f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     ep = Episode(
@@ -306,19 +325,8 @@ def test_the_end_pose_stands_in_for_the_root_with_the_same_verdicts(unrolled, mo
         every_root = continuous.motion_collides(env._bounds_along, motion, fastest, env.clearance)
         return from_env, every_root, clear
 
-    @jax.jit
-    def run(key):
-        k_reset, k_act = jax.random.split(key)
-        state = jax.vmap(env.reset)(jax.random.split(k_reset, batch))
-
-        def body(state, k):
-            action = jax.random.uniform(k, (batch, 6), minval=-1.0, maxval=1.0)
-            out = jax.vmap(verdicts)(state, action)
-            return jax.vmap(env.step)(state, action), out
-
-        return jax.lax.scan(body, state, jax.random.split(k_act, steps))[1]
-
-    from_env, every_root, clear = (np.asarray(x) for x in run(jax.random.PRNGKey(4)))
+    record = lambda state, action: jax.vmap(verdicts)(state, action)  # noqa: E731
+    from_env, every_root, clear = (np.asarray(x) for x in random_steps(env, batch, steps, record, key=4))
     np.testing.assert_array_equal(from_env, every_root)
     assert 0 < from_env.sum() < from_env.size
     assert 0.3 < clear.mean() < 0.98  # both kinds of lane, and more root tests than one round holds

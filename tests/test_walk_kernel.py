@@ -15,7 +15,7 @@ import pytest
 from regrasp_mjx.core.config import EnvConfig
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.world import continuous, walk_kernel
-from tests.test_continuous import ACTION, NEEDLE, START, _state
+from tests.test_continuous import ACTION, NEEDLE, START, _state, random_steps
 
 BATCH, STEPS = 256, 8
 
@@ -30,22 +30,8 @@ def _kernel(env, margin=None):
     return walk_kernel.make_kernel(f.tool_ends, f.tool_radii, env.levers, env.clearance if margin is None else margin)
 
 
-def _random_steps(env, record, key=4):
-    """``record(state, action)`` (the batch's brax state and actions before each step) at every step
-    of BATCH random-action environments from the paper's starts, stacked."""
-
-    @jax.jit
-    def run(key):
-        k_reset, k_act = jax.random.split(key)
-        state = jax.vmap(env.reset)(jax.random.split(k_reset, BATCH))
-
-        def body(state, k):
-            action = jax.random.uniform(k, (BATCH, 6), minval=-1.0, maxval=1.0)
-            return jax.vmap(env.step)(state, action), record(state, action)
-
-        return jax.lax.scan(body, state, jax.random.split(k_act, STEPS))[1]
-
-    return run(jax.random.PRNGKey(key))
+def _random_steps(env, record):
+    return random_steps(env, BATCH, STEPS, record, key=4)
 
 
 def test_the_kernel_gives_the_xla_walks_verdicts_lane_by_lane(env, monkeypatch):

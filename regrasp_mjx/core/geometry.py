@@ -229,14 +229,21 @@ def segment_gap(a0: Array, a1: Array, b0: Array, b1: Array, xp=jnp) -> Array:
     [0, 1] and re-solve s for a clamped t. Both segments must have non-zero length (capsules do).
     """
     d1, d2, r = a1 - a0, b1 - b0, a0 - b0
-    a, e, b, c, f = dot3(d1, d1), dot3(d2, d2), dot3(d1, d2), dot3(d1, r), dot3(d2, r)
+    s, t = segment_params(dot3(d1, d1), dot3(d2, d2), dot3(d1, d2), dot3(d1, r), dot3(d2, r), xp)
+    return a0 + d1 * s[..., None] - (b0 + d2 * t[..., None])
+
+
+def segment_params(a, e, b, c, f, xp=jnp):
+    """:func:`segment_gap`'s closest points as parameters ``(s, t)`` along ``a0 + s d1`` and ``b0 + t d2``,
+    from the dot products ``a = d1.d1``, ``e = d2.d2``, ``b = d1.d2``, ``c = d1.r``, ``f = d2.r``
+    (``r = a0 - b0``): elementwise, so that a kernel holding its vectors as components
+    (:mod:`regrasp_mjx.world.walk_kernel`) clamps them the same way."""
     denom = a * e - b * b
     # Parallel segments (denom ~ 0): any s works; s = 0 and the clamps below give the distance.
     s = xp.where(denom > 1e-9 * a * e, xp.clip((b * f - c * e) / xp.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
     t = (b * s + f) / e
     s = xp.where(t < 0.0, xp.clip(-c / a, 0.0, 1.0), xp.where(t > 1.0, xp.clip((b - c) / a, 0.0, 1.0), s))
-    t = xp.clip(t, 0.0, 1.0)
-    return a0 + d1 * s[..., None] - (b0 + d2 * t[..., None])
+    return s, xp.clip(t, 0.0, 1.0)
 
 
 def segment_distance(a0: Array, a1: Array, b0: Array, b1: Array) -> Array:

@@ -33,7 +33,8 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from regrasp_mjx.world.continuous import MAX_TESTS, RESOLUTION, SLACK
+from regrasp_mjx.core.geometry import segment_params
+from regrasp_mjx.world.continuous import RESOLUTION, SLACK, _advance
 
 # lanes a program walks (a grazing lane holds up this many), their pairs across NUM_WARPS warps
 BLOCK = 1
@@ -117,18 +118,8 @@ def _place(rows, pos, end):
 def _segment_gap(a0, a1, b0, b1):
     """:func:`regrasp_mjx.core.geometry.segment_gap` on tuples of lane vectors."""
     d1, d2, r = _sub(a1, a0), _sub(b1, b0), _sub(a0, b0)
-    a, e, b, c, f = _dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r)
-    denom = a * e - b * b
-    s = jnp.where(denom > 1e-9 * a * e, jnp.clip((b * f - c * e) / jnp.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
-    t = (b * s + f) / e
-    s = jnp.where(t < 0.0, jnp.clip(-c / a, 0.0, 1.0), jnp.where(t > 1.0, jnp.clip((b - c) / a, 0.0, 1.0), s))
-    t = jnp.clip(t, 0.0, 1.0)
+    s, t = segment_params(_dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r))
     return _sub(_add(a0, _scale(d1, s)), _add(b0, _scale(d2, t)))
-
-
-def _trailing_ones(i):
-    """How many trailing one bits ``i`` has (``popcount(i ^ (i + 1)) - 1``, as the XLA walk counts them)."""
-    return jax.lax.population_count(i ^ (i + 1)) - 1
 
 
 def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarray, margin: float):
@@ -191,22 +182,7 @@ def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarra
             return proved, stop
 
         def advance(c):
-            k, i, tests, collision, active = c
-            proved, stop = test(k, i)
-            tests = tests + active.astype(jnp.int32)
-            split = active & ~proved & ~stop
-            collision = collision | (active & ~proved & stop) | (split & (tests >= MAX_TESTS))
-            up = _trailing_ones(i)
-            k_next = jnp.where(split, k + 1, k - up)
-            i_next = jnp.where(split, 2 * i, (i >> up) + 1)
-            finished = collision | (active & proved & (k_next == 0))
-            return (
-                jnp.where(active, k_next, k),
-                jnp.where(active, i_next, i),
-                tests,
-                collision,
-                active & ~finished,
-            )
+            return _advance(c, c[4], *test(c[0], c[1]))
 
         zero = jnp.zeros(fastest.shape, jnp.int32)
         start = (zero, zero, zero, jnp.zeros(fastest.shape, jnp.bool_), pending)
@@ -216,11 +192,6 @@ def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarra
         out_ref[1, :] = tests
 
     return kernel
-
-
-def walk_collides(kernel, others_ends, others_radii, pos, quat, dp, rotvec, fastest, pending, interpret=False):
-    """Whether each pending lane's motion collides (False where not pending): :func:`walk_tests`' verdicts."""
-    return walk_tests(kernel, others_ends, others_radii, pos, quat, dp, rotvec, fastest, pending, interpret)[0]
 
 
 def walk_tests(kernel, others_ends, others_radii, pos, quat, dp, rotvec, fastest, pending, interpret=False):
@@ -258,11 +229,11 @@ def walk_tests(kernel, others_ends, others_radii, pos, quat, dp, rotvec, fastest
 
 
 def lane_fn(kernel, interpret: bool = False):
-    """:func:`walk_collides` as one lane's function ``(others_ends [O, 2, 3], others_radii [O], pos,
+    """:func:`walk_tests`' verdicts as one lane's function ``(others_ends [O, 2, 3], others_radii [O], pos,
     quat, dp, rotvec, fastest, pending) -> bool``, jit/vmap-able: vmapped, one kernel call on the batch."""
 
     def one(*args):
-        return walk_collides(kernel, *(jnp.asarray(a)[None] for a in args), interpret=interpret)[0]
+        return walk_tests(kernel, *(jnp.asarray(a)[None] for a in args), interpret=interpret)[0][0]
 
     fn = jax.custom_batching.custom_vmap(one)
 
@@ -270,6 +241,6 @@ def lane_fn(kernel, interpret: bool = False):
     def _rule(axis_size, in_batched, *args):
         grow = lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))  # noqa: E731
         args = [grow(jnp.asarray(a), b) for a, b in zip(args, in_batched)]
-        return walk_collides(kernel, *args, interpret=interpret), True
+        return walk_tests(kernel, *args, interpret=interpret)[0], True
 
     return fn
