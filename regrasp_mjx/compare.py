@@ -175,6 +175,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", default=None, help="file name (default: compare, or robustness)")
     args = p.parse_args(argv)
     args.name = args.name or ("robustness" if args.robustness else "compare")
+    if Path(args.name).name != args.name or args.name in (".", ".."):  # OUT/NAME.md stays in --out
+        p.error(f"--name {args.name} is not accepted: a file name without a folder (no '/'), e.g. general")
+    for spec in args.policy or ():
+        if spec.startswith("="):
+            p.error(f"--policy {spec} is not accepted: NAME=FOLDER with a NAME, or a shipped name alone")
     if args.out is not None and (problem := output_folder_problem(args.out)):  # before any work: minutes
         p.error(problem)
     for item in args.heldout:

@@ -24,7 +24,18 @@ import numpy as np
 from tqdm import tqdm
 
 from regrasp_mjx.core.atomic import atomic_write, dumps, output_folder_problem, write_json
-from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, SceneConfig, TaskConfig, parse_overrides, replace
+from regrasp_mjx.core.config import (
+    TASKS,
+    ConfigError,
+    EnvConfig,
+    SceneConfig,
+    TaskConfig,
+    is_integer,
+    is_number,
+    parse_overrides,
+    replace,
+    require,
+)
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.planning.episodes import DemosError, make_replay, replay_paths, save_demos
@@ -93,6 +104,28 @@ def _differences(old: dict, new: dict, prefix: str = "") -> list[str]:
     return out[:5]
 
 
+def build_settings(
+    n: int,
+    workers: int,
+    planner: str,
+    direction: str,
+    budget_s: float,
+    checker: str,
+    timeout_s: float | None,
+    replay_batch: int,
+) -> PlannerConfig:
+    """:func:`build`'s numbers checked (ConfigError) before it makes anything; the planner's config."""
+    for name, value in (("n", n), ("workers", workers), ("replay_batch", replay_batch)):
+        require(is_integer(value) and value >= 1, name, value, "an integer >= 1")
+    require(
+        timeout_s is None or (is_number(timeout_s) and timeout_s > 0),
+        "timeout_s",
+        timeout_s,
+        "a finite number of seconds > 0, or None (3 budgets and 30 s)",
+    )
+    return PlannerConfig(planner=planner, direction=direction, budget_s=budget_s, checker=checker)
+
+
 def build(
     n: int,
     out: str | os.PathLike,
@@ -116,7 +149,7 @@ def build(
     each path replayed in the environment of ``scene`` and ``task`` (or the whole ``env`` where given);
     returns ``out/demos.npz``."""
     config = env if env is not None else EnvConfig(scene=scene, task=task)
-    planner_cfg = PlannerConfig(planner=planner, direction=direction, budget_s=budget_s, checker=checker)
+    planner_cfg = build_settings(n, workers, planner, direction, budget_s, checker, timeout_s, replay_batch)
     out = Path(out)
     plans = out / "plans"
     plans.mkdir(parents=True, exist_ok=True)
@@ -275,6 +308,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         base = EnvConfig(scene=SceneConfig(jaw_angle_deg=args.jaw_angle_deg), task=TASKS[args.task])
         env = replace(base, **parse_overrides(args.env))
+        build_settings(  # before the folder is made: a refusal leaves nothing behind
+            args.n,
+            args.workers,
+            args.planner,
+            args.direction,
+            args.budget_s,
+            args.checker,
+            args.timeout_s,
+            args.replay_batch,
+        )
         with folder_lock(Path(args.out)):  # one build per folder
             build(
                 args.n,

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from regrasp_mjx.core.atomic import atomic_write, dumps, output_file_problem
+from regrasp_mjx.core.host_loop import run_command
 from regrasp_mjx.inference.policy import DEFAULT_POLICY, Policy, PolicyError, load_policy, shipped_policies
 
 
@@ -80,4 +81,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_command(main, "the .onnx file is written whole or not at all: run the same command again"))

@@ -8,14 +8,16 @@ What the library holds and its distance: :mod:`regrasp_mjx.inference.grasps`.
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
 from regrasp_mjx.core.atomic import dumps, output_file_problem
+from regrasp_mjx.core.host_loop import run_command
 from regrasp_mjx.inference.grasps import DEFAULT_LIBRARY, GraspLibrary
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m regrasp_mjx.grasps", description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, default=1000, help="needle poses of valid grasps (default 1000)")
     p.add_argument("--seed", type=int, default=7, help="PRNG seed (the shipped library: 7)")
@@ -45,7 +47,8 @@ def main(argv: list[str] | None = None) -> None:
             }
         )
     )
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_command(main, "nothing was written: run the same command again"))

@@ -34,10 +34,11 @@ from typing import Any
 import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
-from regrasp_mjx.core.atomic import write_figure, write_json, write_text
+from regrasp_mjx.core.atomic import output_folder_problem, write_figure, write_json, write_text
 from regrasp_mjx.core.config import ConfigError, parse_overrides
+from regrasp_mjx.core.host_loop import run_command
 from regrasp_mjx.core.jobs import Job, gpu_slots, run_jobs
-from regrasp_mjx.train import restart_args
+from regrasp_mjx.train import DEFAULT_TESTSET, before_the_work, restart_args
 from regrasp_mjx.workflows import analysis
 
 FORMAT = "regrasp_mjx.sweep"
@@ -213,15 +214,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dry-run", action="store_true", help="print each point's command and status, run nothing")
     args = p.parse_args(argv)
     log = lambda msg: print(msg, flush=True)  # noqa: E731
+    if problem := output_folder_problem(args.out):
+        p.error(problem)
     out = Path(args.out)
     try:
         if args.seeds < 1:
             raise ConfigError(f"--seeds {args.seeds} is not accepted: at least 1")
+        slots = gpu_slots(args.gpus)
         grid = parse_grid(args.grid)
         grid_points = points(grid)
         fixed = parse_overrides(args.set)
-        for point in grid_points:  # every point's config is checked before anything runs
-            make_config(args.preset, args.exploration, args.learner, **{**fixed, **point})
+        for point in grid_points:  # every point's config, test set and demonstrations checked before anything runs
+            cfg = make_config(args.preset, args.exploration, args.learner, **{**fixed, **point})
+            if problem := before_the_work(cfg, args.testset or str(DEFAULT_TESTSET), args.demos):
+                raise ConfigError(problem)
         names = [point_name(i, pt) for i, pt in enumerate(grid_points)]
         argvs = [train_args(args, pt, out / n) for n, pt in zip(names, grid_points)]
         manifest = {
@@ -236,6 +242,11 @@ def main(argv: list[str] | None = None) -> int:
             "testset": args.testset,
         }
         check_manifest(out, manifest)
+        if args.report and not any((out / name / "log.jsonl").is_file() for name in names):
+            raise ConfigError(
+                f"--report: no point of this sweep in {out} has a log yet, the report would be empty; accepted: "
+                "the --out and arguments of a sweep that has run"
+            )
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -248,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     write_json(out / "sweep.json", record, indent=2)
     codes = {}
     if not args.report:
-        codes = run_all(out, names, argvs, gpu_slots(args.gpus), log)
+        codes = run_all(out, names, argvs, slots, log)
     lines, rows = report(out, names, grid_points)
     record["results"] = rows
     record["exit_codes"] = codes
@@ -270,4 +281,4 @@ def _jsonable(x: Any) -> Any:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_command(main, "run the same command again to resume: finished points are kept"))

@@ -16,13 +16,14 @@ import numpy as np
 
 from regrasp_mjx.core.atomic import dumps, output_file_problem
 from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.core.host_loop import run_command
 from regrasp_mjx.world.sampling import load_testset, save_testset
-from regrasp_mjx.world.testsets import make_testset, versions
+from regrasp_mjx.world.testsets import MAX_PROBLEMS, make_testset, versions
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m regrasp_mjx.testset", description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=300, help="number of problems (default 300)")
+    parser.add_argument("--n", type=int, default=300, help=f"number of problems (default 300, at most {MAX_PROBLEMS})")
     parser.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
     parser.add_argument("--out", required=True, help="output .npz path (written atomically)")
     parser.add_argument(
@@ -38,8 +39,8 @@ def main(argv: list[str] | None = None) -> int:
         help="problem distribution: paper (default) or general (any goal grasp in range, needles of 4-12 mm)",
     )
     args = parser.parse_args(argv)
-    if args.n < 1:
-        parser.error(f"--n {args.n} is not accepted: an integer >= 1")
+    if not 1 <= args.n <= MAX_PROBLEMS:
+        parser.error(f"--n {args.n} is not accepted: an integer >= 1 and at most {MAX_PROBLEMS}")
     problem = output_file_problem(args.out, ".npz")
     if problem:
         parser.error(problem)
@@ -78,4 +79,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_command(main, "nothing was written: run the same command again"))

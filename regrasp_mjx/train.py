@@ -31,10 +31,10 @@ from regrasp_mjx.agents.ddpg_bc.placement import Placement
 from regrasp_mjx.core import distributed, gpu_memory
 from regrasp_mjx.core.atomic import dumps, output_folder_problem
 from regrasp_mjx.core.config import TASKS, ConfigError, parse_overrides
-from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.core.host_loop import FolderInUse, folder_in_use, folder_lock, run_command
 from regrasp_mjx.inference.queries import PoseError, TaskRanges, TaskSpec
-from regrasp_mjx.planning.episodes import DemosError
-from regrasp_mjx.workflows.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run
+from regrasp_mjx.planning.episodes import DemosError, load_demos
+from regrasp_mjx.workflows.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run, check_demos
 from regrasp_mjx.world.sampling import TestsetError, episode_needles, load_testset
 
 __all__ = ["DEFAULT_TESTSET", "VALIDATION_SEED", "Run", "main"]
@@ -73,7 +73,7 @@ def check_out(out: Path, resume: bool, overwrite: bool) -> str | None:
     """Why ``out`` cannot take this run (None when it can); checked before any work."""
     if out.exists() and not out.is_dir():
         return f"--out {out} is a file; accepted: a folder (new, empty or an earlier run's with --resume)"
-    if problem := output_folder_problem(out):
+    if problem := output_folder_problem(out) or folder_in_use(out):  # a live run's folder: said first
         return problem
     if resume and overwrite:
         return "--resume and --overwrite are not accepted together: continue the run or clear it"
@@ -177,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     problem = check_out(out, args.resume, args.overwrite)
     if problem:
         p.error(problem)
+    if problem := distributed.options_problem(args.distributed, args.coordinator, args.num_processes, args.process_id):
+        p.error(problem)
     try:
         overrides = parse_overrides(args.set)
         if args.seed is not None:
@@ -190,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.task is not None:
             overrides["env.task"] = TASKS[args.task]
         cfg = make_config(args.preset, args.exploration, args.learner, **overrides)
-        if problem := _before_the_work(cfg, args.testset):
+        if problem := before_the_work(cfg, args.testset, args.demos):
             p.error(problem)
         gpu_memory.configure(gpu_memory.parse_setting(args.gpu_memory))  # before JAX starts a GPU client
         if args.distributed or args.coordinator:
@@ -233,14 +235,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _before_the_work(cfg, testset: str) -> str | None:
-    """What would only fail after minutes of demonstrations and training: a test set of another
-    task than the run's, or fewer demonstration transitions than one batch could ever hold."""
+def before_the_work(cfg, testset: str, demos: str | None = None) -> str | None:
+    """What would only fail after minutes of demonstrations and training, or after the run's folder
+    is made: a test set of another task than the run's, ``demos`` (a folder) missing or made for
+    another task, or fewer demonstration transitions than one batch could ever hold."""
     try:
         episodes, _ = load_testset(testset)
         TaskRanges.of(cfg.env).values(len(episodes.needle_pos), TaskSpec.of(episode_needles(episodes)))
+        if demos is not None:
+            check_demos(load_demos(demos), cfg.env, Path(demos))
     except TestsetError as err:
         return f"--testset {testset}: {err}"
+    except DemosError as err:
+        return f"--demos {demos}: {err}"
     except PoseError as err:
         return (
             f"--testset {testset} holds problems of another task than this run trains ({err}); accepted: "

@@ -68,9 +68,19 @@ def output_folder_problem(path: str | os.PathLike) -> str | None:
 
 def _unwritable(candidates) -> Path | None:
     """The nearest existing of ``candidates`` (a path and its parents) when it is no folder this user
-    can write into, else None: atomic_write and the folders' users create the missing ones below it."""
+    can write into, else None: atomic_write and the folders' users create the missing ones below it.
+    Tried by writing (and removing) an empty file there: ``os.access`` says yes to root for folders
+    no one can write, such as ``/proc``."""
     parent = next((p for p in candidates if p.exists()), Path("."))
-    return None if parent.is_dir() and os.access(parent, os.W_OK | os.X_OK) else parent
+    if not (parent.is_dir() and os.access(parent, os.W_OK | os.X_OK)):
+        return parent
+    try:
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=".write_probe", suffix=".tmp")
+    except OSError:
+        return parent
+    os.close(fd)
+    os.unlink(probe)
+    return None
 
 
 def strict(obj: Any) -> Any:

@@ -25,6 +25,8 @@ import numpy as np
 from jax._src import distributed as jax_distributed  # the coordination service's client: no public handle
 from jax.experimental import multihost_utils
 
+from regrasp_mjx.core.config import ConfigError
+
 MEET_TIMEOUT_S = 600.0
 _MEETINGS = itertools.count()  # every process calls the collectives in the same order: the same ids
 
@@ -35,7 +37,42 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     Open MPI, ``JAX_COORDINATOR_ADDRESS``). Must run before anything else touches a device."""
     # Cross-process collectives between CPU devices need gloo; GPU devices use NCCL regardless.
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
+    try:
+        jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
+    except ValueError as err:  # nothing given and nothing detected, say
+        raise ConfigError(
+            f"--distributed: JAX could not join a run ({err}); accepted: --coordinator HOST:PORT --num-processes N "
+            "--process-id I, or a cluster JAX detects (SLURM, Open MPI, JAX_COORDINATOR_ADDRESS)"
+        ) from None
+
+
+def options_problem(
+    distributed: bool, coordinator: str | None, num_processes: int | None, process_id: int | None
+) -> str | None:
+    """Why the command line's ``--distributed``, ``--coordinator``, ``--num-processes`` and
+    ``--process-id`` cannot start a run (None when they can), checked before any work: the
+    coordinator is ``HOST:PORT``; the count and index are given together, ``0 <= index < count``,
+    and only to join a run (with ``--coordinator``, or ``--distributed`` where the coordinator is
+    detected: SLURM, Open MPI, ``JAX_COORDINATOR_ADDRESS``)."""
+    if coordinator is not None:
+        host, _, port = coordinator.rpartition(":")
+        if not host.strip() or not port.isdigit() or not 1 <= int(port) <= 65535:
+            return f"--coordinator {coordinator} is not accepted: HOST:PORT, e.g. node0:12345 (process 0's address)"
+    if (num_processes is None) != (process_id is None):
+        return "--num-processes and --process-id are accepted only together: the run's process count and this index"
+    if num_processes is None:
+        return None
+    if not (coordinator or distributed):
+        return (
+            f"--num-processes {num_processes} --process-id {process_id} is not accepted without --coordinator "
+            "HOST:PORT (or --distributed with the coordinator detected): a single-process run would ignore them"
+        )
+    if num_processes < 1 or not 0 <= process_id < num_processes:
+        return (
+            f"--num-processes {num_processes} --process-id {process_id} is not accepted: a count >= 1 and an "
+            f"index in [0, {max(num_processes, 1)})"
+        )
+    return None
 
 
 def is_main() -> bool:

@@ -13,13 +13,16 @@ the device, plans, evaluates and writes).
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import fcntl
 import gc
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator, Sequence
@@ -173,6 +176,26 @@ class FolderInUse(RuntimeError):
     """Another process holds the output folder's lock."""
 
 
+def _in_use(out: Path, holder: str) -> str:
+    return f"--out {out} is in use by another run ({holder}); accepted: another --out, or wait for that run to end"
+
+
+def folder_in_use(out: Path) -> str | None:
+    """Why ``out`` cannot be written now: another live process holds its lock (:func:`folder_lock`);
+    None when none does. Creates nothing: commands ask it first, so a live run's folder is named as
+    in use rather than as an earlier run."""
+    try:
+        f = open(out / ".lock")
+    except OSError:  # no folder, or no lock file: no run has held it
+        return None
+    with f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return _in_use(out, f.read().strip() or "another process")
+    return None
+
+
 @contextlib.contextmanager
 def folder_lock(out: Path):
     """Holds ``out/.lock`` (an advisory ``flock``) while a run writes into ``out``: a second run
@@ -185,10 +208,7 @@ def folder_lock(out: Path):
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
-            holder = f.read().strip() or "another process"
-            raise FolderInUse(
-                f"--out {out} is in use by another run ({holder}); accepted: another --out, or wait for that run to end"
-            ) from None
+            raise FolderInUse(_in_use(out, f.read().strip() or "another process")) from None
         f.seek(0)
         f.truncate()
         f.write(f"pid {os.getpid()}")
@@ -201,13 +221,54 @@ def folder_lock(out: Path):
 def run_command(main: Callable[[], int], again: str) -> int:
     """Runs a command line's ``main`` with the compilation cache every command shares
     (:func:`regrasp_mjx.core.xla_flags.cache_folder`: a program another command compiled loads
-    instead); Ctrl-C prints one line saying how to go on (``again``) and exits 130, never a traceback."""
+    instead); Ctrl-C prints one line saying how to go on (``again``) and exits 130, never a traceback.
+
+    Python drops (prints as "Exception ignored") a KeyboardInterrupt raised inside a garbage-collector
+    callback (XLA's ``_xla_gc_callback``) or a ``__del__``, and the command would go on: a Ctrl-C that
+    lands there is raised again a moment later, where it ends the command (:func:`_interrupt_later`)."""
     jax.config.update("jax_compilation_cache_dir", xla_flags.cache_folder())
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, _on_sigint) if main_thread else None
+    previous_hook, sys.unraisablehook = sys.unraisablehook, _unraisable(sys.unraisablehook)
     try:
         return main()
     except KeyboardInterrupt:
+        if main_thread:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # an interrupt raised again late is dropped
         print(f"interrupted; {again}", file=sys.stderr)
         return 130
+    finally:
+        sys.unraisablehook = previous_hook
+        if main_thread:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _interrupt_later() -> None:
+    threading.Timer(0.05, _thread.interrupt_main).start()
+
+
+def _on_sigint(signum, frame) -> None:
+    """KeyboardInterrupt, unless Python would drop it here (a gc callback or ``__del__`` runs)."""
+    callbacks = {getattr(cb, "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in callbacks or frame.f_code.co_name == "__del__":
+            _interrupt_later()
+            return
+        frame = frame.f_back
+    raise KeyboardInterrupt
+
+
+def _unraisable(hook):
+    """``sys.unraisablehook`` that raises a dropped KeyboardInterrupt again, silently, and passes
+    everything else on to ``hook``."""
+
+    def unraisable(info) -> None:
+        if info.exc_type is not None and issubclass(info.exc_type, KeyboardInterrupt):
+            _interrupt_later()
+        else:
+            hook(info)
+
+    return unraisable
 
 
 # Every program XLA:CPU compiles keeps its code in memory maps of its own (about 900 for the shielded

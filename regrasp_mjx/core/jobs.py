@@ -41,6 +41,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from regrasp_mjx.core.config import ConfigError
+
 HEARTBEAT_S = 60.0  # how often the running jobs' last log lines are shown
 # of a GPU's memory each process takes outside its share (its CUDA context and libraries, about 0.5 GB
 # on an 80 GB H100): fifteen processes whose shares summed to 0.9 ran out of memory starting
@@ -78,8 +80,11 @@ def gpu_slots(requested: str | None) -> list[str | None]:
     """GPU indices to run on; ``[None]`` (one job at a time, no pinning) when the machine shows no
     NVIDIA GPU. Asked of ``nvidia-smi``, not JAX: this process must not take GPU memory from its
     jobs."""
-    if requested:
-        return [g.strip() for g in requested.split(",") if g.strip()]
+    if requested is not None:
+        gpus = [g.strip() for g in requested.split(",")]
+        if not gpus or not all(g.isdigit() for g in gpus):
+            raise ConfigError(f"--gpus {requested!r} is not accepted: GPU indices, comma-separated (e.g. 0,2)")
+        return gpus
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
     if visible is not None:
         return [g.strip() for g in visible.split(",") if g.strip()] or [None]

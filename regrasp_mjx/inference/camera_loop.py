@@ -23,8 +23,20 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from regrasp_mjx.inference.queries import batch_poses
+from regrasp_mjx.inference.queries import PoseError, batch_poses
 from regrasp_mjx.robot import dvrk
+
+# The most the needle's estimate (in the grasping tool's frame, where the needle is held) may move from
+# its fused view between frames [m]: held in the jaws it moves by the estimate's noise (millimetres), so
+# a jump past this is a mismatched or mislabelled detection, refused rather than averaged in.
+MAX_NEEDLE_JUMP_M = 0.05
+
+
+def _matrix(pose: Any, name: str) -> np.ndarray:
+    try:
+        return dvrk.as_matrix(pose, name)
+    except ValueError as err:
+        raise PoseError(str(err)) from None
 
 
 class Command(NamedTuple):
@@ -104,7 +116,7 @@ class CameraLoop:
         if not (np.isfinite(self.stop) and 0.0 < self.stop <= 1.0):
             raise ValueError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
         self.shield, self.task = shield, task
-        self.goal = None if goal_in_needle is None else dvrk.as_matrix(goal_in_needle)
+        self.goal = None if goal_in_needle is None else _matrix(goal_in_needle, "goal_in_needle")
         self.frames, self.t = 0, 0
         self.needle: np.ndarray | None = None
         self.ee: np.ndarray | None = None
@@ -115,14 +127,24 @@ class CameraLoop:
         regrasping tool and the needle; ``moved`` (4x4 or 7-vector), the regrasping tool's motion
         in its own frame since the last frame as its kinematics report it (``FK(q_last)^-1
         FK(q_now)``; default: the motion last commanded). Returns the :class:`Command` for this
-        frame. Raises :class:`~regrasp_mjx.inference.queries.PoseError` on a bad pose."""
+        frame. Raises :class:`~regrasp_mjx.inference.queries.PoseError` on a bad pose (``moved``: NaN
+        or not rigid), and on a needle whose estimate moved more than :data:`MAX_NEEDLE_JUMP_M` from its
+        fused view (the frame is then left out: the loop's state is unchanged)."""
         (g, x, n), single = batch_poses(grasping_ee=grasping_ee, regrasping_ee=regrasping_ee, needle=needle)
         if not single:
             raise ValueError("CameraLoop.update takes one frame: three 7-vectors, not batches")
         g_inv = _inverse(dvrk.pose_matrix(g[0]))
         needle_eg = _vector(g_inv @ dvrk.pose_matrix(n[0]))
         ee_eg = _vector(g_inv @ dvrk.pose_matrix(x[0]))
-        motion = self.commanded if moved is None else dvrk.as_matrix(moved)
+        motion = self.commanded if moved is None else _matrix(moved, "moved")
+        if (
+            self.needle is not None
+            and (jump := float(np.linalg.norm(needle_eg[:3] - self.needle[:3]))) > MAX_NEEDLE_JUMP_M
+        ):
+            raise PoseError(
+                f"needle moved {jump * 1e3:.1f} mm in the grasping tool's frame since the last frames (fused view); "
+                f"accepted: at most {MAX_NEEDLE_JUMP_M * 1e3:g} mm between frames (MAX_NEEDLE_JUMP_M; it is held)"
+            )
         if self.frames == 0:
             self.needle, self.ee = needle_eg, ee_eg
         else:

@@ -185,7 +185,10 @@ def _lean_one(policy: Any, needle: Any, start: Any, goal: Any, task: dict, check
     in one compiled call, or None when the input is not one query, the JAX engine runs, or a check
     failed (the caller's checks then say why, the poses first). Plain Python around the call: each
     numpy call here would cost a microsecond of a 50 us plan."""
-    poses = [x if type(x) is np.ndarray or x is None else np.asarray(x) for x in (needle, start, goal)]
+    try:
+        poses = [x if type(x) is np.ndarray or x is None else np.asarray(x) for x in (needle, start, goal)]
+    except ValueError:  # ragged: the caller's checks name it
+        return None
     if any(x is not None and x.shape != (7,) for x in poses) or auto_engine(1) != "lean":
         return None
     vector = policy.task_ranges.keywords_vector(task)

@@ -30,7 +30,12 @@ class PoseError(ValueError):
 
 def check_poses(name: str, poses: Any) -> np.ndarray:
     """``poses[..., 7]`` as float64 with unit quaternions, or a :class:`PoseError` saying why not."""
-    arr = np.asarray(poses, np.float64)
+    try:
+        arr = np.asarray(poses, np.float64)
+    except (TypeError, ValueError):  # a string, a ragged list, None ...
+        raise PoseError(
+            f"{name}={poses!r:.60} is not accepted: numbers, (7,) or (B, 7) = [x, y, z, qw, qx, qy, qz] in metres"
+        ) from None
     if arr.shape == (7,):  # one good pose in scalar arithmetic: numpy's calls would cost more than a lean plan
         x = arr.tolist()
         norm = math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5] + x[6] * x[6])

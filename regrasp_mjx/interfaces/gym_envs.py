@@ -36,6 +36,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from regrasp_mjx.core import geometry
+from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.envs.env import ACTION_SIZE
 from regrasp_mjx.interfaces import registry
 from regrasp_mjx.workflows.render import SceneRenderer
@@ -212,10 +213,14 @@ def _checked_actions(actions: Any, shape: tuple[int, ...]) -> np.ndarray:
     return a.astype(np.float32)
 
 
-def _episodes(episodes: Episode, n: int) -> Episode:
-    lead = {np.shape(x)[0] for x in jax.tree.leaves(episodes)}
+def _episodes(episodes: Any, n: int, key: str) -> Episode:
+    """``options[key]``, an :class:`Episode` of ``n`` rows, or a ConfigError naming it."""
+    accepted = f"an Episode of {n} rows, e.g. load_testset('paper300')[0].row(i) with a leading axis of 1"
+    if not isinstance(episodes, Episode):
+        raise ConfigError(f"options[{key!r}]={episodes!r:.60} is not accepted: {accepted}")
+    lead = {(np.shape(x) or (None,))[0] for x in jax.tree.leaves(episodes)}
     if lead != {n}:
-        raise ValueError(f"options['episodes'] has rows {sorted(lead)}; accepted: an Episode of {n} rows")
+        raise ConfigError(f"options[{key!r}] has rows {sorted(lead, key=str)}; accepted: {accepted}")
     return episodes
 
 
@@ -256,7 +261,7 @@ class NeedleRegraspEnv(gymnasium.Env):
         super().reset(seed=seed)
         key = _key(self.np_random)
         if options and "episode" in options:
-            out = self._program.start_from(_episodes(options["episode"], 1), key)
+            out = self._program.start_from(_episodes(options["episode"], 1, "episode"), key)
         else:
             out = self._program.first(key)
         self._carry, packed = out
@@ -341,7 +346,7 @@ class NeedleRegraspVectorEnv(VectorEnv):
         super().reset(seed=seed)
         key = _key(self.np_random)
         if options and "episodes" in options:
-            out = self._program.start_from(_episodes(options["episodes"], self.num_envs), key)
+            out = self._program.start_from(_episodes(options["episodes"], self.num_envs, "episodes"), key)
         else:
             out = self._program.first(key)
         self._carry, packed = out

@@ -33,7 +33,7 @@ from brax.envs.base import State as BraxState
 from flax import struct
 from ml_collections import config_dict
 
-from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, env_config_from_dict, is_number
+from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, env_config_from_dict, is_number, require
 from regrasp_mjx.envs import estimates
 from regrasp_mjx.envs.env import EpisodeState, RegraspEnv
 from regrasp_mjx.robot import robot_errors
@@ -136,6 +136,18 @@ def load(name: str, config: config_dict.ConfigDict | dict | None = None, config_
     ``config_overrides`` (dotted keys, e.g. ``{"env.horizon": 80, "errors.needle_sigma_mm": 0.1}``)
     applied; Playground's ``registry.load`` signature."""
     _check_name(name)
+    require(
+        config is None or isinstance(config, (dict, config_dict.ConfigDict)),
+        "config",
+        config,
+        "None, a dict or an ml_collections ConfigDict (of default_config(name)'s keys)",
+    )
+    require(
+        config_overrides is None or isinstance(config_overrides, dict),
+        "config_overrides",
+        config_overrides,
+        'None or a dict of dotted keys, e.g. {"env.horizon": 80}',
+    )
     cfg = default_config(name)
     given = config.to_dict() if isinstance(config, config_dict.ConfigDict) else (config or {})
     overrides = {**_flatten(given), **(config_overrides or {})}

@@ -6,7 +6,8 @@ pipe and one job at a time, so the parent always knows which job a worker holds:
 outlives ``timeout_s`` has its worker killed and replaced and is reported failed; a worker that
 dies (a crash in native code, say) is replaced and its job reported failed; an exception inside a
 plan is reported as that job's failure and the worker carries on. Workers exit by themselves if
-their parent dies, so no process outlives the pool.
+their parent dies, so no process outlives the pool, and ignore Ctrl-C (SIGINT), which the parent
+alone reports.
 
 Workers are spawned (not forked, which JAX does not survive) and set ``JAX_PLATFORMS=cpu`` before
 the planner's imports (this module imports JAX through ``host`` and ``scene``), so no worker takes
@@ -19,6 +20,8 @@ import collections
 import dataclasses
 import multiprocessing as mp
 import os
+import signal
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -90,6 +93,7 @@ def plan_with_ompl(problem: dict[str, Any], options: dict[str, Any]) -> dict[str
 
 
 def _worker_main(conn: Connection, parent_pid: int, plan_fn: PlanFn, options: dict[str, Any]) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent reports it and stops the pool
     os.environ["JAX_PLATFORMS"] = "cpu"
     while True:
         if os.getppid() != parent_pid:  # orphaned: the parent died without closing us
@@ -221,7 +225,15 @@ class PlannerPool:
         proc = self._ctx.Process(
             target=_worker_main, args=(child, os.getpid(), self._plan_fn, self._options), daemon=True
         )
-        proc.start()
+        # Ctrl-C reaches every process of the terminal's group: the worker starts with it ignored (kept
+        # across exec, and Python then installs no KeyboardInterrupt of its own), so only the parent reports
+        ignoring = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if ignoring else None
+        try:
+            proc.start()
+        finally:
+            if ignoring:
+                signal.signal(signal.SIGINT, previous)
         child.close()
         return _Worker(proc, parent)
 

@@ -95,15 +95,34 @@ class IKResult:
     rotation_error: float
 
 
-def as_matrix(pose) -> np.ndarray:
-    """A pose as a 4x4 matrix: a 4x4 is checked and returned, a 7-vector converted (unit quaternion)."""
+# how far a 4x4 pose's rotation block may be from a rotation (largest entry of R^T R - I, and det R - 1)
+# and its last row from [0, 0, 0, 1]: float32 rounding of a measured pose stays far inside it, a scale
+# or shear (a matrix of another meaning) far outside
+RIGID_TOLERANCE = 1e-4
+
+
+def as_matrix(pose, name: str = "pose") -> np.ndarray:
+    """A pose as a 4x4 matrix: a 4x4 is checked (finite, rigid: a rotation and a translation) and
+    returned, a 7-vector converted (unit quaternion); a ValueError naming ``name`` and the problem."""
     pose = np.asarray(pose, np.float64)
     if pose.shape == (7,):
         if not np.all(np.isfinite(pose)):
-            raise ValueError(f"pose must be [x, y, z, qw, qx, qy, qz] with finite values, got {pose!r}")
-        return pose_matrix(np.r_[pose[:3], unit_quaternions("pose [x, y, z, qw, qx, qy, qz]", pose[3:])])
-    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-        raise ValueError(f"pose must be a 4x4 homogeneous matrix or a 7-vector, got shape {pose.shape}")
+            raise ValueError(f"{name} must be [x, y, z, qw, qx, qy, qz] with finite values, got {pose!r}")
+        return pose_matrix(np.r_[pose[:3], unit_quaternions(f"{name} [x, y, z, qw, qx, qy, qz]", pose[3:])])
+    if pose.shape != (4, 4):
+        raise ValueError(f"{name} has shape {pose.shape}; accepted: a 4x4 homogeneous matrix or a 7-vector")
+    if not np.all(np.isfinite(pose)):
+        raise ValueError(f"{name} (a 4x4 matrix) holds NaN or inf; accepted: finite values")
+    r = pose[:3, :3]
+    off = float(np.max(np.abs(r.T @ r - np.eye(3))))
+    det = float(np.linalg.det(r))
+    last = float(np.max(np.abs(pose[3] - (0.0, 0.0, 0.0, 1.0))))
+    if max(off, abs(det - 1.0), last) > RIGID_TOLERANCE:
+        raise ValueError(
+            f"{name} (a 4x4 matrix) is not a rigid transform (rotation block off orthonormal by {off:.3g}, "
+            f"determinant {det:.6g}, last row {pose[3].tolist()}); accepted: a rotation and a translation, "
+            f"within {RIGID_TOLERANCE:g}"
+        )
     return pose
 
 

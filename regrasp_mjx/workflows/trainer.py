@@ -30,12 +30,13 @@ from regrasp_mjx.agents.ddpg_bc.exchange import PlannerExchange
 from regrasp_mjx.agents.ddpg_bc.learner import Learner, TrainingState
 from regrasp_mjx.core import distributed, geometry
 from regrasp_mjx.core.atomic import atomic_write, write_json
-from regrasp_mjx.core.host_loop import BestOf, Phases, RunLog, epoch_line, eta, mm, tensorboard_writer
+from regrasp_mjx.core.config import EnvConfig
+from regrasp_mjx.core.host_loop import BestOf, Phases, RunLog, epoch_line, eta, folder_lock, mm, tensorboard_writer
 from regrasp_mjx.distill import distill
 from regrasp_mjx.envs.rollout import summarize
 from regrasp_mjx.inference.policy import load_policy, save_policy
 from regrasp_mjx.inference.testset_plans import outcomes
-from regrasp_mjx.planning.episodes import DemosError, check_made_for, load_demos
+from regrasp_mjx.planning.episodes import Demos, DemosError, check_made_for, load_demos
 from regrasp_mjx.world.sampling import PAPER300, load_testset
 from regrasp_mjx.world.testsets import make_testset
 
@@ -46,6 +47,20 @@ DEFAULT_TESTSET = PAPER300
 def _copy_policy(src: Path, dst: Path) -> None:
     for name in ("policy.npz", "policy.json"):
         atomic_write(dst / name, lambda f, src=src / name: f.write(src.read_bytes()))
+
+
+def check_demos(demos: Demos, env: EnvConfig, path: Path) -> Demos:
+    """``demos`` (from ``path``), refused (:class:`DemosError`) where made for another scene or task
+    than ``env``'s or with observations of another width than its task's."""
+    check_made_for(demos, env, path)
+    width = geometry.OBS_SIZE_GENERAL if env.task.general else geometry.OBS_SIZE
+    if demos.obs.shape[1] != width:
+        raise DemosError(
+            f"{path} holds observations of {demos.obs.shape[1]} numbers, this run's "
+            f"task observes {width}: demonstrations of the paper's task (21) train a paper-task run, those of "
+            "a general task (37; python -m regrasp_mjx.demos --task general) a general one"
+        )
+    return demos
 
 
 class Run:
@@ -69,19 +84,11 @@ class Run:
             print(msg, flush=True)
 
     def _demos(self, demos_dir: Path | None):
-        demos = self._load_or_build_demos(demos_dir)
-        width = geometry.OBS_SIZE_GENERAL if self.cfg.env.task.general else geometry.OBS_SIZE
-        if demos.obs.shape[1] != width:
-            raise DemosError(
-                f"{demos_dir or self.out / 'demos'} holds observations of {demos.obs.shape[1]} numbers, this run's "
-                f"task observes {width}: demonstrations of the paper's task (21) train a paper-task run, those of "
-                "a general task (37; python -m regrasp_mjx.demos --task general) a general one"
-            )
-        return demos
+        return check_demos(self._load_or_build_demos(demos_dir), self.cfg.env, demos_dir or self.out / "demos")
 
     def _load_or_build_demos(self, demos_dir: Path | None):
         if demos_dir is not None:
-            return check_made_for(load_demos(demos_dir), self.cfg.env, demos_dir)
+            return load_demos(demos_dir)
         path = self.out / "demos"
         if not (path / "demos.npz").exists() and distributed.is_main():
             self.log(f"building {self.cfg.num_demos} demonstrations in {path} (BIT* reverse) ...")
@@ -97,7 +104,7 @@ class Run:
                 quiet=self.quiet,
             )
         distributed.sync("demos")  # the others wait for process 0's set
-        return check_made_for(load_demos(path), self.cfg.env, path)
+        return load_demos(path)
 
     # ---- the loop ----------------------------------------------------------------------------
     def member_dir(self, m: int) -> Path:
@@ -383,6 +390,7 @@ class Run:
             cfg = dataclasses.replace(self.cfg.distill, seed=mem["seed"])
             folder = self.member_dir(m) / "student"
             self.log(f"{mem['setting'] or 'seed'} {mem['seed']}: distilling {mem['policy']} into {folder}")
-            result = distill(load_policy(mem["policy"]), folder, cfg, self.testset, mem["policy"], self.quiet)
+            with folder_lock(folder):  # as the distill command takes it: no second distillation into it meanwhile
+                result = distill(load_policy(mem["policy"]), folder, cfg, self.testset, mem["policy"], self.quiet)
             students.append({"setting": mem["setting"], "seed": mem["seed"], **result})
         return students

@@ -24,10 +24,14 @@ def _sampler(config: EnvConfig):
     return jax.jit(jax.vmap(lambda k: sample_episode(k, config.task, radius, distances, wire)))
 
 
+# the most problems one test set holds (about 0.3 GB in memory as it is made); more is refused before any work
+MAX_PROBLEMS = 1_000_000
+
+
 def make_testset(n: int, seed: int, config: EnvConfig = EnvConfig(), batch: int = 1024) -> Episode:
     """``n`` problems from the paper's distributions; raises if any could not be made collision-free."""
-    if not isinstance(n, int) or n < 1:
-        raise ConfigError(f"n={n!r} is not accepted: a positive number of problems")
+    if not isinstance(n, int) or not 1 <= n <= MAX_PROBLEMS:
+        raise ConfigError(f"n={n!r} is not accepted: a positive number of problems, at most {MAX_PROBLEMS}")
     draw = _sampler(config)
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     parts, valid = [], []
