@@ -257,6 +257,8 @@ def test_ctrl_c_in_every_command_is_one_line_and_exit_130(module, argv, target, 
     try:
         with pytest.raises(SystemExit) as exit_:
             runpy.run_module(f"regrasp_mjx.{module}", run_name="__main__")
+    except KeyboardInterrupt:  # not caught: a traceback (and here it would stop the whole test run)
+        pytest.fail(f"python -m regrasp_mjx.{module}: Ctrl-C escaped as a KeyboardInterrupt traceback")
     finally:
         jax.config.update("jax_compilation_cache_dir", cache)
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
