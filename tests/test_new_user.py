@@ -331,6 +331,19 @@ def test_a_4x4_pose_is_refused_for_what_is_wrong_with_it():
     assert np.array_equal(dvrk.as_matrix(turn.astype(np.float32)), turn.astype(np.float32))  # float32 rigid
 
 
+def test_a_psm_base_with_nan_is_named_before_planning():
+    from regrasp_mjx import load_policy
+    from regrasp_mjx.inference.queries import PoseError
+
+    nan = np.eye(4)
+    nan[2, 2] = np.nan
+    policy = load_policy()
+    with pytest.raises(PoseError, match=r"psm\['regrasping_base'\] \(a 4x4 matrix\) holds NaN or inf"):
+        policy.plan_from_camera(_EG, _EE, _NEEDLE, psm={"regrasping_base": nan})
+    with pytest.raises(PoseError, match=r"psm\['grasping_base'\] \(a 4x4 matrix\) is not a rigid transform"):
+        policy.plan_from_camera(_EG, _EE, _NEEDLE, psm={"regrasping_base": np.eye(4), "grasping_base": 2 * np.eye(4)})
+
+
 def test_the_camera_loop_refuses_nan_or_non_rigid_motions_and_a_needle_that_jumps():
     from regrasp_mjx import load_policy
     from regrasp_mjx.inference.camera_loop import MAX_NEEDLE_JUMP_M

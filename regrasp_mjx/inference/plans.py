@@ -315,8 +315,14 @@ def plan_from_camera(
         unknown = set(psm) - {"regrasping_base", "grasping_base"}
         if "regrasping_base" not in psm or unknown:
             raise PoseError(f"psm={sorted(psm)} is not accepted: a dict with 'regrasping_base' (and 'grasping_base')")
+        for key in ("regrasping_base", "grasping_base"):  # before the plan: NaN or a non-rigid 4x4 named
+            if psm.get(key) is not None:
+                try:
+                    dvrk.as_matrix(psm[key], f"psm[{key!r}]")
+                except ValueError as err:
+                    raise PoseError(str(err)) from None
         if respect_limits and shield:  # the base frame's inverse in e_g, per query
-            base = np.linalg.inv(dvrk.as_matrix(psm["regrasping_base"]))
+            base = np.linalg.inv(dvrk.as_matrix(psm["regrasping_base"], "psm['regrasping_base']"))
             base_inv = f32([base @ dvrk.pose_matrix(e) for e in c_eg])
     out = policy.program((True, shield))(f32(c_eg), f32(c_er), f32(c_n), f32(grasp), f32(radii), base_inv)
     result = _finish(out, single, nearest)
@@ -337,7 +343,7 @@ def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool, timed: t
         motion = [motion_or_reason(policy, j, bool(ok[i]), c_eg[i], c_n[i], psm) for i, j in enumerate(joints)]
     grasping = None
     if psm.get("grasping_base") is not None:
-        base_inv = np.linalg.inv(dvrk.as_matrix(psm["grasping_base"]))
+        base_inv = np.linalg.inv(dvrk.as_matrix(psm["grasping_base"], "psm['grasping_base']"))
         grasping = [dvrk.inverse_kinematics(base_inv @ dvrk.pose_matrix(e)) for e in c_eg]
     if single:
         joints, grasping = joints[0], None if grasping is None else grasping[0]

@@ -40,7 +40,7 @@ def joint_trajectory(base, poses, q_ref=None) -> JointTrajectory:
     turn away (:func:`inverse_kinematics`). The first pose's roll is the one nearest ``q_ref``'s;
     without ``q_ref``, of its turns within the limits (one or two: the range spans 520 degrees) the
     one that keeps the most poses within them, then the one nearest 0."""
-    base_inv = np.linalg.inv(as_matrix(base))
+    base_inv = np.linalg.inv(as_matrix(base, "base"))
     poses = np.asarray(poses, np.float64).reshape(-1, 7)
     targets = [base_inv @ pose_matrix(pose) for pose in poses]
 

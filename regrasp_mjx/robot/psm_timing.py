@@ -245,7 +245,7 @@ def check_motion(timed: TimedTrajectory, base_in_eg, needle_in_eg, policy) -> Mo
     slerped) with the margin raised by how far the forward-kinematics arc can leave that chord over
     one sample period: ``a dt^2 / 8`` for the fastest acceleration ``a`` of any tool point, bounded by
     the joints' accelerations and velocities times :data:`TOOL_REACH`."""
-    base = dvrk.as_matrix(base_in_eg)
+    base = dvrk.as_matrix(base_in_eg, "base_in_eg")
     poses = tool_poses(base, timed.q)
     dt = 1.0 / timed.rate_hz
     qd, qdd = np.abs(timed.qd), np.abs(timed.qdd)
@@ -310,9 +310,9 @@ def time_query(policy, joints: JointTrajectory, success: bool, camera_eg, needle
     if not success:
         raise MotionRefused("the plan did not reach the goal: no motion to time")
     _require_reachable(joints)
-    eg_inv = np.linalg.inv(dvrk.as_matrix(camera_eg))
-    base = eg_inv @ dvrk.as_matrix(psm["regrasping_base"])
-    n = eg_inv @ dvrk.as_matrix(needle)
+    eg_inv = np.linalg.inv(dvrk.as_matrix(camera_eg, "camera_eg"))
+    base = eg_inv @ dvrk.as_matrix(psm["regrasping_base"], "psm['regrasping_base']")
+    n = eg_inv @ dvrk.as_matrix(needle, "needle")
     return time_waypoints(joints.q, base, np.r_[n[:3, 3], _quat(n[:3, :3])], policy, rate_hz)
 
 
@@ -339,7 +339,7 @@ def time_executed(policy, poses, needle_in_eg, base_in_eg, rate_hz: float = RATE
     outside the joint limits or the motion cannot be made clear."""
     joints = psm_joints.joint_trajectory(base_in_eg, poses)
     _require_reachable(joints)
-    base = dvrk.as_matrix(base_in_eg)
+    base = dvrk.as_matrix(base_in_eg, "base_in_eg")
     return time_waypoints(joints.q, base, np.asarray(needle_in_eg, np.float64), policy, rate_hz)
 
 
