@@ -40,7 +40,7 @@ from regrasp_mjx.core.atomic import dumps, machine, output_folder_problem, write
 from regrasp_mjx.core.config import ConfigError, parse_overrides
 from regrasp_mjx.core.host_loop import release_programs, run_command
 from regrasp_mjx.envs.rollout import summarize
-from regrasp_mjx.inference import robustness
+from regrasp_mjx.inference import robustness, robustness_report
 from regrasp_mjx.inference.policy import PolicyError, load_policy, shipped_policies
 from regrasp_mjx.inference.queries import PoseError
 from regrasp_mjx.inference.testset_plans import plan_testset
@@ -139,7 +139,7 @@ def tables(policies: dict, args: argparse.Namespace) -> None:
     """Each policy's robustness table on its first problem set, the files rewritten after each."""
     modes = tuple(args.modes.split(","))
     wanted = args.conditions.split(",") if args.conditions else None
-    everything = robustness.CONDITIONS + robustness.ROBOT_CONDITIONS
+    everything = robustness.ALL_CONDITIONS
     conditions = tuple(c for c in everything if wanted is None or c.name in wanted)
     meta = {"machine": machine(), "seed": args.seed, "modes": modes}
     found, lines = [], [f"Machine: {meta['machine']}; shielded; seed {args.seed}.", ""]
@@ -153,7 +153,7 @@ def tables(policies: dict, args: argparse.Namespace) -> None:
              "problems": problems, "wall_s": time.perf_counter() - t0, "machine": meta["machine"], "seed": args.seed,
              "rows": rows}
         )  # fmt: skip
-        lines += robustness.title(found[-1]) + robustness.markdown(rows, modes) + [""]
+        lines += robustness_report.title(found[-1]) + robustness_report.markdown(rows, modes) + [""]
         write_results(args.out, args.name, lines, {**meta, "tables": found})
         release_programs()
     print("\n".join(lines))
@@ -198,14 +198,14 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"{', '.join(given)} is not accepted without --robustness (it selects the robustness table's rows)")
     if set(args.modes.split(",")) - set(robustness.MODES):
         p.error(f"--modes {args.modes} is not accepted: comma-separated of {list(robustness.MODES)}")
-    names = [c.name for c in robustness.CONDITIONS + robustness.ROBOT_CONDITIONS]
+    names = [c.name for c in robustness.ALL_CONDITIONS]
     if args.conditions and set(args.conditions.split(",")) - set(names):
         p.error(f"--conditions {args.conditions} is not accepted: comma-separated of {names}")
     if args.merge:
         if not args.robustness:
             p.error("--merge is not accepted without --robustness")
         try:
-            tables_ = robustness.merge([json.loads(Path(path).read_text()) for path in args.merge])
+            tables_ = robustness_report.merge([json.loads(Path(path).read_text()) for path in args.merge])
         except (OSError, ValueError, KeyError) as err:  # missing, not JSON, no tables; ConfigError: mismatched
             why = f"{type(err).__name__}: {err}"
             print(
@@ -213,7 +213,11 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return 2
-        lines = [x for t in tables_ for x in robustness.title(t, machine=True) + robustness.markdown(t["rows"]) + [""]]
+        lines = [
+            x
+            for t in tables_
+            for x in robustness_report.title(t, machine=True) + robustness_report.markdown(t["rows"]) + [""]
+        ]
         print("\n".join(lines))
         write_results(args.out, args.name, lines, {"tables": tables_})
         return 0

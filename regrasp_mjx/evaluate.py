@@ -9,7 +9,8 @@ test set (no retries); planning time of
 one query at a time (compiled and warmed up first; the wall time from the poses to the whole
 trajectory, numpy in and out; on the CPU ``Policy.plan``'s lean numba path, on a GPU the JAX
 program), mean and median; batched throughput (``batch_size`` queries in one call, or
-in equal chunks of at most :data:`BATCH_CHUNK` one after the other, repeated, plans/s); path length in mm over the successes; starts that collide before any step
+in equal chunks of at most
+:data:`~regrasp_mjx.inference.testset_plans.BATCH_CHUNK` one after the other, repeated, plans/s); path length in mm over the successes; starts that collide before any step
 (``invalid_starts``) and starts implausibly far from their needle (``far_starts``: beyond
 ``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about. Planning runs on JAX's default device:
 ``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate`` times one CPU core.
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 
 import jax
 import numpy as np
@@ -29,19 +29,26 @@ import numpy as np
 from regrasp_mjx.core.atomic import dumps
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import run_command
-from regrasp_mjx.inference import robustness
+from regrasp_mjx.envs.camera_errors import PRESETS
+from regrasp_mjx.inference import robustness, robustness_report
+from regrasp_mjx.inference.closed_loop import MAX_LOOK
 from regrasp_mjx.inference.policy import (
     DEFAULT_POLICY,
     START_WARN_MM,
     PolicyError,
-    auto_engine,
-    far_starts,
     load_policy,
     shipped_policies,
 )
 from regrasp_mjx.inference.queries import PoseError
 from regrasp_mjx.inference.robustness import check_condition
-from regrasp_mjx.inference.testset_plans import VERDICTS, engine_agreement, outcomes, plan_testset  # noqa: F401 (re-exported)
+from regrasp_mjx.inference.testset_plans import (  # noqa: F401 (re-exported)
+    BATCH_CHUNK,
+    VERDICTS,
+    engine_agreement,
+    evaluate,
+    outcomes,
+    plan_testset,
+)
 from regrasp_mjx.robot.robot_errors import (
     MAX_CALIBRATION_DEG,
     MAX_CALIBRATION_MM,
@@ -50,80 +57,9 @@ from regrasp_mjx.robot.robot_errors import (
     OBSERVE,
     RobotErrors,
 )
-from regrasp_mjx.world.sampling import PAPER300, TESTSETS, TestsetError, episode_needles, episode_poses, load_testset
+from regrasp_mjx.world.sampling import PAPER300, TESTSETS, TestsetError, load_testset
 
 DEFAULT_TESTSET = PAPER300
-
-# the most queries one batched call plans: larger --batch-size values run as equal chunks of at most
-# this many, one after the other (65,536 shielded queries fit one H100 with room to spare,
-# docs/results.md; a million at once ran out of memory on a 2-core machine, issue 46)
-BATCH_CHUNK = 65536
-
-
-def evaluate(
-    policy,
-    episodes,
-    timed_queries: int | None = None,
-    batch_repeats: int = 5,
-    batch_size: int | None = None,
-    shield: bool = True,
-) -> dict:
-    """The numbers of one policy on one test set (see the module docstring). The throughput batch
-    repeats the test set's queries up to ``batch_size``; ``timed_queries=0`` and
-    ``batch_repeats=0`` skip the timings."""
-    needle, start, goal = episode_poses(episodes)
-    needles = episode_needles(episodes)
-    n = len(needle)
-
-    def run(needle, start, goal, rows=slice(None)):
-        kw = {k: v[rows] for k, v in needles.items()}
-        return policy.plan(needle, start, goal, check_grasp=False, shield=shield, **kw)
-
-    plan = run(needle, start, goal)
-    size = batch_size or n
-    # a batch larger than BATCH_CHUNK runs as equal chunks of at most that many (one compiled size)
-    chunks = -(-size // BATCH_CHUNK)
-    chunk = -(-size // chunks)
-    rows = np.arange(chunks * chunk) % n  # a few more than asked where chunks do not divide it evenly
-    big = [(needle[r], start[r], goal[r], r) for r in rows.reshape(chunks, chunk)]
-    batch_s = float("nan")
-    if batch_repeats:
-        if chunk != n:
-            run(*big[0])  # compiles the batched program (the test-set pass above compiled its own size)
-        t0 = time.perf_counter()
-        for _ in range(batch_repeats):
-            for part in big:
-                run(*part)
-        batch_s = (time.perf_counter() - t0) / batch_repeats
-    times = []
-    if timed_queries != 0:
-        run(needle[0], start[0], goal[0], 0)  # compiles the one-query program
-        for i in range(min(n, timed_queries or n)):
-            t0 = time.perf_counter()
-            run(needle[i], start[i], goal[i], i)
-            times.append(time.perf_counter() - t0)
-    ok = plan.success
-    return {
-        "problems": n,
-        "success_rate": float(ok.mean()),
-        "collision_rate": float((plan.collision | ~plan.start_valid).mean()),
-        "time_out_rate": float(plan.time_out.mean()),
-        "invalid_starts": int((~plan.start_valid).sum()),
-        "far_starts": int(far_starts(needle, start).sum()),
-        "path_length_mm": float(plan.path_length_mm[ok].mean()) if ok.any() else None,
-        "steps_mean": float(plan.steps[ok].mean()) if ok.any() else None,
-        "planning_time_ms_mean": 1e3 * float(np.mean(times)) if times else None,
-        "planning_time_ms_median": 1e3 * float(np.median(times)) if times else None,
-        "timed_queries": len(times),
-        "single_query_engine": auto_engine(1),  # what Policy.plan ran the timed queries with
-        "batch_plans_per_s": len(rows) / batch_s,
-        "batch_size": len(rows),
-        "batch_chunk": chunk,
-        "ensemble": policy.members,
-        "shield": shield,
-        "device": str(jax.devices()[0].device_kind),
-        "backend": jax.default_backend(),
-    }
 
 
 def _agreement(policy, episodes, name: str, args: argparse.Namespace) -> int:
@@ -176,7 +112,16 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     except ConfigError as err:
         p.error(str(err).replace("=", " ", 1).replace("calibration_", "--calibration-").replace("joint_", "--joint-")
                 .replace("tool_noise_", "--tool-noise-"))  # fmt: skip
-    robot = args.robot != RobotErrors()
+    robot = args.robot != RobotErrors() or args.camera is not None
+    if args.camera is not None and (args.noise_mm or args.bias_mm or args.tool_noise_mm):
+        p.error(f"--camera {args.camera} is not accepted with --noise-mm, --bias-mm or --tool-noise-mm: it sets them")
+    if args.look_frames is not None and (
+        not args.closed_loop or args.per_frame or not 0 <= args.look_frames <= MAX_LOOK
+    ):
+        p.error(
+            f"--look-frames {args.look_frames} is not accepted: an integer in [0, {MAX_LOOK}], with --closed-loop "
+            "(fused frames, not --per-frame)"
+        )
     if args.agreement and (args.robustness or args.noise_mm or args.bias_mm or args.closed_loop or robot):
         p.error("--agreement is not accepted with --robustness, --noise-mm, --bias-mm, --closed-loop or a robot error")
     if args.per_frame and not args.closed_loop:
@@ -237,6 +182,13 @@ def main(argv: list[str] | None = None) -> int:
         help="re-plan every step from the fused estimate (default with noise: plan once from one frame, open loop)",
     )
     p.add_argument("--per-frame", action="store_true", help="with --closed-loop: act on each frame alone, no fusing")
+    p.add_argument(
+        "--look-frames",
+        type=int,
+        default=None,
+        help="with --closed-loop: before the last moves and before stopping, hold still and fuse up to this many frames "
+        "while the estimate is too uncertain to stop on (default: the policy's own; 0: never)",
+    )
     robot = p.add_argument_group(
         "the robot's errors (each fixed per episode and independent per arm; judged on the true poses)"
     )
@@ -266,6 +218,13 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help=f"the camera's tracking noise of each tool per frame, mm per axis (5 x as many degrees), "
         f"in [0, {MAX_TOOL_NOISE_MM:g}]",
+    )
+    robot.add_argument(
+        "--camera",
+        choices=tuple(PRESETS),
+        default=None,
+        help="a real camera's errors by name, in place of --noise-mm, --bias-mm and --tool-noise-mm: for the needle and "
+        "each tool a bias per episode, a drift over frames and white noise, depth 2x (docs/inference.md)",
     )
     robot.add_argument(
         "--observe",
@@ -332,16 +291,31 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
             )
         else:
             print(f"{name} on {args.testset}, shielded, judged on the true needle:")
-            print("\n".join(robustness.markdown(rows)))
+            print("\n".join(robustness_report.markdown(rows)))
         return 0
     if args.agreement:
         return _agreement(policy, episodes, name, args)
-    if args.noise_mm or args.bias_mm or args.closed_loop or args.robot != RobotErrors():
+    if args.noise_mm or args.bias_mm or args.closed_loop or args.robot != RobotErrors() or args.camera:
         mode = ("per-frame" if args.per_frame else "fused") if args.closed_loop else "open"
+        camera = None if args.camera is None else PRESETS[args.camera]
         condition = robustness.Condition(
-            "given", args.noise_mm, args.bias_mm, policy.env_config.clearance_mm, args.robot, args.observe
+            "given",
+            args.noise_mm,
+            args.bias_mm,
+            policy.env_config.clearance_mm,
+            args.robot,
+            args.observe,
+            camera=camera,
         )
-        r = robustness.measure(policy, episodes, condition, mode, args.seed, shield=not args.no_shield)
+        r = robustness.measure(
+            policy,
+            episodes,
+            condition,
+            mode,
+            args.seed,
+            shield=not args.no_shield,
+            **({} if args.look_frames is None else {"look_frames": args.look_frames}),
+        )
         r.update(policy=name, testset=args.testset)
         if args.json:
             print(dumps(r))
@@ -350,9 +324,13 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
                 f"{name} on {args.testset} ({r['problems_valid']} of {r['problems']} problems keep the margin; {mode}, needle noise {r['sigma_mm']:g} mm, bias "
                 f"{r['bias_mm']:g} mm, clearance margin {r['clearance_mm']:g} mm, shield {'on' if r['shield'] else 'off'}; "
                 f"calibration {r['calibration_mm']:g} mm / {r['calibration_deg']:g} deg, joint offsets {r['joint_offset']:g}, "
-                f"tool noise {r['tool_noise_mm']:g} mm, tools seen by the {r['observe']}; judged on the true poses)\n"
+                f"tool noise {r['tool_noise_mm']:g} mm, tools seen by the {r['observe']}"
+                + (f"; the camera's errors {args.camera}" if args.camera else "")
+                + "; judged on the true poses)\n"
                 f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}"
-                f"  stopped short of the true goal {r['wrong_stop_rate']:.3f}"
+                f"  stopped short of the true goal {r['wrong_stop_rate']:.3f}\n"
+                f"  frames fused: median {r['frames_median']:g}, {r['looked_mean']:.1f} of them looked at while holding "
+                "still (mean)"
             )
         return 0
     r = evaluate(policy, episodes, args.queries, args.repeats, args.batch_size, shield=not args.no_shield)

@@ -13,7 +13,7 @@ import pytest
 from regrasp_mjx import compare
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.evaluate import plan_testset
-from regrasp_mjx.inference import robustness
+from regrasp_mjx.inference import robustness, robustness_report
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.world.testsets import make_testset
 
@@ -63,13 +63,13 @@ def test_merge_joins_the_parts_of_a_policy_in_condition_order():
         {"tables": [_table("default", [margin]), _table("exact", ["exact"])]},
         {"tables": [_table("default", [noise, "exact"], machine="m2")]},
     ]
-    merged = robustness.merge(parts)
+    merged = robustness_report.merge(parts)
     assert [t["policy"] for t in merged] == ["default", "exact"]
     assert [r["condition"] for r in merged[0]["rows"]] == ["exact", noise, margin]
     assert merged[0]["machine"] == "m1; m2" and merged[0]["wall_s"] == 2.0
     assert parts[0]["tables"][0]["rows"] == [{"condition": margin, "mode": "open"}]  # the parts are not changed
     with pytest.raises(ConfigError, match="default was measured with another policy file or problems"):
-        robustness.merge(
+        robustness_report.merge(
             [{"tables": [_table("default", ["exact"])]}, {"tables": [_table("default", ["x"], digest="h2")]}]
         )
 

@@ -17,7 +17,7 @@ from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import noisy_observation, seen_from
-from regrasp_mjx.inference import robustness
+from regrasp_mjx.inference import robustness, robustness_report
 from regrasp_mjx.inference.policy_file import shipped_policies
 from regrasp_mjx.world.sampling import load_testset
 
@@ -173,7 +173,7 @@ def test_the_robustness_table_measured_the_shipped_policies():
 def test_the_docs_robustness_blocks_are_the_table_file_rendered():
     """docs/results.md, docs/inference.md and experiments/RESULTS.md hold what
     `python experiments/robustness.py --docs experiments/results/robustness/robustness.json` writes."""
-    blocks = robustness.docs_blocks(json.loads(TABLE.read_text())["tables"])
+    blocks = robustness_report.docs_blocks(json.loads(TABLE.read_text())["tables"])
     pages = (
         ("docs/results.md", "summary"),
         ("docs/results.md", "robot_summary"),
@@ -183,7 +183,7 @@ def test_the_docs_robustness_blocks_are_the_table_file_rendered():
     )
     for page, kind in pages:
         text = (ROOT / page).read_text()
-        assert robustness.replace_block(text, kind, blocks[kind]) == text, (
+        assert robustness_report.replace_block(text, kind, blocks[kind]) == text, (
             f"{page} ({kind}): rerun experiments/robustness.py --docs"
         )
 
@@ -192,7 +192,7 @@ def test_every_shipped_policy_has_the_robot_error_rows():
     """Issue 45: each shipped policy's table holds every robot-error row (fused), both views."""
     for t in json.loads(TABLE.read_text())["tables"]:
         got = {r["condition"] for r in t["rows"] if r["mode"] == "fused"}
-        assert robustness.ROBOT_NAMES <= got, (t["policy"], sorted(robustness.ROBOT_NAMES - got))
+        assert robustness_report.ROBOT_NAMES <= got, (t["policy"], sorted(robustness_report.ROBOT_NAMES - got))
 
 
 def test_the_robot_block_renders_kinematic_and_camera_per_calibration():
@@ -200,34 +200,34 @@ def test_the_robot_block_renders_kinematic_and_camera_per_calibration():
         {"condition": c.name, "mode": "fused", "success_rate": 0.5 if c.observe == "kinematic" else 0.75}
         for c in robustness.ROBOT_CONDITIONS
     ]
-    lines = robustness.robot_block([{"policy": "p", "policy_hash": "aa", "problems": "paper300", "rows": rows}])
+    lines = robustness_report.robot_block([{"policy": "p", "policy_hash": "aa", "problems": "paper300", "rows": rows}])
     assert lines[2] == "| calibration error of each arm | `p` |"
     assert lines[4] == "| none (tools tracked) | 0.500 / 0.750 |"
     assert lines[-1] == "| 10 mm, 5 deg | 0.500 / 0.750 |"
     assert len(lines) == 4 + len(robustness.CALIBRATIONS)
-    assert robustness.robot_block([]) == ["No policy's table holds the robot-error rows yet."]
+    assert robustness_report.robot_block([]) == ["No policy's table holds the robot-error rows yet."]
 
 
 def test_docs_blocks_render_hand_made_rows_and_replace_only_their_block():
     rows = [
         {"condition": c, "mode": m, "success_rate": v, "collision_rate": 0.0, "problems": 4, "problems_valid": n}
         for c, n, v in (("exact", 4, 1.0), ("margin 0.1 mm", 3, 0.75))
-        for m in robustness.DOC_MODES
+        for m in robustness_report.DOC_MODES
     ]
     tables = [
         {"policy": p, "policy_hash": h, "problems": "paper300", "rows": rows}
         for p, h in (("default", "aa"), ("exact", "bb"))
     ]
-    blocks = robustness.docs_blocks(tables)
+    blocks = robustness_report.docs_blocks(tables)
     assert blocks["summary"][0].startswith("Measured: default hash aa, exact hash bb; paper300")
     assert blocks["summary"][4] == "| exact | 1.000 / 1.000 (1.000) / 1.000 | 1.000 / 1.000 (1.000) / 1.000 |"
     assert blocks["summary"][5].startswith("| margin 0.1 mm [3 valid] | 0.750 / 0.750 (0.750) / 0.750 |")
     page = "a\n<!-- robustness:begin summary -->\nold\n<!-- robustness:end -->\nb\n"
     assert (
-        robustness.replace_block(page, "summary", ["new"])
+        robustness_report.replace_block(page, "summary", ["new"])
         == "a\n<!-- robustness:begin summary -->\nnew\n<!-- robustness:end -->\nb\n"
     )
     with pytest.raises(ValueError, match="no <!-- robustness:begin tables -->"):
-        robustness.replace_block(page, "tables", ["x"])
+        robustness_report.replace_block(page, "tables", ["x"])
     with pytest.raises(ConfigError, match="no policy named"):
-        robustness.docs_blocks(tables[:1])
+        robustness_report.docs_blocks(tables[:1])

@@ -19,11 +19,12 @@ import jax.numpy as jnp
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import require_numbers
+from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.rollout import rollout
 from regrasp_mjx.world.sampling import Episode
 
-DEG_PER_MM = 5.0  # rotation noise (deg) per mm of position noise: the success test's scale
+DEG_PER_MM = camera_errors.DEG_PER_MM  # rotation noise (deg) per mm of position noise: the success test's scale
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,28 +39,14 @@ class NeedleNoise:
         require_numbers(self, ("sigma_mm", "bias_mm"), lambda v: 0.0 <= v <= 10.0, "a noise level in [0, 10] mm")
 
 
-def _rotate(axis_key: jax.Array, angle: jax.Array, quat: jax.Array) -> jax.Array:
-    axis = jax.random.normal(axis_key, quat.shape[:-1] + (3,))
-    axis = axis / jnp.linalg.norm(axis, axis=-1, keepdims=True)
-    return geometry.quat_mul(geometry.quat_from_rotvec(axis * angle[..., None]), quat)
-
-
 def episode_bias(key: jax.Array, needle: jax.Array, bias_mm: jax.Array) -> jax.Array:
     """The true needle poses ``[B, 7]`` moved by this episode's fixed bias (see the module docstring)."""
-    k_dir, k_axis = jax.random.split(key)
-    direction = jax.random.normal(k_dir, needle.shape[:-1] + (3,))
-    direction = direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
-    angle = jnp.full(needle.shape[:-1], jnp.radians(DEG_PER_MM * bias_mm))
-    pos = needle[..., :3] + bias_mm * 1e-3 * direction
-    return jnp.concatenate([pos, _rotate(k_axis, angle, needle[..., 3:])], axis=-1)
+    return camera_errors.biased(key, needle, bias_mm)
 
 
 def frame_estimate(key: jax.Array, needle: jax.Array, sigma_mm: jax.Array) -> jax.Array:
     """One camera frame's estimates of needle poses ``[B, 7]`` (zero-mean Gaussian noise)."""
-    k_pos, k_angle, k_axis = jax.random.split(key, 3)
-    pos = needle[..., :3] + sigma_mm * 1e-3 * jax.random.normal(k_pos, needle.shape[:-1] + (3,))
-    angle = jnp.radians(DEG_PER_MM * sigma_mm) * jax.random.normal(k_angle, needle.shape[:-1])
-    return jnp.concatenate([pos, _rotate(k_axis, angle, needle[..., 3:])], axis=-1)
+    return camera_errors.white(key, needle, sigma_mm)
 
 
 def fuse(total: jax.Array, estimate: jax.Array, reference: jax.Array) -> jax.Array:
@@ -80,9 +67,6 @@ def needle_estimate(k_bias: jax.Array, k_frame: jax.Array, needle: jax.Array, si
     return frame_estimate(k_frame, episode_bias(k_bias, needle, bias_mm), sigma_mm)
 
 
-IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
-
-
 def camera_view(key: jax.Array, needle: jax.Array, ee: jax.Array, tool_noise_mm) -> tuple[jax.Array, jax.Array]:
     """One camera frame of both tools (:mod:`regrasp_mjx.robot.robot_errors`' ``camera`` view): the
     needle estimate ``[B, 7]`` and this frame's view of the regrasping tool truly at ``ee``, each
@@ -91,12 +75,9 @@ def camera_view(key: jax.Array, needle: jax.Array, ee: jax.Array, tool_noise_mm)
     relative to the regrasping jaws). Rows without tool noise get ``needle`` and ``ee`` exactly."""
     k_g, k_r = jax.random.split(key)
     b = needle.shape[0]
-    identity = jnp.broadcast_to(jnp.asarray(IDENTITY, needle.dtype), (b, 7))
-    grasping = frame_estimate(k_g, identity, tool_noise_mm)
-    regrasping = frame_estimate(k_r, ee, tool_noise_mm)
-    inv = geometry.inverse((grasping[:, :3], grasping[:, 3:]))
-    seen_needle = jnp.concatenate(geometry.compose(inv, (needle[:, :3], needle[:, 3:])), -1)
-    seen_ee = jnp.concatenate(geometry.compose(inv, (regrasping[:, :3], regrasping[:, 3:])), -1)
+    identity = jnp.broadcast_to(jnp.asarray(camera_errors.IDENTITY, needle.dtype), (b, 7))
+    grasping, regrasping = frame_estimate(k_g, identity, tool_noise_mm), frame_estimate(k_r, ee, tool_noise_mm)
+    seen_needle, seen_ee = camera_errors.in_grasping_frame(grasping, needle, regrasping)
     exact = (jnp.broadcast_to(tool_noise_mm, (b,)) == 0.0)[:, None]
     return jnp.where(exact, needle, seen_needle), jnp.where(exact, ee, seen_ee)
 

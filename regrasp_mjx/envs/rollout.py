@@ -51,6 +51,7 @@ class Rollout(NamedTuple):
     discounted_return: Any
     trace: Any = None
     stopped: Any = None  # with a stopping rule: the rows it ended (``[B]`` bool)
+    state: Any = None  # the last state (each ended row's held); None where the loop narrowed (``compact``)
 
 
 def rollout(
@@ -149,8 +150,8 @@ def rollout(
     carry = (jnp.int32(0), start, ended0, out0, buffers)
     size = b // COMPACT
     if not compact or size < 1:
-        _, _, _, out, buffers = jax.lax.while_loop(cond, body, carry)
-        return out._replace(trace=buffers)
+        _, state, _, out, buffers = jax.lax.while_loop(cond, body, carry)
+        return out._replace(trace=buffers, state=state)
     # the whole batch while more than `size` rows are live, then those rows alone
     wide = lambda c: cond(c) & (jnp.sum(~c[2]) > size)  # noqa: E731
     t, state, ended, out, buffers = jax.lax.while_loop(wide, body, carry)

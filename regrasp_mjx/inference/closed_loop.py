@@ -6,35 +6,29 @@ enough to act on every one: each step the policy acts on the latest estimate (or
 estimate of all frames so far: the needle does not move relative to the grasping tool, so the frames
 can simply be averaged), and the regrasp stops when the estimate says the goal is reached. In
 simulation (:func:`make_executor`) success and collision are judged on the true needle.
-:func:`execute` and :func:`closed_loop_step` are the host entry points (``Policy.execute``,
-``Policy.closed_loop_step``).
+:func:`~regrasp_mjx.inference.closed_loop_host.execute` and
+:func:`~regrasp_mjx.inference.closed_loop_host.closed_loop_step` are the host entry points
+(``Policy.execute``, ``Policy.closed_loop_step``).
 
 The needle-estimate noise model and the noisy observation are in :mod:`regrasp_mjx.envs.estimates`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
-from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError
-from regrasp_mjx.envs import estimates
+from regrasp_mjx.envs import camera_errors, estimates
 from regrasp_mjx.envs.env import RegraspEnv
-from regrasp_mjx.envs.estimates import NeedleNoise
 from regrasp_mjx.envs.rollout import rollout
 from regrasp_mjx.envs.shield import shield_rows
-from regrasp_mjx.inference.planner import mean_action, members_apply
-from regrasp_mjx.inference.plans import auto_engine, checked_goals
-from regrasp_mjx.inference.queries import PoseError, TaskSpec, batch_poses, check_poses
+from regrasp_mjx.inference.planner import mean_action
 from regrasp_mjx.robot.robot_errors import (
-    RobotErrors,
     average,
     check_observe,
     draw_arms,
@@ -89,8 +83,11 @@ def choose_action(env: RegraspEnv, apply: Callable, weights, state, t: jax.Array
     return shield_rows(step, lambda sub: apply(weights, sub.obs), state, t, a, nxt, need)[0]
 
 
-# the executor's keys beyond the needle frames' (0 .. horizon + 1 + warmup): the robot's errors, the tool frames
-ARMS_KEY, TOOLS_KEY = 1 << 20, (1 << 20) + 1
+# the executor's keys beyond the needle frames' (0 .. horizon + 1 + warmup): the robot's errors, the
+# tool frames, the drifts, the looked frames (LOOK_KEY + t * look + i: below ARMS_KEY for MAX_LOOK)
+ARMS_KEY, TOOLS_KEY, DRIFT_KEY, LOOK_KEY = 1 << 20, (1 << 20) + 1, (1 << 20) + 2, 1 << 16
+MAX_LOOK = 300  # frames one look may take (10 s at 30 fps)
+NEAR = 2.0  # a view within this many stop tolerances of the goal is about to make its last moves
 
 
 def make_executor(
@@ -102,106 +99,180 @@ def make_executor(
     warmup: int = 1,
     observe: str = "camera",
     joints: bool = False,
+    look: int = 0,
 ):
-    """``run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None, stop=None) -> dict``
+    """``run(weights, needle, start, goal, key, camera, radii=None, robot=None, stop=None) -> dict``
     (jitted): regrasping in simulation for ``[B, 7]`` true needle, start and goal poses (e_g frame;
+    ``camera``: the camera's errors, :meth:`~regrasp_mjx.envs.camera_errors.CameraErrors.numbers`;
     ``radii`` ``[B, 2]``: each needle's radius and wire radius in metres, for a task that varies
     needles; ``robot``: the :class:`~regrasp_mjx.robot.robot_errors.RobotErrors` numbers
-    ``(calibration_mm, calibration_deg, joint_offset, tool_noise_mm)``, default none; ``stop``: the
-    view's stop tolerances (metres, radians; :func:`tolerances`), default the task's own: an
-    argument, so one program serves every stop tolerance).
+    ``(calibration_mm, calibration_deg, joint_offset)``, default none; ``stop``: the view's stop
+    tolerances (metres, radians; :func:`tolerances`), default the task's own: an argument, so one
+    program serves every stop tolerance and every camera).
 
     Each step the policy acts on a view of the needle and of its tool (``observe``, one of
     :data:`~regrasp_mjx.robot.robot_errors.OBSERVE`): with ``frames="one"`` the first frame held for the
     whole episode (a plan made once, executed open loop), ``"each"`` that step's frame,
     ``"fused"`` the mean of the frames so far (``warmup`` of them before the first step; a tool
-    the camera sees is moved between frames by its kinematics). Its action is carried out
+    the camera sees is moved between frames by its kinematics). With ``look`` > 0 (fused only), a
+    row looks before its last moves (the first time its view comes within :data:`NEAR` times the
+    stop tolerances of the goal) and before it declares the goal reached (the first time its view
+    says so): it holds still and fuses frames while its estimate is too uncertain to stop on
+    (twice the fused estimate's standard deviation, from the camera's known error sizes, exceeds
+    the room between the stop and the success tolerance), at most ``look`` frames, then decides
+    again. Its action is carried out
     relative to the arm's current pose (:func:`regrasp_mjx.robot.robot_errors.executed`; ``joints``:
     through the arm's inverse kinematics with its joint offsets, needed where ``joint_offset > 0``).
     ``shield_env`` (default ``env``) is what the shield checks its alternatives with, in the view:
     one with a clearance margin keeps that much away from the estimate. Returns per row:
     ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on the true
     needle), ``time_out`` (no stop within the horizon), ``stopped`` (the view said the goal was
-    reached), ``steps`` and ``poses`` ``[B, horizon + 1, 7]`` (true). The loop is
+    reached), ``steps``, ``frames`` (every frame fused: warm-up, one per step, looked),
+    ``looked`` (the frames spent looking) and ``poses`` ``[B, horizon + 1, 7]`` (true). The loop is
     :func:`regrasp_mjx.envs.rollout.rollout` with a stopping rule (the view's) and the policy acting on
     the view."""
     if frames not in FRAMES:
         raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
     check_observe(observe)
+    if not (isinstance(look, int) and 0 <= look <= MAX_LOOK) or (look and frames != "fused"):
+        raise ConfigError(f"look={look!r} is not accepted: frames in [0, {MAX_LOOK}], and only with fused frames")
     horizon = env.config.horizon
     shield_env = env if shield_env is None else shield_env
     fused, camera = frames == "fused", observe == "camera"
-    seen0 = warmup - 1 if fused else 0
+    axis = jnp.asarray(camera_errors.depth_axis(), jnp.float32)
 
     def move(state, a):  # an executed action: unclipped (the view's error may turn it off the axes)
         return env.move(state, a[:3] * env.max_dp, a[3:] * env.max_drot)
 
-    def run(weights, needle, start, goal, key, sigma_mm, bias_mm, radii=None, robot=None, stop=None):
+    def run(weights, needle, start, goal, key, errors, radii=None, robot=None, stop=None):
         b = needle.shape[0]
-        stop_tol = tolerances(env.config, 1.0) if stop is None else stop
-        calibration_mm, calibration_deg, joint_offset, tool_noise_mm = (0.0,) * 4 if robot is None else robot
+        success_tol = tolerances(env.config, 1.0)
+        stop_tol = success_tol if stop is None else stop
+        calibration_mm, calibration_deg, joint_offset = (0.0,) * 3 if robot is None else robot
+        pn, pt, depth = errors[:5], errors[5:10], (errors[10], axis)  # the needle's, the tools', the depth
         episode = Episode.from_poses(needle, start, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
         ee0 = jnp.concatenate([state.pipeline_state.ee_pos, state.pipeline_state.ee_quat], -1)
         arms = draw_arms(jax.random.fold_in(key, ARMS_KEY), ee0, calibration_mm, calibration_deg, joint_offset)
-        k_tools = jax.random.fold_in(key, TOOLS_KEY)
-        biased = estimates.episode_bias(jax.random.fold_in(key, horizon + 1), needle, bias_mm)
+        k_tools, k_drift = jax.random.fold_in(key, TOOLS_KEY), jax.random.fold_in(key, DRIFT_KEY)
+        biased = camera_errors.biased(jax.random.fold_in(key, horizon + 1), needle, pn[0], pn[4], depth)
+        tool_bias = jax.random.split(jax.random.fold_in(k_tools, TOOLS_KEY), 2)
         q0 = first_readings(arms) if joints else None
-        exact_tools = jnp.broadcast_to(jnp.asarray(tool_noise_mm) == 0.0, (b,))
+        exact_tools = jnp.broadcast_to((pt[0] == 0) & (pt[1] == 0) & (pt[3] == 0), (b,))
+        k0 = jax.random.split(jax.random.fold_in(k_drift, TOOLS_KEY), 3)
+        drift0 = jnp.concatenate([camera_errors.drift_start(k0[i], b, p) for i, p in enumerate((pn, pt, pt))], -1)
 
-        def view(frame, ee, q):
-            """Frame ``frame``'s needle and tool as the policy sees them, and where the tool's
-            kinematics say it is (what a camera-seen tool's mean is moved by between frames)."""
-            estimate = estimates.frame_estimate(jax.random.fold_in(key, frame), biased, sigma_mm)
+        def view(frame, ee, q, drift):
+            """Frame ``frame``'s needle and tool as the policy sees them (the drifts ``[B, 18]`` of
+            the needle and both tools advanced to it, unless ``frames`` holds one frame), and
+            where the tool's kinematics say it is (what a camera-seen tool's mean is moved by
+            between frames)."""
+            if frames != "one":
+                kd = jax.random.split(jax.random.fold_in(k_drift, frame), 3)
+                drift = jnp.concatenate(
+                    [
+                        camera_errors.drift_next(kd[i], drift[:, 6 * i : 6 * i + 6], p)
+                        for i, p in enumerate((pn, pt, pt))
+                    ],
+                    -1,
+                )
+            k_frame = jax.random.fold_in(key, frame)
+            estimate = camera_errors.frame(k_frame, biased, drift[:, :6], pn, depth)
             if camera:
-                seen = estimates.camera_view(jax.random.fold_in(k_tools, frame), estimate, ee, tool_noise_mm)
+                k_g, k_r = jax.random.split(jax.random.fold_in(k_tools, frame))
+                keys = ((tool_bias[0], k_g), (tool_bias[1], k_r))
+                seen = camera_errors.camera_frame(keys, estimate, ee, drift[:, 6:], pt, depth)
             else:
                 seen = kinematic_view(arms, estimate, ee, q)
-            return seen, (ee if q is None else kinematic_pose(q))
+            return seen, (ee if q is None else kinematic_pose(q)), drift
 
-        total, tool = jnp.zeros((b, 7)), ee0
-        if fused:  # frames before the first step (the tool holds still): keys beyond the horizon's
-            for i in range(warmup - 1):
-                (frame_needle, frame_tool), _ = view(horizon + 2 + i, ee0, q0)
-                total = estimates.fuse(total, frame_needle, biased)
-                tool = frame_tool if i == 0 else average(tool, jnp.float32(i), frame_tool)
-        # the rule's per-row data rides in state.info: the fused frames, the view acted on, where the
-        # kinematics put the tool, its readings, and which rows act at this step (the shield works
-        # on those alone)
+        def fuse_frame(info, frame, ee, q, rows=None):
+            """``info`` with frame ``frame`` fused into the ``rows`` (default all) that take it: the
+            needle's running sum, the tool's view (the view so far moved as the kinematics say, and
+            averaged with this frame's), the drifts, the count; and this frame's own view."""
+            (frame_needle, frame_tool), kin, drift = view(frame, ee, q, info["drift"])
+            total = estimates.fuse(info["needle_total"], frame_needle, biased)
+            count = info["frames"]  # the frames fused before this one
+            tool = frame_tool
+            if camera and frames != "each":
+                moved = propagate(info["ee_seen"], info["kinematics"], kin)
+                if fused:
+                    tool = jnp.where(count[:, None] > 0, average(moved, count, frame_tool), frame_tool)
+                else:  # one frame, then the plan's own motion
+                    tool = jnp.where(count[:, None] > 0, moved, frame_tool)
+                tool = jnp.where(exact_tools[:, None], frame_tool, tool)  # a camera that sees the tool exactly
+            new = {"needle_total": total, "ee_seen": tool, "kinematics": kin, "drift": drift, "frames": count + 1}
+            if rows is not None:
+                new = {k: jnp.where(rows.reshape((-1,) + (1,) * (v.ndim - 1)), v, info[k]) for k, v in new.items()}
+            return {**info, **new}, frame_needle
+
+        def unsure(info, stop_tol):
+            """``[B]`` whether a row's fused view is still too uncertain to stop on: twice its
+            standard deviation on the worst axis (the camera's depth; the needle's and, seen by the
+            camera, the tool's errors less their biases, from the model's known sizes) exceeds the
+            room the stop tolerance keeps inside the success tolerance."""
+            n = info["frames"]
+            var = camera_errors.fused_variance(n, pn) + (camera_errors.fused_variance(n, pt) if camera else 0.0)
+            room = success_tol[0] - stop_tol[0]
+            return 2.0 * depth[0] * jnp.sqrt(var) * 1e-3 > room
+
+        def seen_needle(info, frame_needle):
+            return estimates.mean_pose(info["needle_total"], info["frames"][:, None]) if fused else frame_needle
+
+        # the rule's per-row data rides in state.info: the fused frames and their count, the view acted
+        # on, where the kinematics put the tool, its readings, the drifts, which rows act at this step
+        # (the shield works on those alone) and which have looked (before the last moves, at the goal)
         info = {
             **state.info,
-            "needle_total": total,
+            "needle_total": jnp.zeros((b, 7)),
             "needle_seen": needle,
-            "ee_seen": tool,
+            "ee_seen": ee0,
             "kinematics": ee0 if q0 is None else kinematic_pose(q0),
+            "drift": drift0,
+            "frames": jnp.zeros(b),
+            "looked": jnp.zeros(b, jnp.int32),
+            "looked_near": jnp.zeros(b, bool),
+            "looked_stop": jnp.zeros(b, bool),
             "acting": jnp.ones(b, bool),
         }
         if joints:
             info["readings"] = q0
+        if fused:  # frames before the first step (the tool holds still): keys beyond the horizon's
+            for i in range(warmup - 1):
+                info, _ = fuse_frame(info, horizon + 2 + i, ee0, q0)
         state = state.replace(info=info)
 
         def stop(state, t, live):
-            """This step's frame: stop where the view says the goal is reached (a success
-            where the true poses agree)."""
-            es, info = state.pipeline_state, state.info
+            """This step's frame (and, with ``look``, the frames looked at): stop where the view says
+            the goal is reached (a success where the true poses agree)."""
+            es = state.pipeline_state
             ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
-            q = readings(arms, ee, info["readings"]) if joints else None
-            (frame_needle, frame_tool), kin = view(0 if frames == "one" else t, ee, q)
-            total = estimates.fuse(info["needle_total"], frame_needle, biased)
-            seen = estimates.mean_pose(total, (t + 1 + seen0).astype(jnp.float32)) if fused else frame_needle
-            tool = frame_tool
-            if camera and frames != "each":  # the view so far, moved as the kinematics say
-                moved = propagate(info["ee_seen"], info["kinematics"], kin)
-                count = (t + seen0).astype(jnp.float32)
-                if fused:
-                    tool = jnp.where(count > 0, average(moved, count, frame_tool), frame_tool)
-                else:  # one frame, then the plan's own motion
-                    tool = jnp.where(t > 0, moved, frame_tool)
-                tool = jnp.where(exact_tools[:, None], frame_tool, tool)  # a camera that sees the tool exactly
+            q = readings(arms, ee, state.info["readings"]) if joints else None
+            # the rows that ended keep their counts (a row's frames are those it fused while live)
+            info, frame_needle = fuse_frame(state.info, 0 if frames == "one" else t, ee, q, live)
+            seen, tool = seen_needle(info, frame_needle), info["ee_seen"]
             stopping = _at_goal(env, _with_needle(state, seen, tool), seen, stop_tol)
+            if look:  # hold still and fuse frames while the spread leaves no room, at most `look` a look
+                near = _at_goal(env, _with_needle(state, seen, tool), seen, tuple(NEAR * x for x in stop_tol))
+                first = (stopping & ~info["looked_stop"]) | (near & ~info["looked_near"])
+                want = live & (t < horizon) & first & unsure(info, stop_tol)
+
+                def more(c):
+                    return (c[0] < look) & jnp.any(c[2])
+
+                def one_frame(c):
+                    i, info, want = c
+                    info = fuse_frame(info, LOOK_KEY + t * look + i, ee, q, want)[0]
+                    info["looked"] = info["looked"] + want
+                    return i + 1, info, want & unsure(info, stop_tol)
+
+                info = jax.lax.while_loop(more, one_frame, (0, info, want))[1]
+                info["looked_near"] = info["looked_near"] | (live & near)
+                info["looked_stop"] = info["looked_stop"] | (live & stopping)
+                seen, tool = seen_needle(info, frame_needle), info["ee_seen"]
+                stopping = _at_goal(env, _with_needle(state, seen, tool), seen, stop_tol)
             acting = live & ~stopping & (t < horizon)
-            info = {**info, "needle_total": total, "needle_seen": seen, "ee_seen": tool, "kinematics": kin}
-            info["acting"] = acting
+            info = {**info, "needle_seen": seen, "acting": acting}
             if joints:
                 info["readings"] = q
             return state.replace(info=info), stopping, _at_goal(env, state, needle)
@@ -227,6 +298,7 @@ def make_executor(
         trace = jnp.concatenate([start[None].astype(out.trace.dtype), out.trace], axis=0)
         held = jnp.minimum(jnp.arange(horizon + 1)[:, None], out.steps[None, :])
         poses = jnp.take_along_axis(trace, held[..., None], axis=0).transpose(1, 0, 2)
+        info = out.state.info
         return {
             "start_valid": out.start_valid,
             "success": out.success,
@@ -234,6 +306,8 @@ def make_executor(
             "time_out": out.time_out,
             "stopped": out.stopped,
             "steps": out.steps.astype(jnp.int32),
+            "frames": info["frames"].astype(jnp.int32),
+            "looked": info["looked"].astype(jnp.int32),
             "poses": poses,
         }
 
@@ -257,142 +331,3 @@ def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: flo
         return jnp.clip(a, -1.0, 1.0), nxt, done
 
     return jax.jit(one)
-
-
-# ---- the host entry points (Policy.closed_loop_step, Policy.execute) ------------------------------
-
-
-def _estimate_inputs(policy: Any, needle: Any, ee_name: str, ee: Any, goal: Any, spec: TaskSpec):
-    """Checked ``[B, 7]`` needle, end-effector and goal poses (the goal grasp on ``needle`` by
-    default), each needle's radii ``[B, 2]`` (m) and whether one query was given."""
-    (needle, ee), single = batch_poses(needle=needle, **{ee_name: ee})
-    grasp, radii = policy.task_ranges.resolve(len(needle), spec)
-    return needle, ee, checked_goals(needle, goal, grasp, radii), radii, single
-
-
-def _program(
-    policy, kind, shield, frames="fused", clearance_mm=0.0, stop=1.0, warmup=1, observe="camera", joints=False
-):
-    """The jitted executor (``kind="execute"``) or stepper of a setting, built once per network shape."""
-
-    def build():
-        env = RegraspEnv(policy.env_config)
-        guard = RegraspEnv(dataclasses.replace(policy.env_config, clearance_mm=clearance_mm)) if clearance_mm else env
-        apply = members_apply(policy.hidden)
-        if kind == "execute":
-            return make_executor(env, apply, shield, frames, guard, warmup, observe, joints)
-        return make_stepper(guard, apply, shield, stop)
-
-    return policy.program((kind, shield, frames, clearance_mm, stop, warmup, observe, joints), build)
-
-
-def closed_loop_step(
-    policy: Any,
-    needle: Any,
-    ee: Any,
-    goal: Any = None,
-    t: int = 0,
-    shield: bool = True,
-    clearance_mm: float = 0.0,
-    stop_tolerance: float | None = None,
-    **task: Any,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One closed-loop step from the current estimates (e_g frame, 7-vectors or ``[B, 7]``): the
-    latest (or fused) needle estimate and the regrasping end-effector's current pose. Returns
-    ``(action, next_ee, at_goal)``: the action, the pose to command next, and whether the
-    estimate says the goal is already reached (then stop: the action is zero, ``next_ee`` is
-    ``ee``). ``t`` is the step index (it seeds the shield's alternatives, as in a plan); the
-    shield checks the alternatives against the estimated needle, keeping ``clearance_mm`` from it
-    (room for the estimate's error). ``at_goal`` holds within ``stop_tolerance`` of the success
-    tolerances (None: the policy's own, ``Policy.closed_loop_defaults``), as in :func:`execute`.
-    ``task``: the goal grasp and needle keywords (:class:`~regrasp_mjx.inference.queries.TaskSpec`). One
-    query on the CPU (no ``clearance_mm``, ``t`` within the horizon) takes the lean numba step
-    (:meth:`regrasp_mjx.inference.lean_planner.LeanPlanner.step`), anything else the jitted JAX program."""
-    stop_tolerance = policy.closed_loop_defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
-    spec = TaskSpec.of(task)
-    (needle, ee), single = batch_poses(needle=needle, ee=ee)
-    if single and not clearance_mm and 0 <= t < policy.env_config.horizon and auto_engine(1) == "lean":
-        # one query on the CPU: the lean numba step, its default goal made by the compiled code (the
-        # JAX program below stays the reference)
-        lean = policy.lean(shield)
-        grasp, radii = policy.task_ranges.resolve(1, spec)
-        goal = lean.goal(needle[0], grasp[0], radii[0, 0]) if goal is None else check_poses("goal", goal)
-        if goal.shape != (7,):
-            raise PoseError(f"goal {goal.shape} and needle (7,) poses differ in batch size")
-        at_goal, nxt, a = lean.step(needle[0], ee[0], goal, radii[0], int(t), float(stop_tolerance))
-        return a, nxt, np.bool_(at_goal)
-    needle, ee, goal, radii, single = _estimate_inputs(policy, needle, "ee", ee, goal, spec)
-    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
-    step = _program(policy, "step", shield, clearance_mm=float(clearance_mm), stop=float(stop_tolerance))
-    a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii)))
-    a, nxt, done = np.asarray(a, np.float64), np.asarray(nxt, np.float64), np.asarray(done)
-    return (a[0], nxt[0], done[0]) if single else (a, nxt, done)
-
-
-def execute(
-    policy: Any,
-    needle: Any,
-    start: Any,
-    goal: Any = None,
-    noise: NeedleNoise | None = None,
-    frames: str = "fused",
-    shield: bool = True,
-    seed: int = 0,
-    clearance_mm: float = 0.0,
-    stop_tolerance: float | None = None,
-    warmup_frames: int | None = None,
-    robot: RobotErrors | None = None,
-    observe: str = "camera",
-    **task: Any,
-) -> dict[str, np.ndarray]:
-    """Simulates regrasping under needle-pose noise on true needle, start and goal poses ``[B, 7]``
-    (e_g frame): each step the policy acts on an estimate of the needle (``noise``, a
-    :class:`~regrasp_mjx.envs.estimates.NeedleNoise`; default none) and stops when the estimate says the
-    goal is reached; success and collisions are judged on the true needle. ``frames``: ``"fused"``
-    (the mean of the frames so far, the default), ``"each"`` (that step's frame alone) or ``"one"``
-    (the first frame for the whole episode: a plan made once, executed open loop).
-    ``clearance_mm``: the shield keeps this clearance from the estimated needle (room for the
-    estimate's error); ``stop_tolerance``: stop when the estimate is within this fraction of the
-    success tolerances (below 1: room for the estimate's error at the goal); ``warmup_frames``:
-    with ``"fused"``, frames fused before the first step (the tool holds still meanwhile). Their
-    defaults (None) are the policy's own (``Policy.closed_loop_defaults``: chosen for it on
-    validation problems of their own seed by experiments/closed_loop_select.py; 10 frames and 0.7
-    where its file names none); ``frames="one", stop_tolerance=1`` with no noise reproduces a plan
-    exactly. ``robot``: the robot's errors (a :class:`~regrasp_mjx.robot.robot_errors.RobotErrors`:
-    camera-to-base calibration, joint offsets, tool tracking noise; default none) and
-    ``observe``: how the policy sees its tools through them, ``"camera"`` (tools and needle from
-    the camera, the default) or ``"kinematic"`` (tools from the joint readings).
-    ``task``: the goal grasp and needle keywords (a general policy's ranges). Returns
-    numpy arrays per row: ``success``, ``collision``, ``time_out``, ``stopped``, ``steps``,
-    ``start_valid``, ``poses``."""
-    noise = NeedleNoise() if noise is None else noise
-    robot = RobotErrors() if robot is None else robot
-    if not isinstance(noise, NeedleNoise):
-        raise ConfigError(f"noise={noise!r} is not accepted: a NeedleNoise")
-    if not isinstance(robot, RobotErrors):
-        raise ConfigError(f"robot={robot!r} is not accepted: a RobotErrors")
-    check_observe(observe)
-    defaults = policy.closed_loop_defaults
-    stop_tolerance = defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
-    warmup_frames = defaults["warmup_frames"] if warmup_frames is None else warmup_frames
-    if frames not in FRAMES:
-        raise ConfigError(f"frames={frames!r} is not accepted: one of {FRAMES}")
-    if not (isinstance(warmup_frames, int) and warmup_frames >= 1):
-        raise ConfigError(f"warmup_frames={warmup_frames!r} is not accepted: an integer >= 1")
-    if not (math.isfinite(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
-        raise ConfigError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
-    needle, start, goal, radii, _ = _estimate_inputs(policy, needle, "start", start, goal, TaskSpec.of(task))
-    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
-    warmup = int(warmup_frames) if frames == "fused" else 1
-    joints = robot.joint_offset > 0
-    # the stop tolerance is an argument (1.0 in the key)
-    run = _program(policy, "execute", shield, frames, float(clearance_mm), 1.0, warmup, observe, joints)
-    key = jax.random.PRNGKey(seed)
-    errors = tuple(
-        f32(v) for v in (robot.calibration_mm, robot.calibration_deg, robot.joint_offset, robot.tool_noise_mm)
-    )
-    stop = tuple(f32(x) for x in tolerances(policy.env_config, float(stop_tolerance)))
-    out = run(
-        f32(needle), f32(start), f32(goal), key, f32(noise.sigma_mm), f32(noise.bias_mm), f32(radii), errors, stop
-    )
-    return {k: np.asarray(v) for k, v in jax.device_get(out).items()}

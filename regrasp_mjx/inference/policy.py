@@ -24,7 +24,7 @@ import numpy as np
 
 from regrasp_mjx.core.config import env_config_from_dict
 from regrasp_mjx.core.config import replace as config_replace
-from regrasp_mjx.inference import camera_loop, closed_loop, plans
+from regrasp_mjx.inference import camera_loop, closed_loop_host, plans
 from regrasp_mjx.inference.planner import PLANNERS, make_planner, mean_action, members_apply
 from regrasp_mjx.inference.plans import ENGINES, Plan, auto_engine
 from regrasp_mjx.inference.policy_file import (
@@ -229,8 +229,8 @@ class Policy:
 
     def closed_loop_step(self, needle: Any, ee: Any, goal: Any = None, **options: Any):
         """One closed-loop step from the current estimates: ``(action, next_ee, at_goal)``
-        (:func:`regrasp_mjx.inference.closed_loop.closed_loop_step`)."""
-        return closed_loop.closed_loop_step(self, needle, ee, goal, **options)
+        (:func:`regrasp_mjx.inference.closed_loop_host.closed_loop_step`)."""
+        return closed_loop_host.closed_loop_step(self, needle, ee, goal, **options)
 
     def camera_loop(self, **options: Any):
         """A closed loop driven by camera frames of both tools and the needle, in which a
@@ -240,8 +240,8 @@ class Policy:
 
     def execute(self, needle: Any, start: Any, goal: Any = None, noise: Any = None, **options: Any) -> dict:
         """Simulates regrasping under needle-pose noise on true poses ``[B, 7]``
-        (:func:`regrasp_mjx.inference.closed_loop.execute`)."""
-        return closed_loop.execute(self, needle, start, goal, noise, **options)
+        (:func:`regrasp_mjx.inference.closed_loop_host.execute`)."""
+        return closed_loop_host.execute(self, needle, start, goal, noise, **options)
 
 
 def ensemble_policies(

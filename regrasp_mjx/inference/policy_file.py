@@ -161,18 +161,19 @@ def untrained_policy(
     return save_policy(out_dir, params, normalizer, tuple(hidden), env_config, extra={"training": training})
 
 
-# a closed loop's settings where a policy file names none (regrasp_mjx.inference.closed_loop.execute)
-DEFAULT_STOP, DEFAULT_WARMUP = 0.7, 10
+# a closed loop's settings where a policy file names none (regrasp_mjx.inference.closed_loop_host.execute)
+DEFAULT_STOP, DEFAULT_WARMUP, DEFAULT_LOOK = 0.7, 10, 0
 
 
 def closed_loop_settings(contract: dict[str, Any]) -> dict[str, Any]:
-    """A policy's closed-loop settings: ``stop_tolerance`` and ``warmup_frames`` from its file's
-    ``closed_loop`` entry (chosen for it on validation problems), else :data:`DEFAULT_STOP` and
-    :data:`DEFAULT_WARMUP`."""
+    """A policy's closed-loop settings: ``stop_tolerance``, ``warmup_frames`` and ``look_frames`` from
+    its file's ``closed_loop`` entry (chosen for it on validation problems), else
+    :data:`DEFAULT_STOP`, :data:`DEFAULT_WARMUP` and :data:`DEFAULT_LOOK` (no looking)."""
     given = contract.get("closed_loop") or {}
     return {
         "stop_tolerance": float(given.get("stop_tolerance", DEFAULT_STOP)),
         "warmup_frames": int(given.get("warmup_frames", DEFAULT_WARMUP)),
+        "look_frames": int(given.get("look_frames", DEFAULT_LOOK)),
     }
 
 

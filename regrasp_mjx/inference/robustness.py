@@ -16,7 +16,9 @@ needle, in one of three modes (:data:`MODES`):
 A clearance margin ``clearance_mm`` judges (and shields) every pose with that much kept from the
 needle and the other tool. :data:`CONDITIONS` are the rows of the robustness table
 (:func:`table`): ``python -m regrasp_mjx.evaluate --robustness`` prints it for one policy,
-``python -m regrasp_mjx.compare --robustness`` for several (every shipped one by default).
+``python -m regrasp_mjx.compare --robustness`` for several (every shipped one by default); its
+markdown, the merging of tables run apart and the docs' blocks are
+:mod:`regrasp_mjx.inference.robustness_report`'s.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.config import ConfigError, is_number, require
+from regrasp_mjx.envs.camera_errors import FPS, PRESETS, CameraErrors
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import NeedleNoise
 from regrasp_mjx.inference.policy_file import resolve
@@ -64,12 +67,18 @@ class Condition:
     robot: RobotErrors = RobotErrors()
     observe: str = "camera"
     modes: tuple[str, ...] | None = None
+    camera: CameraErrors | None = None
 
     def __post_init__(self) -> None:
         check_condition(self.sigma_mm, self.bias_mm, self.clearance_mm)
         check_observe(self.observe)
         if not isinstance(self.robot, RobotErrors):
             raise ConfigError(f"robot={self.robot!r} is not accepted: a RobotErrors")
+        if self.camera is not None:
+            if not isinstance(self.camera, CameraErrors):
+                raise ConfigError(f"camera={self.camera!r} is not accepted: a CameraErrors")
+            if self.sigma_mm or self.bias_mm or self.robot.tool_noise_mm:
+                raise ConfigError("a camera's errors are not accepted with sigma_mm, bias_mm or tool_noise_mm")
 
 
 def check_condition(sigma_mm: float, bias_mm: float, clearance_mm: float) -> None:
@@ -94,9 +103,18 @@ CONDITIONS = (
 # the robot's errors (issue 45): camera-to-base calibration T mm / R deg of each arm, joint offsets up to
 # 0.5 (deg, mm), needle and tool tracking noise 0.25 mm; fused closed loop, each way of seeing the tools
 CALIBRATIONS = ((0.0, 0.0), (1.0, 1.0), (3.0, 2.0), (5.0, 3.0), (10.0, 5.0))
+
+
+def robot_condition_name(calibration_mm: float, calibration_deg: float, observe: str) -> str:
+    """A robot-error row's name (the one place it is written: the docs' block finds its rows by it)."""
+    if calibration_mm:
+        return f"calibration {calibration_mm:g} mm {calibration_deg:g} deg ({observe})"
+    return f"tools tracked ({observe})"
+
+
 ROBOT_CONDITIONS = tuple(
     Condition(
-        f"calibration {t:g} mm {r:g} deg ({observe})" if t else f"tools tracked ({observe})",
+        robot_condition_name(t, r, observe),
         0.25,
         robot=RobotErrors(t, r, 0.5 if t else 0.0, 0.25),
         observe=observe,
@@ -105,6 +123,21 @@ ROBOT_CONDITIONS = tuple(
     for t, r in CALIBRATIONS
     for observe in OBSERVE
 )
+# a real camera's errors (issue 67): the tools seen by the camera, calibration 5 mm / 3 deg, joint offsets
+# up to 0.5; white tool noise or a needle bias beyond the 0.25 mm above, then the named presets
+CAMERA_ROBOT = RobotErrors(5.0, 3.0, 0.5, 0.0)
+CAMERA_ERRORS = {
+    "tools 0.5 mm": CameraErrors.of(0.25, 0.0, 0.5),
+    "tools 1.0 mm": CameraErrors.of(0.25, 0.0, 1.0),
+    "needle bias 0.5 mm": CameraErrors.of(0.25, 0.5, 0.25),
+    "needle bias 1.0 mm": CameraErrors.of(0.25, 1.0, 0.25),
+    **{name: camera for name, camera in PRESETS.items()},
+}
+CAMERA_CONDITIONS = tuple(
+    Condition(f"camera: {name}", robot=CAMERA_ROBOT, modes=("fused",), camera=camera)
+    for name, camera in CAMERA_ERRORS.items()
+)
+ALL_CONDITIONS = CONDITIONS + ROBOT_CONDITIONS + CAMERA_CONDITIONS
 
 
 def program_groups(modes: tuple[str, ...], names: tuple[str, ...] | None = None) -> list[tuple[str, list[str]]]:
@@ -115,7 +148,7 @@ def program_groups(modes: tuple[str, ...], names: tuple[str, ...] | None = None)
     (``python -m regrasp_mjx.recipe``'s report; join their files with ``compare --merge``)."""
     groups: dict[tuple, tuple[str, list[str]]] = {}
     for mode in modes:
-        for c in CONDITIONS + ROBOT_CONDITIONS:
+        for c in ALL_CONDITIONS:
             if (names is not None and c.name not in names) or (c.modes is not None and mode not in c.modes):
                 continue
             key = (mode, c.clearance_mm, c.observe, c.robot.joint_offset > 0)
@@ -124,29 +157,39 @@ def program_groups(modes: tuple[str, ...], names: tuple[str, ...] | None = None)
 
 
 def measure(
-    policy, episodes, condition: Condition, mode: str = "fused", seed: int = 0, shield: bool = True
+    policy,
+    episodes,
+    condition: Condition,
+    mode: str = "fused",
+    seed: int = 0,
+    shield: bool = True,
+    **options: Any,
 ) -> dict[str, Any]:
     """Rates of one pass over test-set rows ``episodes`` under ``condition`` in ``mode``, judged on
     the true needle: ``success_rate``, ``collision_rate``, ``time_out_rate``, ``wrong_stop_rate``
     (stopped where the estimate, not the truth, was at the goal) and the mean ``steps`` of the
     successes, over the ``problems_valid`` problems whose start and goal keep the condition's
     clearance margin (all of a test set at no margin: with one, a start already within it fails
-    before any step, whatever the policy; ``success_rate_all`` counts those as failures)."""
+    before any step, whatever the policy; ``success_rate_all`` counts those as failures); the
+    median of the frames each fused and the mean it looked at holding still. ``options``: more of
+    ``Policy.execute``'s keywords (``look_frames``, ``stop_tolerance``: the policy's own without)."""
     if mode not in MODES:
         raise ConfigError(f"mode={mode!r} is not accepted: one of {tuple(MODES)}")
     if condition.clearance_mm != policy.env_config.clearance_mm:
         policy = policy.with_env(clearance_mm=condition.clearance_mm)
     needle, start, goal = episode_poses(episodes)
+    noise = None if condition.camera else NeedleNoise(condition.sigma_mm, condition.bias_mm)
     r = policy.execute(
         needle,
         start,
         goal,
-        NeedleNoise(condition.sigma_mm, condition.bias_mm),
+        noise,
         shield=shield,
         seed=seed,
         robot=condition.robot,
         observe=condition.observe,
-        **MODES[mode],
+        camera=condition.camera,
+        **{**MODES[mode], **options},
         **episode_needles(episodes),
     )
     valid = clear_problems(policy.env_config, episodes)
@@ -159,6 +202,7 @@ def measure(
         "clearance_mm": condition.clearance_mm,
         **dataclasses.asdict(condition.robot),
         "observe": condition.observe,
+        "camera": None if condition.camera is None else dataclasses.asdict(condition.camera),
         "shield": shield,
         "seed": seed,
         "problems": int(valid.size),
@@ -169,6 +213,10 @@ def measure(
         "time_out_rate": float(r["time_out"][valid].mean()),
         "wrong_stop_rate": float((r["stopped"][valid] & ~ok & ~collided).mean()),
         "steps": float(r["steps"][valid][ok].mean()) if ok.any() else None,
+        "frames_median": float(np.median(r["frames"][valid])),
+        "looked_mean": float(r["looked"][valid].mean()),
+        # frames taken holding still (the warm-up, the looks, the last): at the endoscope's 30 per second
+        "still_s": [float(x) for x in np.percentile((r["frames"] - r["steps"])[valid] / FPS, (50, 95))],
     }
 
 
@@ -209,161 +257,6 @@ def table(
                     f"  {condition.name:<30} {mode:<9} success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}"
                 )
     return rows
-
-
-def markdown(rows: list[dict[str, Any]], modes: tuple[str, ...] | None = None) -> list[str]:
-    """The rows of one policy as a table: conditions down, modes across (success, and collisions
-    where there are any); ``modes`` None: those the rows hold, in :data:`MODES` order."""
-    modes = modes or tuple(m for m in MODES if any(r["mode"] == m for r in rows))
-    lines = ["| condition | " + " | ".join(modes) + " |", "| --- |" + " ---: |" * len(modes)]
-    for name in dict.fromkeys(r["condition"] for r in rows):
-        cells = []
-        for mode in modes:
-            r = next((r for r in rows if r["condition"] == name and r["mode"] == mode), None)
-            if r is None:
-                cells.append("–")
-                continue
-            coll = f" (coll. {r['collision_rate']:.3f})" if r["collision_rate"] > 0 else ""
-            valid = f" [{r['problems_valid']}/{r['problems']}]" if r["problems_valid"] < r["problems"] else ""
-            cells.append(f"{r['success_rate']:.3f}{coll}{valid}")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def title(table: dict[str, Any], machine: bool = False) -> list[str]:
-    """The line above one policy's table: its name, folder, network, hash and problems."""
-    where = f"; {table['machine']}" if machine else ""
-    net = "x".join(map(str, table["hidden"]))
-    return [
-        f"**{table['policy']}** (`{table['folder']}`, {net}, hash {table['policy_hash']}) on {table['problems']}{where}:",
-        "",
-    ]
-
-
-def merge(parts: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One list of tables from the table files of several runs (``python -m regrasp_mjx.compare
-    --robustness``, e.g. parts run side by side on one GPU): the parts of one policy (its noise rows
-    and its margin rows run apart) become one table, rows in :data:`CONDITIONS` order. Raises when
-    two parts of one policy name measured another policy file or other problems."""
-    by_policy: dict[str, dict[str, Any]] = {}
-    for data in parts:
-        for t in data["tables"]:
-            if "machine" not in t:  # a part made before the tables named their machine
-                t = {**t, "machine": f"{data['backend']} ({data['device']})", "seed": data["seed"]}
-            seen = by_policy.get(t["policy"])
-            if seen is None:
-                by_policy[t["policy"]] = {**t, "rows": list(t["rows"])}
-                continue
-            if (seen["policy_hash"], seen["problems"]) != (t["policy_hash"], t["problems"]):
-                raise ConfigError(f"{t['policy']} was measured with another policy file or problems in another part")
-            seen["rows"] += t["rows"]
-            seen["wall_s"] = seen.get("wall_s", 0.0) + t.get("wall_s", 0.0)
-            if t["machine"] not in seen["machine"]:
-                seen["machine"] += f"; {t['machine']}"
-    order = {c.name: i for i, c in enumerate(CONDITIONS + ROBOT_CONDITIONS)}
-    for t in by_policy.values():
-        t["rows"].sort(key=lambda r: order.get(r["condition"], len(order)))
-    return list(by_policy.values())
-
-
-NOISE_NAMES = frozenset(c.name for c in CONDITIONS)
-ROBOT_NAMES = frozenset(c.name for c in ROBOT_CONDITIONS)
-
-# The docs' summary: these policies side by side (docs/results.md), their full tables in
-# experiments/RESULTS.md; each between `<!-- robustness:begin KIND -->` and `<!-- robustness:end -->`,
-# written by `python experiments/robustness.py --docs` from robustness.json (a test compares them).
-DOC_POLICIES = ("default", "exact")
-DOC_MODES = ("open", "per-frame", "per-frame-stop", "fused")
-ROBOT_DOC_POLICIES = ("default", "general")  # the docs' robot-error summary: the specialist and the generalist
-
-
-def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_POLICIES) -> dict[str, list[str]]:
-    """The docs' generated blocks from the tables of ``python -m regrasp_mjx.compare --robustness`` (its JSON's
-    ``tables``): ``"summary"``, the policies side by side (open / per-frame (its own stop) / fused),
-    and ``"tables"``, each policy's full table; both name the policy hashes they measured."""
-    by_name = {t["policy"]: t for t in tables}
-    missing = [p for p in policies if p not in by_name]
-    if missing:
-        raise ConfigError(f"the robustness tables hold no policy named {missing}; accepted: {sorted(by_name)}")
-    chosen = [by_name[p] for p in policies]
-    named = ", ".join(f"{t['policy']} hash {t['policy_hash']}" for t in chosen)
-    machines = sorted({t.get("machine", "?") for t in chosen})
-    source = (
-        f"Measured: {named}; {chosen[0]['problems']}; shielded; {', '.join(machines)}; seed {chosen[0].get('seed', 0)}."
-    )
-
-    def cell(t, condition, mode):
-        return next(r for r in t["rows"] if r["condition"] == condition and r["mode"] == mode)
-
-    summary = [
-        source,
-        "",
-        "| condition | " + " | ".join(f"`{p}`: open / per frame (own stop) / fused" for p in policies) + " |",
-    ]
-    summary.append("| --- |" + " --- |" * len(policies))
-    for condition in dict.fromkeys(r["condition"] for r in chosen[0]["rows"] if r["condition"] in NOISE_NAMES):
-        cells = []
-        for t in chosen:
-            o, f1, fs, fu = (cell(t, condition, m) for m in DOC_MODES)
-            cells.append(
-                f"{o['success_rate']:.3f} / {f1['success_rate']:.3f} ({fs['success_rate']:.3f}) / {fu['success_rate']:.3f}"
-            )
-        first = cell(chosen[0], condition, "open")
-        note = f" [{first['problems_valid']} valid]" if first["problems_valid"] < first["problems"] else ""
-        summary.append(f"| {condition}{note} | " + " | ".join(cells) + " |")
-    full = [source, ""]
-    for t in chosen:
-        full += [f"**{t['policy']}** (hash {t['policy_hash']}); success (collision rate) [valid problems]:", ""]
-        full += markdown(t["rows"], tuple(m for m in DOC_MODES if any(r["mode"] == m for r in t["rows"]))) + [""]
-    return {
-        "summary": summary,
-        "tables": full[:-1],
-        "robot": robot_block(tables),
-        "robot_summary": robot_block([by_name[p] for p in ROBOT_DOC_POLICIES if p in by_name]),
-    }
-
-
-def robot_block(tables: list[dict[str, Any]]) -> list[str]:
-    """The robot-error rows (:data:`ROBOT_CONDITIONS`, fused closed loop) of the policies of
-    ``tables`` that have them: calibration down, policies across, each cell ``kinematic / camera``
-    success."""
-    measured = [t for t in tables if any(r["condition"] in ROBOT_NAMES for r in t["rows"])]
-    if not measured:
-        return ["No policy's table holds the robot-error rows yet."]
-    named = ", ".join(f"`{t['policy']}` {t['policy_hash']}" for t in measured)
-    machines = sorted({t.get("machine", "?").split("; ")[-1] for t in measured})
-    lines = [
-        f"Measured: {named}; {' or '.join(dict.fromkeys(t['problems'] for t in measured))} (each policy its own "
-        f"test set); fused closed loop, shielded; needle and tool tracking noise "
-        f"0.25 mm, joint offsets up to 0.5 deg (mm) with a calibration error; {', '.join(machines)}; "
-        f"seed {measured[0].get('seed', 0)}. Each cell: success with the tools seen through their kinematics / by the camera.",
-        "",
-        "| calibration error of each arm | " + " | ".join(f"`{t['policy']}`" for t in measured) + " |",
-        "| --- |" + " ---: |" * len(measured),
-    ]
-    for t_mm, r_deg in CALIBRATIONS:
-        label = f"{t_mm:g} mm, {r_deg:g} deg" if t_mm else "none (tools tracked)"
-        cells = []
-        for t in measured:
-            got = []
-            for observe in OBSERVE:
-                name = f"calibration {t_mm:g} mm {r_deg:g} deg ({observe})" if t_mm else f"tools tracked ({observe})"
-                r = next((r for r in t["rows"] if r["condition"] == name and r["mode"] == "fused"), None)
-                got.append("–" if r is None else f"{r['success_rate']:.3f}")
-            cells.append(" / ".join(got))
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def replace_block(text: str, kind: str, lines: list[str]) -> str:
-    """``text`` with the lines between ``<!-- robustness:begin KIND -->`` and the next
-    ``<!-- robustness:end -->`` replaced by ``lines`` (raises when the markers are missing)."""
-    begin, end = f"<!-- robustness:begin {kind} -->", "<!-- robustness:end -->"
-    i = text.find(begin)
-    j = text.find(end, i)
-    if i < 0 or j < 0:
-        raise ValueError(f"no {begin} ... {end} block")
-    return text[: i + len(begin)] + "\n" + "\n".join(lines) + "\n" + text[j:]
 
 
 def policy_hash(path: str | os.PathLike | None = None) -> str:
