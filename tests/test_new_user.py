@@ -106,6 +106,20 @@ def test_train_refuses_multi_process_options_that_cannot_work(argv, match, capsy
     _refused(train.main, ["--out", str(tmp_path / "r"), *argv], match, capsys, tmp_path)
 
 
+def test_distributed_with_nothing_to_join_is_one_line(tmp_path):
+    """--distributed where JAX detects no cluster: JAX's ValueError as one line (a child: JAX joins a
+    run only before its first computation)."""
+    import subprocess
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COORDINATOR", "SLURM_", "OMPI_"))}
+    argv = [sys.executable, "-m", "regrasp_mjx.train", "--out", str(tmp_path / "r"), "--distributed"]
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=120)
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(err) == 1, proc.stderr
+    assert err[0].startswith("error: --distributed: JAX could not join a run") and "--coordinator HOST:PORT" in err[0]
+    assert _files(tmp_path) == []
+
+
 def test_the_documented_multi_process_options_are_accepted():
     assert distributed.options_problem(False, "node0:12345", 2, 1) is None
     assert distributed.options_problem(True, None, None, None) is None  # detected: SLURM, Open MPI, env
