@@ -284,21 +284,43 @@ class _DropsInterrupts:
     dropped ("Exception ignored"), as it is in XLA's gc callback."""
 
     def __del__(self):
-        os.kill(os.getpid(), signal.SIGINT)
-        for _ in range(1000):  # the handler runs between these bytecodes, inside __del__
-            pass
+        _interrupt_here()
 
 
-def test_a_ctrl_c_that_python_would_drop_still_stops_the_command(capsys):
+def _interrupt_here() -> None:
+    os.kill(os.getpid(), signal.SIGINT)
+    for _ in range(1000):  # the handler runs between these bytecodes, inside the caller
+        pass
+
+
+@pytest.mark.parametrize("where", ["__del__", "gc callback"])
+def test_a_ctrl_c_that_python_would_drop_still_stops_the_command(where, capsys):
+    import gc
+
+    armed = []
+
+    def callback(phase, info):  # as jax's _xla_gc_callback is called
+        if phase == "start" and armed:
+            armed.clear()
+            _interrupt_here()
+
     def main():
-        _DropsInterrupts()  # dropped at once: its __del__ runs here
+        if where == "__del__":
+            _DropsInterrupts()  # dropped at once: its __del__ runs here
+        else:
+            armed.append(True)
+            gc.collect()
         t0 = time.perf_counter()
         while time.perf_counter() - t0 < 10.0:  # the command's work, which a dropped interrupt let go on
             time.sleep(0.01)
         return 0
 
+    gc.callbacks.append(callback)
     t0 = time.perf_counter()
-    assert run_command(main, "again") == 130
+    try:
+        assert run_command(main, "again") == 130
+    finally:
+        gc.callbacks.remove(callback)
     assert time.perf_counter() - t0 < 5.0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["interrupted; again"], err  # no "Exception ignored" traceback
