@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
+from pathlib import Path
 
 import numpy as np
 
@@ -57,18 +59,26 @@ def main() -> None:
     p.add_argument("--testset", default="paper300")
     p.add_argument("--heldout", default="3000:2022", metavar="N:SEED", help="held-out problems drawn here")
     p.add_argument("--seeds", default="0,1", help="noise seeds of the test runs, comma-separated")
+    p.add_argument(
+        "--validation", default=None, metavar="JSON", help="an earlier run's NAME_validation.json: its choice"
+    )
     p.add_argument("--out", default=None)
     p.add_argument("--name", default="real_camera")
     args = p.parse_args()
     policy = load_policy(args.policy)
     own = policy.closed_loop_defaults
-    val = make_testset(args.val_n, args.val_seed, policy.env_config)
-    grid = []
-    for look, stop in itertools.product([int(x) for x in args.looks.split(",")], map(float, args.stops.split(","))):
-        rows = measure(policy, val, look, stop, seed=1)
-        frames = float(np.mean([r["frames_median"] for r in rows]))
-        grid.append({"look_frames": look, "stop_tolerance": stop, "score": chosen_score(rows), "frames": frames})
-    best = max(grid, key=lambda g: (round(g["score"], 6), -g["frames"]))
+    if args.validation:  # the choice made before (the validation problems are not run again)
+        grid, best = (json.loads(Path(args.validation).read_text())[k] for k in ("grid", "best"))
+        best = next(g for g in grid if g == best)
+    else:
+        val = make_testset(args.val_n, args.val_seed, policy.env_config)
+        grid = []
+        for look, stop in itertools.product([int(x) for x in args.looks.split(",")], map(float, args.stops.split(","))):
+            rows = measure(policy, val, look, stop, seed=1)
+            frames = float(np.mean([r["frames_median"] for r in rows]))
+            grid.append({"look_frames": look, "stop_tolerance": stop, "score": chosen_score(rows), "frames": frames})
+        best = max(grid, key=lambda g: (round(g["score"], 6), -g["frames"]))
+        write_results(args.out, f"{args.name}_validation", [dumps(g) for g in grid], {"grid": grid, "best": best})
     settings = {
         "own": (own["look_frames"], own["stop_tolerance"]),
         "chosen": (best["look_frames"], best["stop_tolerance"]),
@@ -112,7 +122,11 @@ def main() -> None:
         for c in CONDITIONS:
             cells = []
             for setting in settings:
-                rs = [r for r in results if (r["condition"], r["setting"], r["problems_name"]) == (c.name, setting, set_name)]
+                rs = [
+                    r
+                    for r in results
+                    if (r["condition"], r["setting"], r["problems_name"]) == (c.name, setting, set_name)
+                ]
                 ok = [r["success_rate"] for r in rs]
                 coll = np.mean([r["collision_rate"] for r in rs])
                 wrong = np.mean([r["wrong_stop_rate"] for r in rs])

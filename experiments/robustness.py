@@ -2,6 +2,10 @@
 
     python -m regrasp_mjx.compare --robustness --out experiments/results/robustness    # the table
     python experiments/robustness.py --docs experiments/results/robustness/robustness.json
+    python -m regrasp_mjx.compare --robustness --modes fused --conditions "camera: tools 0.5 mm,..." \
+        --out experiments/results/robustness --name camera                             # a real camera's rows
+    python experiments/robustness.py --camera experiments/results/robustness/camera.json \
+        --real-camera experiments/results/real_camera/real_camera.md      # and experiments/real_camera.py's tables
 
 ``--docs`` rewrites the generated robustness blocks of docs/results.md, docs/inference.md and
 experiments/RESULTS.md (``regrasp_mjx.inference.robustness_report.docs_blocks``: the default and ``exact``, each named
@@ -25,14 +29,32 @@ DOC_PAGES = {  # page -> the blocks it holds
     ROOT / "docs" / "inference.md": ("robot_summary",),
     ROOT / "experiments" / "RESULTS.md": ("tables", "robot"),
 }
+CAMERA_PAGES = {  # page -> the blocks of a real camera's rows (their own table file) it holds
+    ROOT / "docs" / "results.md": ("camera_summary",),
+    ROOT / "docs" / "inference.md": ("camera_summary",),
+    ROOT / "experiments" / "RESULTS.md": ("camera",),
+}
+REAL_CAMERA_PAGES = {ROOT / "docs" / "results.md": ("real_camera",)}  # experiments/real_camera.py's tables
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--docs", metavar="JSON", required=True, help="the table file (its NAME.json)")
+    p.add_argument("--docs", metavar="JSON", help="the table file (its NAME.json)")
+    p.add_argument("--camera", metavar="JSON", help="the table file of a real camera's rows")
+    p.add_argument("--real-camera", metavar="MD", help="experiments/real_camera.py's tables (its NAME.md)")
     args = p.parse_args(argv)
-    blocks = robustness_report.docs_blocks(json.loads(Path(args.docs).read_text())["tables"])
-    for page, kinds in DOC_PAGES.items():
+    if not (args.docs or args.camera or args.real_camera):
+        p.error("nothing to do: give --docs, --camera or --real-camera")
+    if args.docs:
+        rewrite(robustness_report.docs_blocks(json.loads(Path(args.docs).read_text())["tables"]), DOC_PAGES)
+    if args.camera:
+        rewrite(robustness_report.camera_blocks(json.loads(Path(args.camera).read_text())["tables"]), CAMERA_PAGES)
+    if args.real_camera:
+        rewrite({"real_camera": Path(args.real_camera).read_text().rstrip("\n").split("\n")}, REAL_CAMERA_PAGES)
+
+
+def rewrite(blocks: dict[str, list[str]], pages: dict[Path, tuple[str, ...]]) -> None:
+    for page, kinds in pages.items():
         text = page.read_text()
         for kind in kinds:
             text = robustness_report.replace_block(text, kind, blocks[kind])

@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         "--camera",
         choices=tuple(PRESETS),
         default=None,
-        help="a real camera's errors by name, in place of --noise-mm, --bias-mm and --tool-noise-mm: for the needle and "
+        help="a real camera's errors by name (they replace the needle and tool noise options): for the needle and "
         "each tool a bias per episode, a drift over frames and white noise, depth 2x (docs/inference.md)",
     )
     robot.add_argument(

@@ -23,6 +23,8 @@ from regrasp_mjx.world.sampling import load_testset
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = ROOT / "experiments" / "results" / "robustness" / "robustness.json"
+CAMERA_TABLE = ROOT / "experiments" / "results" / "robustness" / "camera.json"
+REAL_CAMERA = ROOT / "experiments" / "results" / "real_camera" / "real_camera.md"
 
 
 def _rows(episodes, rows):
@@ -186,6 +188,30 @@ def test_the_docs_robustness_blocks_are_the_table_file_rendered():
         assert robustness_report.replace_block(text, kind, blocks[kind]) == text, (
             f"{page} ({kind}): rerun experiments/robustness.py --docs"
         )
+    # a real camera's rows (their own table file) and experiments/real_camera.py's tables (issue 67)
+    camera = robustness_report.camera_blocks(json.loads(CAMERA_TABLE.read_text())["tables"])
+    camera["real_camera"] = REAL_CAMERA.read_text().rstrip("\n").split("\n")
+    pages = (
+        ("docs/results.md", "camera_summary"),
+        ("docs/inference.md", "camera_summary"),
+        ("experiments/RESULTS.md", "camera"),
+        ("docs/results.md", "real_camera"),
+    )
+    for page, kind in pages:
+        text = (ROOT / page).read_text()
+        assert robustness_report.replace_block(text, kind, camera[kind]) == text, (
+            f"{page} ({kind}): rerun experiments/robustness.py --camera ... --real-camera ..."
+        )
+
+
+def test_the_real_camera_rows_measured_the_shipped_policies():
+    """Issue 67: every shipped policy has a real camera's rows, measured on its file as it is now."""
+    tables = json.loads(CAMERA_TABLE.read_text())["tables"]
+    assert {t["policy"] for t in tables} == set(shipped_policies())
+    for t in tables:
+        assert robustness.policy_hash(t["policy"]) == t["policy_hash"], t["policy"]
+        assert {r["condition"] for r in t["rows"]} == robustness_report.CAMERA_NAMES, t["policy"]
+    assert f"hash {robustness.policy_hash('default')}" in REAL_CAMERA.read_text()
 
 
 def test_every_shipped_policy_has_the_robot_error_rows():

@@ -31,10 +31,12 @@ import math
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError, is_number, require
+from regrasp_mjx.world.scene import load_scene
 
 MAX_MM = 10.0  # the largest size accepted for each part (NeedleNoise's range)
 MAX_DRIFT_FRAMES = 3000.0  # 100 s at 30 frames per second
@@ -149,10 +151,6 @@ def preset(name: str) -> CameraErrors:
 def depth_axis() -> np.ndarray:
     """The scene camera's viewing axis in the e_g frame (a unit 3-vector): MuJoCo's cameras look
     along their frame's -z."""
-    import mujoco  # noqa: PLC0415  (the scene's model; kept out of the module's import for the lean path)
-
-    from regrasp_mjx.world.scene import load_scene  # noqa: PLC0415  (same)
-
     model = load_scene().model
     rot = np.zeros(9)
     mujoco.mju_quat2Mat(rot, model.cam_quat[0])

@@ -213,10 +213,12 @@ def measure(
         "time_out_rate": float(r["time_out"][valid].mean()),
         "wrong_stop_rate": float((r["stopped"][valid] & ~ok & ~collided).mean()),
         "steps": float(r["steps"][valid][ok].mean()) if ok.any() else None,
-        "frames_median": float(np.median(r["frames"][valid])),
-        "looked_mean": float(r["looked"][valid].mean()),
+        "frames_median": float(np.median(r["frames"][valid])) if valid.any() else None,
+        "looked_mean": float(r["looked"][valid].mean()) if valid.any() else None,
         # frames taken holding still (the warm-up, the looks, the last): at the endoscope's 30 per second
-        "still_s": [float(x) for x in np.percentile((r["frames"] - r["steps"])[valid] / FPS, (50, 95))],
+        "still_s": [float(x) for x in np.percentile((r["frames"] - r["steps"])[valid] / FPS, (50, 95))]
+        if valid.any()
+        else None,
     }
 
 

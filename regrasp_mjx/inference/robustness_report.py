@@ -130,6 +130,14 @@ def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_PO
         "tables": full[:-1],
         "robot": robot_block(tables),
         "robot_summary": robot_block([by_name[p] for p in ROBOT_DOC_POLICIES if p in by_name]),
+    }
+
+
+def camera_blocks(tables: list[dict[str, Any]]) -> dict[str, list[str]]:
+    """The docs' blocks of a real camera's rows (their own table file, ``camera.json``):
+    ``"camera"``, every policy that has them, and ``"camera_summary"``, the docs' two."""
+    by_name = {t["policy"]: t for t in tables}
+    return {
         "camera": camera_block(tables),
         "camera_summary": camera_block([by_name[p] for p in ROBOT_DOC_POLICIES if p in by_name]),
     }
