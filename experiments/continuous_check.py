@@ -29,10 +29,9 @@ import numpy as np
 from regrasp_mjx.core import geometry as g
 from regrasp_mjx.core.atomic import machine, write_results
 from regrasp_mjx.envs.estimates import NeedleNoise
-from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.inference.closed_loop_host import execute
 from regrasp_mjx.inference.policy import load_policy
-from regrasp_mjx.world.sampling import episode_needles, load_testset
+from regrasp_mjx.world.sampling import episode_needles, episode_poses, load_testset
 from regrasp_mjx.world.scene import load_scene
 
 

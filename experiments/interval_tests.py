@@ -22,10 +22,9 @@ import numpy as np
 
 from regrasp_mjx.core.atomic import machine, write_results
 from regrasp_mjx.envs.host import HostChecker, quat_conj, quat_from_rotvec, quat_mul, quat_to_rotvec
-from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.world import continuous
-from regrasp_mjx.world.sampling import load_testset
+from regrasp_mjx.world.sampling import episode_poses, load_testset
 
 BOUNDS = ("motion", "both")
 

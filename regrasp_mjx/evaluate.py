@@ -15,7 +15,7 @@ in equal chunks of at most
 ``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about. Planning runs on JAX's default device:
 ``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate`` times one CPU core.
 ``--agreement`` instead checks the two engines of ``Policy.plan`` against each other on every
-problem (:func:`engine_agreement`).
+problem (:func:`~regrasp_mjx.inference.testset_plans.engine_agreement`).
 """
 
 from __future__ import annotations
@@ -41,14 +41,7 @@ from regrasp_mjx.inference.policy import (
 )
 from regrasp_mjx.inference.queries import PoseError
 from regrasp_mjx.inference.robustness import check_condition
-from regrasp_mjx.inference.testset_plans import (  # noqa: F401 (re-exported)
-    BATCH_CHUNK,
-    VERDICTS,
-    engine_agreement,
-    evaluate,
-    outcomes,
-    plan_testset,
-)
+from regrasp_mjx.inference.testset_plans import BATCH_CHUNK, engine_agreement, evaluate
 from regrasp_mjx.robot.robot_errors import (
     MAX_CALIBRATION_DEG,
     MAX_CALIBRATION_MM,

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from regrasp_mjx.envs.host import HostChecker
-from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.workflows import analysis
+from regrasp_mjx.world.sampling import episode_poses
 from tests.conftest import ROOT
 
 RESULTS = ROOT / "experiments" / "results"

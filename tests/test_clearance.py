@@ -15,9 +15,9 @@ from regrasp_mjx import load_policy
 from regrasp_mjx.core.config import ConfigError, EnvConfig, SceneConfig
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.host import HostChecker
-from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.robot import dvrk
 from regrasp_mjx.world import true_needle
+from regrasp_mjx.world.sampling import episode_poses
 from regrasp_mjx.world.scene import load_scene
 
 

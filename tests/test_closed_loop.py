@@ -12,7 +12,7 @@ import pytest
 
 from regrasp_mjx import load_policy
 from regrasp_mjx.envs.estimates import NeedleNoise, episode_bias, frame_estimate
-from regrasp_mjx.evaluate import episode_poses
+from regrasp_mjx.world.sampling import episode_poses
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,9 @@ import pytest
 
 from regrasp_mjx import compare
 from regrasp_mjx.core.config import ConfigError
-from regrasp_mjx.evaluate import plan_testset
 from regrasp_mjx.inference import robustness, robustness_report
 from regrasp_mjx.inference.policy import load_policy
+from regrasp_mjx.inference.testset_plans import plan_testset
 from regrasp_mjx.world.testsets import make_testset
 
 

@@ -15,9 +15,8 @@ from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import GENERAL_TASK, ConfigError, EnvConfig, SceneConfig, TaskConfig
 from regrasp_mjx.envs import host
 from regrasp_mjx.envs.env import RegraspEnv
-from regrasp_mjx.evaluate import episode_needles, episode_poses
 from regrasp_mjx.inference.policy import PoseError, load_policy
-from regrasp_mjx.world.sampling import GENERAL1000, TestsetError, load_testset
+from regrasp_mjx.world.sampling import GENERAL1000, TestsetError, episode_needles, episode_poses, load_testset
 from regrasp_mjx.world.scene import load_scene, needle_scene
 from regrasp_mjx.world.testsets import make_testset
 from tests.conftest import PAPER_TESTSET, needle_model_redraws

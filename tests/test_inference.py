@@ -11,11 +11,10 @@ import pytest
 
 import regrasp_mjx
 from regrasp_mjx.envs import host
-from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.inference.grasps import GraspLibrary, pose_distance
 from regrasp_mjx.inference.policy import PoseError, load_policy
 from regrasp_mjx.train import DEFAULT_TESTSET
-from regrasp_mjx.world.sampling import load_testset
+from regrasp_mjx.world.sampling import episode_poses, load_testset
 
 
 @pytest.fixture(scope="module")
@@ -221,6 +220,7 @@ def test_evaluate_runs_a_batch_larger_than_a_chunk_in_chunks(tmp_path, capsys, m
     """A --batch-size beyond BATCH_CHUNK (a million ran out of memory, issue 46) is planned as equal
     chunks of at most that many queries, one call each, and its throughput counts every query."""
     from regrasp_mjx import evaluate
+    from regrasp_mjx.inference import testset_plans
     from regrasp_mjx.inference.policy import Policy
     from regrasp_mjx.world.sampling import save_testset
     from regrasp_mjx.world.testsets import make_testset
@@ -230,7 +230,7 @@ def test_evaluate_runs_a_batch_larger_than_a_chunk_in_chunks(tmp_path, capsys, m
     monkeypatch.setattr(
         Policy, "plan", lambda self, n, *a, **k: sizes.append(len(np.atleast_2d(n))) or plan(self, n, *a, **k)
     )
-    monkeypatch.setattr(evaluate, "BATCH_CHUNK", 12)
+    monkeypatch.setattr(testset_plans, "BATCH_CHUNK", 12)
     argv = ["--testset", str(tmp_path / "t.npz"), "--json", "--queries", "0", "--repeats", "1", "--batch-size", "36"]
     assert evaluate.main(argv) == 0
     r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -13,12 +13,12 @@ import pytest
 
 from regrasp_mjx.envs import lean_collision, lean_geometry
 from regrasp_mjx.envs.lean_geometry import nearest_grasp
-from regrasp_mjx.evaluate import engine_agreement
 from regrasp_mjx.inference import plans
 from regrasp_mjx.inference.grasps import GraspLibrary
 from regrasp_mjx.inference.plans import default_goal
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.queries import TASK_FIELDS, PoseError
+from regrasp_mjx.inference.testset_plans import engine_agreement
 from regrasp_mjx.world.sampling import episode_poses, load_testset
 from regrasp_mjx.world.testsets import make_testset
 

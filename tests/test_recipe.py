@@ -84,8 +84,9 @@ def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
         assert on_gpus[name].needs == ("choose",) and on_gpus[name].share * len(parts) <= 0.6 + 1e-9
         (mode,) = argv[argv.index("--modes") + 1].split(",")
         rows += [(c, mode) for c in argv[argv.index("--conditions") + 1].split(",")]
-    whole = [(c.name, m) for c in robustness.CONDITIONS + robustness.ROBOT_CONDITIONS for m in robustness.MODES
-             if c.modes is None or m in c.modes]  # fmt: skip
+    whole = [
+        (c.name, m) for c in robustness.ALL_CONDITIONS for m in robustness.MODES if c.modes is None or m in c.modes
+    ]
     order = {c: i for i, (c, _) in enumerate(whole)}
     assert sorted(rows, key=lambda r: order[r[0]]) == whole  # merge's stable sort by condition
     merge = on_gpus["report"].argv()
@@ -291,7 +292,7 @@ def test_export_writes_the_closed_loop_and_the_recipe_into_a_loadable_policy(tmp
         source, tmp_path / "policy", {"stop_tolerance": 0.9, "warmup_frames": 5}, "validation", provenance
     )
     policy = load_policy(tmp_path / "policy")
-    assert policy.closed_loop_defaults == {"stop_tolerance": 0.9, "warmup_frames": 5}
+    assert policy.closed_loop_defaults == {"stop_tolerance": 0.9, "warmup_frames": 5, "look_frames": 0}
     contract = json.loads((tmp_path / "policy" / "policy.json").read_text())
     assert contract["training"]["recipe"]["overrides"] == ["iterations=3"]
     assert set(contract["training"]["recipe"]["commit"]) == {"commit", "dirty"}

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.workflows import render
+from regrasp_mjx.world.sampling import episode_poses
 
 
 def _pose(ep, field, i):

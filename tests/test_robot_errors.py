@@ -15,7 +15,6 @@ from regrasp_mjx import load_policy
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.envs.estimates import NeedleNoise, camera_view, frame_estimate
-from regrasp_mjx.evaluate import episode_poses
 from regrasp_mjx.evaluate import main as evaluate_main
 from regrasp_mjx.robot import dvrk
 from regrasp_mjx.robot.robot_errors import (
@@ -29,6 +28,7 @@ from regrasp_mjx.robot.robot_errors import (
     propagate,
     readings,
 )
+from regrasp_mjx.world.sampling import episode_poses
 
 
 def _m(v):

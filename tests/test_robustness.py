@@ -19,6 +19,7 @@ from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import noisy_observation, seen_from
 from regrasp_mjx.inference import robustness, robustness_report
 from regrasp_mjx.inference.policy_file import shipped_policies
+from regrasp_mjx.inference.testset_plans import plan_testset
 from regrasp_mjx.world.sampling import load_testset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,7 +61,7 @@ def test_no_noise_reproduces_the_plan(paper_testset, mode):
     policy = load_policy()
     part = _rows(episodes, slice(0, 32))
     r = robustness.measure(policy, part, robustness.Condition("exact"), mode)
-    plan = evaluate.plan_testset(policy, part, shield=True)
+    plan = plan_testset(policy, part, shield=True)
     assert r["success_rate"] == pytest.approx(float(plan.success.mean()))
     assert r["problems_valid"] == 32 and r["wrong_stop_rate"] == 0.0
 
@@ -83,7 +84,7 @@ def test_a_general_policy_runs_the_closed_loop_on_its_own_needles():
     part = _rows(episodes, slice(0, 12))
     policy = load_policy("general")
     open_loop = robustness.measure(policy, part, robustness.Condition("exact"), "open")
-    plan = evaluate.plan_testset(policy, part, shield=True)
+    plan = plan_testset(policy, part, shield=True)
     assert open_loop["success_rate"] == pytest.approx(float(plan.success.mean()))
     fused = robustness.measure(policy, part, robustness.Condition("noisy", 0.25), "fused")
     assert fused["success_rate"] >= 0.75  # seen 1.0 on these rows; open loop at 0.25 mm fails more

@@ -143,20 +143,28 @@ def camera_blocks(tables: list[dict[str, Any]]) -> dict[str, list[str]]:
     }
 
 
+def _measured(tables: list[dict[str, Any]], names: frozenset[str]) -> tuple[list, str, str, str, int]:
+    """The tables that hold rows of ``names`` and what a block's first line says of them: the
+    policies and hashes, their problem sets, the machines (each table's last) and the seed."""
+    measured = [t for t in tables if any(r["condition"] in names for r in t["rows"])]
+    named = ", ".join(f"`{t['policy']}` {t['policy_hash']}" for t in measured)
+    problems = " or ".join(dict.fromkeys(t["problems"] for t in measured))
+    machines = ", ".join(sorted({t.get("machine", "?").split("; ")[-1] for t in measured}))
+    return measured, named, problems, machines, measured[0].get("seed", 0) if measured else 0
+
+
 def robot_block(tables: list[dict[str, Any]]) -> list[str]:
     """The robot-error rows (:data:`ROBOT_CONDITIONS`, fused closed loop) of the policies of
     ``tables`` that have them: calibration down, policies across, each cell ``kinematic / camera``
     success."""
-    measured = [t for t in tables if any(r["condition"] in ROBOT_NAMES for r in t["rows"])]
+    measured, named, problems, machines, seed = _measured(tables, ROBOT_NAMES)
     if not measured:
         return ["No policy's table holds the robot-error rows yet."]
-    named = ", ".join(f"`{t['policy']}` {t['policy_hash']}" for t in measured)
-    machines = sorted({t.get("machine", "?").split("; ")[-1] for t in measured})
     lines = [
-        f"Measured: {named}; {' or '.join(dict.fromkeys(t['problems'] for t in measured))} (each policy its own "
+        f"Measured: {named}; {problems} (each policy its own "
         f"test set); fused closed loop, shielded; needle and tool tracking noise "
-        f"0.25 mm, joint offsets up to 0.5 deg (mm) with a calibration error; {', '.join(machines)}; "
-        f"seed {measured[0].get('seed', 0)}. Each cell: success with the tools seen through their kinematics / by the camera.",
+        f"0.25 mm, joint offsets up to 0.5 deg (mm) with a calibration error; {machines}; "
+        f"seed {seed}. Each cell: success with the tools seen through their kinematics / by the camera.",
         "",
         "| calibration error of each arm | " + " | ".join(f"`{t['policy']}`" for t in measured) + " |",
         "| --- |" + " ---: |" * len(measured),
@@ -190,16 +198,14 @@ def camera_block(tables: list[dict[str, Any]]) -> list[str]:
     """A real camera's rows (:data:`~regrasp_mjx.inference.robustness.CAMERA_CONDITIONS`, fused
     closed loop, each policy's own settings) of the policies of ``tables`` that have them: the
     camera's errors down, policies across, each cell ``success (collisions / wrong stops)``."""
-    measured = [t for t in tables if any(r["condition"] in CAMERA_NAMES for r in t["rows"])]
+    measured, named, problems, machines, seed = _measured(tables, CAMERA_NAMES)
     if not measured:
         return ["No policy's table holds a real camera's rows yet."]
-    named = ", ".join(f"`{t['policy']}` {t['policy_hash']}" for t in measured)
-    machines = sorted({t.get("machine", "?").split("; ")[-1] for t in measured})
     lines = [
-        f"Measured: {named}; {' or '.join(dict.fromkeys(t['problems'] for t in measured))} (each policy its own "
+        f"Measured: {named}; {problems} (each policy its own "
         "test set); fused closed loop at each policy's own settings, shielded; the tools and the needle seen by the "
         "camera, calibration 5 mm / 3 deg of each arm, joint offsets up to 0.5 deg (mm); "
-        f"{', '.join(machines)}; seed {measured[0].get('seed', 0)}. Each cell: success (collisions / stopped short "
+        f"{machines}; seed {seed}. Each cell: success (collisions / stopped short "
         "of the true goal).",
         "",
         "| the camera's errors | " + " | ".join(f"`{t['policy']}`" for t in measured) + " |",
