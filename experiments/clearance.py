@@ -35,12 +35,11 @@ import numpy as np
 from regrasp_mjx.core.atomic import dumps, write_results
 from regrasp_mjx.envs import host
 from regrasp_mjx.envs.env import RegraspEnv
-from regrasp_mjx.evaluate import DEFAULT_TESTSET
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.planning.ompl_planner import PlannerConfig
 from regrasp_mjx.planning.pool import plan_all
 from regrasp_mjx.robot import dvrk, psm_joints
-from regrasp_mjx.world.sampling import episode_poses, load_testset
+from regrasp_mjx.world.sampling import DEFAULT_TESTSET, episode_poses, load_testset
 
 
 def clearance_stats(values: list[float]) -> dict:

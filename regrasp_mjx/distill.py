@@ -34,11 +34,10 @@ from regrasp_mjx.envs.estimates import evaluate_noisy
 from regrasp_mjx.envs.rollout import evaluate_actor, summarize
 from regrasp_mjx.inference.policy import Policy, PolicyError, load_policy, mean_action, save_policy
 from regrasp_mjx.inference.testset_plans import outcomes
-from regrasp_mjx.world.sampling import PAPER300, Episode, TestsetError, load_testset
+from regrasp_mjx.world.sampling import DEFAULT_TESTSET, Episode, TestsetError, load_testset
 from regrasp_mjx.world.testsets import make_testset
 
 VALIDATION_SEED = 2_000_003  # + the distillation seed; the learner's validation problems use 1_000_003 + seed
-DEFAULT_TESTSET = PAPER300
 
 
 def distill(

@@ -50,9 +50,7 @@ from regrasp_mjx.robot.robot_errors import (
     OBSERVE,
     RobotErrors,
 )
-from regrasp_mjx.world.sampling import PAPER300, TESTSETS, TestsetError, load_testset
-
-DEFAULT_TESTSET = PAPER300
+from regrasp_mjx.world.sampling import TESTSETS, TestsetError, load_testset
 
 
 def _agreement(policy, episodes, name: str, args: argparse.Namespace) -> int:

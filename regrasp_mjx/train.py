@@ -34,10 +34,10 @@ from regrasp_mjx.core.config import TASKS, ConfigError, parse_overrides
 from regrasp_mjx.core.host_loop import FolderInUse, folder_in_use, folder_lock, run_command
 from regrasp_mjx.inference.queries import PoseError, TaskRanges, TaskSpec
 from regrasp_mjx.planning.episodes import DemosError, load_demos
-from regrasp_mjx.workflows.trainer import DEFAULT_TESTSET, VALIDATION_SEED, Run, check_demos
-from regrasp_mjx.world.sampling import TestsetError, episode_needles, load_testset
+from regrasp_mjx.workflows.trainer import VALIDATION_SEED, Run, check_demos
+from regrasp_mjx.world.sampling import DEFAULT_TESTSET, TestsetError, episode_needles, load_testset
 
-__all__ = ["DEFAULT_TESTSET", "VALIDATION_SEED", "Run", "main"]
+__all__ = ["VALIDATION_SEED", "Run", "main"]
 
 
 # what a training run writes into OUT (besides files of others, e.g. a sweep's stdout)

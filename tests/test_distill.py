@@ -13,8 +13,7 @@ from regrasp_mjx.agents.dagger import DistillConfig, Distiller, teacher_actions
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.rollout import evaluate_actor
-from regrasp_mjx.train import DEFAULT_TESTSET
-from regrasp_mjx.world.sampling import load_testset
+from regrasp_mjx.world.sampling import DEFAULT_TESTSET, load_testset
 from regrasp_mjx.world.testsets import make_testset
 
 # paper300 rows where the earlier default (student_v2, the teacher here) alone collides, on its first

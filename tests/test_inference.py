@@ -13,8 +13,7 @@ import regrasp_mjx
 from regrasp_mjx.envs import host
 from regrasp_mjx.inference.grasps import GraspLibrary, pose_distance
 from regrasp_mjx.inference.policy import PoseError, load_policy
-from regrasp_mjx.train import DEFAULT_TESTSET
-from regrasp_mjx.world.sampling import episode_poses, load_testset
+from regrasp_mjx.world.sampling import DEFAULT_TESTSET, episode_poses, load_testset
 
 
 @pytest.fixture(scope="module")

@@ -37,11 +37,10 @@ from regrasp_mjx.envs.rollout import summarize
 from regrasp_mjx.inference.policy import load_policy, save_policy
 from regrasp_mjx.inference.testset_plans import outcomes
 from regrasp_mjx.planning.episodes import Demos, DemosError, check_made_for, load_demos
-from regrasp_mjx.world.sampling import PAPER300, load_testset
+from regrasp_mjx.world.sampling import load_testset
 from regrasp_mjx.world.testsets import make_testset
 
 VALIDATION_SEED = 1_000_003
-DEFAULT_TESTSET = PAPER300
 
 
 def _copy_policy(src: Path, dst: Path) -> None:

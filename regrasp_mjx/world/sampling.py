@@ -32,6 +32,7 @@ PAPER300 = Path(__file__).resolve().parents[1] / "data" / "paper300.npz"
 # `python -m regrasp_mjx.testset --task general --n 1000 --seed 2026` (experiments/testsets links to it).
 GENERAL1000 = Path(__file__).resolve().parents[1] / "data" / "general1000.npz"
 TESTSETS = {"paper300": PAPER300, "general1000": GENERAL1000}  # the shipped test sets, by name
+DEFAULT_TESTSET = PAPER300  # what every command reports on unless told (train, distill, evaluate, sweep)
 
 TESTSET_FORMAT = "regrasp_mjx.testset"
 TESTSET_VERSION = 1
