@@ -432,3 +432,26 @@ def test_gym_reset_names_a_bad_episode_option():
     for bad in (-1, None, "paper300"):
         with pytest.raises(ConfigError, match=r"options\['episode'\]=.* is not accepted: an Episode of 1 rows"):
             env.reset(options={"episode": bad})
+
+
+def test_one_closed_loop_step_refuses_a_bad_stop_tolerance_step_or_margin():
+    """Issue 70 defect 12: closed_loop_step's stop tolerance, step index and margin are checked."""
+    from regrasp_mjx import load_policy
+    from regrasp_mjx.core.config import ConfigError
+
+    policy = load_policy()
+    needle = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    ee = np.array([0.005, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    for kw, match in (
+        ({"stop_tolerance": 5.0}, r"stop_tolerance=5.0 is not accepted: a fraction in \(0, 1\]"),
+        ({"stop_tolerance": -1.0}, "stop_tolerance=-1.0 is not accepted"),
+        ({"stop_tolerance": float("nan")}, "stop_tolerance=nan is not accepted"),
+        ({"t": -1}, "t=-1 is not accepted: the step index, an integer >= 0"),
+        ({"t": 1e9}, "t=1000000000.0 is not accepted"),
+        ({"t": True}, "t=True is not accepted"),
+        ({"clearance_mm": float("inf")}, "clearance_mm=inf is not accepted"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            policy.closed_loop_step(needle, ee, **kw)
+    action, _, _ = policy.closed_loop_step(needle, ee, t=np.int64(3))  # a numpy step index is an integer too
+    assert action.shape == (6,)

@@ -11,7 +11,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.config import ConfigError, is_number
 from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.envs.camera_errors import CameraErrors
 from regrasp_mjx.envs.env import RegraspEnv
@@ -70,6 +70,12 @@ def closed_loop_step(
     query on the CPU (no ``clearance_mm``, ``t`` within the horizon) takes the lean numba step
     (:meth:`regrasp_mjx.inference.lean_planner.LeanPlanner.step`), anything else the jitted JAX program."""
     stop_tolerance = policy.closed_loop_defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
+    if not (is_number(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
+        raise ConfigError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
+    if not (isinstance(t, (int, np.integer)) and not isinstance(t, bool) and t >= 0):
+        raise ConfigError(f"t={t!r} is not accepted: the step index, an integer >= 0")
+    if not (is_number(clearance_mm) and 0.0 <= clearance_mm <= 1.0):
+        raise ConfigError(f"clearance_mm={clearance_mm!r} is not accepted: a finite number of mm in [0, 1]")
     spec = TaskSpec.of(task)
     (needle, ee), single = batch_poses(needle=needle, ee=ee)
     if single and not clearance_mm and 0 <= t < policy.env_config.horizon and auto_engine(1) == "lean":
