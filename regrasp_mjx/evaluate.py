@@ -319,9 +319,13 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
                 + (f"; the camera's errors {args.camera}" if args.camera else "")
                 + "; judged on the true poses)\n"
                 f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}"
-                f"  stopped short of the true goal {r['wrong_stop_rate']:.3f}\n"
-                f"  frames fused: median {r['frames_median']:g}, {r['looked_mean']:.1f} of them looked at while holding "
-                "still (mean)"
+                f"  stopped short of the true goal {r['wrong_stop_rate']:.3f}"
+                + (
+                    f"\n  frames fused: median {r['frames_median']:g}, {r['looked_mean']:.1f} of them looked at while "
+                    "holding still (mean)"
+                    if r["frames_median"] is not None  # None: no problem keeps the margin
+                    else ""
+                )
             )
         return 0
     r = evaluate(policy, episodes, args.queries, args.repeats, args.batch_size, shield=not args.no_shield)

@@ -177,22 +177,15 @@ def test_the_docs_robustness_blocks_are_the_table_file_rendered():
     """docs/results.md, docs/inference.md and experiments/RESULTS.md hold what
     `python experiments/robustness.py --docs experiments/results/robustness/robustness.json` writes."""
     blocks = robustness_report.docs_blocks(json.loads(TABLE.read_text())["tables"])
+    # a real camera's rows (their own table file) and experiments/real_camera.py's tables (issue 67)
+    blocks |= robustness_report.camera_blocks(json.loads(CAMERA_TABLE.read_text())["tables"])
+    blocks["real_camera"] = REAL_CAMERA.read_text().rstrip("\n").split("\n")
     pages = (
         ("docs/results.md", "summary"),
         ("docs/results.md", "robot_summary"),
         ("docs/inference.md", "robot_summary"),
         ("experiments/RESULTS.md", "tables"),
         ("experiments/RESULTS.md", "robot"),
-    )
-    for page, kind in pages:
-        text = (ROOT / page).read_text()
-        assert robustness_report.replace_block(text, kind, blocks[kind]) == text, (
-            f"{page} ({kind}): rerun experiments/robustness.py --docs"
-        )
-    # a real camera's rows (their own table file) and experiments/real_camera.py's tables (issue 67)
-    camera = robustness_report.camera_blocks(json.loads(CAMERA_TABLE.read_text())["tables"])
-    camera["real_camera"] = REAL_CAMERA.read_text().rstrip("\n").split("\n")
-    pages = (
         ("docs/results.md", "camera_summary"),
         ("docs/inference.md", "camera_summary"),
         ("experiments/RESULTS.md", "camera"),
@@ -200,8 +193,8 @@ def test_the_docs_robustness_blocks_are_the_table_file_rendered():
     )
     for page, kind in pages:
         text = (ROOT / page).read_text()
-        assert robustness_report.replace_block(text, kind, camera[kind]) == text, (
-            f"{page} ({kind}): rerun experiments/robustness.py --camera ... --real-camera ..."
+        assert robustness_report.replace_block(text, kind, blocks[kind]) == text, (
+            f"{page} ({kind}): rerun experiments/robustness.py (--docs, --camera, --real-camera)"
         )
 
 

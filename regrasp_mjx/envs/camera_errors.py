@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from regrasp_mjx.core import geometry
-from regrasp_mjx.core.config import ConfigError, is_number, require
+from regrasp_mjx.core.config import ConfigError, require_numbers
 from regrasp_mjx.world.scene import load_scene
 
 MAX_MM = 10.0  # the largest size accepted for each part (NeedleNoise's range)
@@ -58,13 +58,10 @@ class Tracking:
     deg_per_mm: float = DEG_PER_MM
 
     def __post_init__(self) -> None:
-        for name in ("bias_mm", "drift_mm", "white_mm"):
-            v = getattr(self, name)
-            require(is_number(v) and 0.0 <= v <= MAX_MM, name, v, f"a finite number of mm in [0, {MAX_MM:g}]")
-        v = self.drift_frames
-        require(is_number(v) and 1.0 <= v <= MAX_DRIFT_FRAMES, "drift_frames", v, "frames in [1, 3000]")
-        v = self.deg_per_mm
-        require(is_number(v) and 0.0 <= v <= 30.0, "deg_per_mm", v, "degrees per mm in [0, 30]")
+        sizes = ("bias_mm", "drift_mm", "white_mm")
+        require_numbers(self, sizes, lambda v: 0.0 <= v <= MAX_MM, f"a finite number of mm in [0, {MAX_MM:g}]")
+        require_numbers(self, ("drift_frames",), lambda v: 1.0 <= v <= MAX_DRIFT_FRAMES, "frames in [1, 3000]")
+        require_numbers(self, ("deg_per_mm",), lambda v: 0.0 <= v <= 30.0, "degrees per mm in [0, 30]")
 
     def rms_mm(self, depth_factor: float = 1.0) -> float:
         """The position error's root mean square over episodes and frames, all three axes together,
@@ -96,8 +93,7 @@ class CameraErrors:
         for name in ("needle", "tools"):
             if not isinstance(getattr(self, name), Tracking):
                 raise ConfigError(f"{name}={getattr(self, name)!r} is not accepted: a Tracking")
-        v = self.depth_factor
-        require(is_number(v) and 1.0 <= v <= MAX_DEPTH_FACTOR, "depth_factor", v, "a number in [1, 20]")
+        require_numbers(self, ("depth_factor",), lambda v: 1.0 <= v <= MAX_DEPTH_FACTOR, "a number in [1, 20]")
 
     @classmethod
     def of(cls, sigma_mm: float = 0.0, bias_mm: float = 0.0, tool_noise_mm: float = 0.0) -> CameraErrors:
@@ -246,10 +242,13 @@ def frame(key: jax.Array, pose: jax.Array, drift: jax.Array, p: jax.Array, depth
 
 def seen(keys, pose: jax.Array, drift: jax.Array, p: jax.Array, depth) -> jax.Array:
     """One frame of objects truly at ``pose`` ``[B, 7]`` under a tracking's numbers ``p``: the
-    bias (``keys[0]``, fixed per episode), then :func:`frame` (``keys[1]``, this frame's). Exactly
-    ``pose`` where every size is zero."""
-    out = frame(keys[1], biased(keys[0], pose, p[0], p[4], depth), drift, p, depth)
-    return jnp.where((p[0] > 0) | (p[1] > 0) | (p[3] > 0), out, pose)
+    bias (``keys[0]``, fixed per episode), then :func:`frame` (``keys[1]``, this frame's)."""
+    return frame(keys[1], biased(keys[0], pose, p[0], p[4], depth), drift, p, depth)
+
+
+def no_errors(p: jax.Array) -> jax.Array:
+    """Whether a tracking's numbers ``p`` have no bias, drift or white noise (its view is exact)."""
+    return (p[0] == 0) & (p[1] == 0) & (p[3] == 0)
 
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
@@ -273,5 +272,5 @@ def camera_frame(keys, needle: jax.Array, ee: jax.Array, drifts: jax.Array, p: j
     grasping = seen(keys[0], identity, drifts[:, :6], p, depth)
     regrasping = seen(keys[1], ee, drifts[:, 6:], p, depth)
     seen_needle, seen_ee = in_grasping_frame(grasping, needle, regrasping)
-    exact = (p[0] == 0) & (p[1] == 0) & (p[3] == 0)
+    exact = no_errors(p)
     return jnp.where(exact, needle, seen_needle), jnp.where(exact, ee, seen_ee)

@@ -158,7 +158,7 @@ def make_executor(
         biased = camera_errors.biased(jax.random.fold_in(key, horizon + 1), needle, pn[0], pn[4], depth)
         tool_bias = jax.random.split(jax.random.fold_in(k_tools, TOOLS_KEY), 2)
         q0 = first_readings(arms) if joints else None
-        exact_tools = jnp.broadcast_to((pt[0] == 0) & (pt[1] == 0) & (pt[3] == 0), (b,))
+        exact_tools = jnp.broadcast_to(camera_errors.no_errors(pt), (b,))
         k0 = jax.random.split(jax.random.fold_in(k_drift, TOOLS_KEY), 3)
         drift0 = jnp.concatenate([camera_errors.drift_start(k0[i], b, p) for i, p in enumerate((pn, pt, pt))], -1)
 
@@ -250,10 +250,11 @@ def make_executor(
             q = readings(arms, ee, state.info["readings"]) if joints else None
             # the rows that ended keep their counts (a row's frames are those it fused while live)
             info, frame_needle = fuse_frame(state.info, 0 if frames == "one" else t, ee, q, live)
-            seen, tool = seen_needle(info, frame_needle), info["ee_seen"]
-            stopping = _at_goal(env, _with_needle(state, seen, tool), seen, stop_tol)
+            seen = seen_needle(info, frame_needle)
+            viewed = _with_needle(state, seen, info["ee_seen"])
+            stopping = _at_goal(env, viewed, seen, stop_tol)
             if look:  # hold still and fuse frames while the spread leaves no room, at most `look` a look
-                near = _at_goal(env, _with_needle(state, seen, tool), seen, tuple(NEAR * x for x in stop_tol))
+                near = _at_goal(env, viewed, seen, tuple(NEAR * x for x in stop_tol))
                 first = (stopping & ~info["looked_stop"]) | (near & ~info["looked_near"])
                 want = live & (t < horizon) & first & unsure(info, stop_tol)
 
@@ -269,8 +270,8 @@ def make_executor(
                 info = jax.lax.while_loop(more, one_frame, (0, info, want))[1]
                 info["looked_near"] = info["looked_near"] | (live & near)
                 info["looked_stop"] = info["looked_stop"] | (live & stopping)
-                seen, tool = seen_needle(info, frame_needle), info["ee_seen"]
-                stopping = _at_goal(env, _with_needle(state, seen, tool), seen, stop_tol)
+                seen = seen_needle(info, frame_needle)
+                stopping = _at_goal(env, _with_needle(state, seen, info["ee_seen"]), seen, stop_tol)
             acting = live & ~stopping & (t < horizon)
             info = {**info, "needle_seen": seen, "acting": acting}
             if joints:
