@@ -1,9 +1,13 @@
-"""A policy under a real camera's errors (issue 67): the closed loop's look budget and stop tolerance
-chosen on validation problems of their own seed, then the policy's own settings and the chosen ones
-on the test sets, each at several noise seeds.
+"""A policy under a real camera's errors (issue 67): the closed loop's look budget, stop tolerance and
+jaw opening (the widest the jaws may open before the first move, and the margin in the view's known
+errors the opening keeps: regrasp_mjx/inference/jaw_opening.py) chosen on validation problems of
+their own seed, then the policy's own settings and the chosen ones on the test sets, each at several
+noise seeds.
 
     python experiments/real_camera.py --out experiments/results/real_camera
     python experiments/real_camera.py --policy runs/x/policy --looks 0,30 --stops 0.8 --heldout 300:5
+    python experiments/real_camera.py --looks 0,60 --stops 0.7 --jaws 20,40,60 --jaw-sigmas 1,2,3 \
+        --out experiments/results/jaw_opening
 
 The conditions are the robustness table's real-camera rows
 (:data:`regrasp_mjx.inference.robustness.CAMERA_CONDITIONS`: the tools and the needle seen by the
@@ -36,13 +40,33 @@ CONDITIONS = (BASELINE, *robustness.CAMERA_CONDITIONS)
 NOT_CHOSEN_FOR = "camera: needle bias 1.0 mm"
 
 
-def measure(policy, episodes, look: int, stop: float, seed: int, log=print) -> list[dict]:
+KNOBS = ("look_frames", "stop_tolerance", "jaw_deg", "jaw_sigmas")  # the closed loop's settings chosen here
+
+
+def measure(policy, episodes, setting: dict, seed: int, log=print) -> list[dict]:
     rows = []
     for c in CONDITIONS:
-        r = robustness.measure(policy, episodes, c, "fused", seed, look_frames=look, stop_tolerance=stop)
-        rows.append({**r, "look_frames": look, "stop_tolerance": stop})
-        log(dumps({k: rows[-1][k] for k in ("condition", "look_frames", "stop_tolerance", "seed", "success_rate")}))
+        r = robustness.measure(policy, episodes, c, "fused", seed, **setting)
+        rows.append({**r, **setting})
+        log(dumps({k: rows[-1][k] for k in ("condition", *KNOBS, "seed", "success_rate", "opened_rate")}))
     return rows
+
+
+def settings_grid(args, policy) -> list[dict]:
+    """Every setting to choose from; the jaw's margin only where the jaws may open."""
+    base = policy.env_config.scene.jaw_angle_deg
+    values = [[float(x) for x in v.split(",")] for v in (args.looks, args.stops, args.jaws, args.jaw_sigmas)]
+    grid = []
+    for look, stop, jaw, sigmas in itertools.product(*values):
+        g = {"look_frames": int(look), "stop_tolerance": stop, "jaw_deg": jaw, "jaw_sigmas": sigmas * (jaw > base)}
+        if g not in grid:
+            grid.append(g)
+    return grid
+
+
+def describe(knobs: dict) -> str:
+    jaw = f"jaws to {knobs['jaw_deg']:g} deg at {knobs['jaw_sigmas']:g} sd" if knobs["jaw_sigmas"] else "jaws kept"
+    return f"look {knobs['look_frames']}, stop {knobs['stop_tolerance']:g}, {jaw}"
 
 
 def chosen_score(rows: list[dict]) -> float:
@@ -54,6 +78,16 @@ def main() -> None:
     p.add_argument("--policy", default=None, help="policy folder or shipped name (default: the shipped one)")
     p.add_argument("--looks", default="0,20,40,60", help="look budgets to choose from (frames), comma-separated")
     p.add_argument("--stops", default="0.6,0.7,0.8", help="stop tolerances to choose from, comma-separated")
+    p.add_argument(
+        "--jaws", default="20", help="widest jaw openings to choose from (deg; 20 keeps the jaws), comma-separated"
+    )
+    p.add_argument(
+        "--start-jaw",
+        type=float,
+        default=None,
+        help="plan with the jaws at this opening where they are not opened (deg; e.g. 20 for a policy trained at 40)",
+    )
+    p.add_argument("--jaw-sigmas", default="2", help="the opening's margins in the view's errors, comma-separated")
     p.add_argument("--val-n", type=int, default=1000, help="validation problems")
     p.add_argument("--val-seed", type=int, default=7000017, help="their seed (never a test set's)")
     p.add_argument("--testset", default="paper300")
@@ -66,6 +100,8 @@ def main() -> None:
     p.add_argument("--name", default="real_camera")
     args = p.parse_args()
     policy = load_policy(args.policy)
+    if args.start_jaw is not None:
+        policy = policy.with_env(**{"scene.jaw_angle_deg": args.start_jaw})
     own = policy.closed_loop_defaults
     if args.validation:  # the choice made before (the validation problems are not run again)
         grid, best = (json.loads(Path(args.validation).read_text())[k] for k in ("grid", "best"))
@@ -73,22 +109,25 @@ def main() -> None:
     else:
         val = make_testset(args.val_n, args.val_seed, policy.env_config)
         grid = []
-        for look, stop in itertools.product([int(x) for x in args.looks.split(",")], map(float, args.stops.split(","))):
-            rows = measure(policy, val, look, stop, seed=1)
+        for setting in settings_grid(args, policy):
+            rows = measure(policy, val, setting, seed=1)
             frames = float(np.mean([r["frames_median"] for r in rows]))
-            grid.append({"look_frames": look, "stop_tolerance": stop, "score": chosen_score(rows), "frames": frames})
-        best = max(grid, key=lambda g: (round(g["score"], 6), -g["frames"]))
+            grid.append({**setting, "score": chosen_score(rows), "frames": frames})
+        best = max(grid, key=lambda g: (round(g["score"], 6), -g["frames"], -g["jaw_deg"]))
         write_results(args.out, f"{args.name}_validation", [dumps(g) for g in grid], {"grid": grid, "best": best})
+    kept = {"jaw_deg": policy.env_config.scene.jaw_angle_deg, "jaw_sigmas": 0.0}  # an earlier run's choice
     settings = {
-        "own": (own["look_frames"], own["stop_tolerance"]),
-        "chosen": (best["look_frames"], best["stop_tolerance"]),
+        "own": {k: own[k] for k in KNOBS},
+        "chosen": {k: best.get(k, kept.get(k)) for k in KNOBS},
     }
+    if settings["own"]["jaw_deg"] is None:  # the policy keeps its jaws
+        settings["own"].update(kept)
     n, _, seed = args.heldout.partition(":")
     sets = {args.testset: load_testset(args.testset)[0], f"held-out {n} (seed {seed})": make_testset(int(n), int(seed))}
     results = []
-    for (setting, (look, stop)), (set_name, episodes) in itertools.product(settings.items(), sets.items()):
+    for (setting, knobs), (set_name, episodes) in itertools.product(settings.items(), sets.items()):
         for s in [int(x) for x in args.seeds.split(",")]:
-            for r in measure(policy, episodes, look, stop, s):
+            for r in measure(policy, episodes, knobs, s):
                 results.append({**r, "setting": setting, "problems_name": set_name})
     lines = [
         f"Policy `{args.policy or 'default'}` (hash {robustness.policy_hash(args.policy)}) under a real camera's "
@@ -98,11 +137,11 @@ def main() -> None:
         f"Chosen on {args.val_n} validation problems (seed {args.val_seed}), mean success over the rows but "
         f"'{NOT_CHOSEN_FOR}':",
         "",
-        "| look frames | stop tolerance | mean success | frames fused, median |",
-        "| ---: | ---: | ---: | ---: |",
+        "| look frames | stop tolerance | jaw, widest (deg) | jaw margin (sd) | mean success | frames fused, median |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: |",
         *(
-            f"| {g['look_frames']} | {g['stop_tolerance']:g} | {'**' if g is best else ''}{g['score']:.3f}"
-            f"{'**' if g is best else ''} | {g['frames']:.0f} |"
+            f"| {g['look_frames']} | {g['stop_tolerance']:g} | {g['jaw_deg']:g} | {g['jaw_sigmas']:g} | "
+            f"{'**' if g is best else ''}{g['score']:.3f}{'**' if g is best else ''} | {g['frames']:.0f} |"
             for g in grid
         ),
     ]
@@ -111,13 +150,13 @@ def main() -> None:
         lines += [
             "",
             f"{set_name}, noise seeds {seeds}: success mean (min-max over seeds); collisions / stopped short of the "
-            "true goal (means); time holding still, median / p95 (s, the worse seed). Own: look "
-            f"{settings['own'][0]}, stop {settings['own'][1]:g}; chosen: look {settings['chosen'][0]}, stop "
-            f"{settings['chosen'][1]:g}.",
+            "true goal (means; the opening sweep's collisions, a part of them, after the slash); jaws opened "
+            "(mean share); time holding still, median / p95 (s, the worse seed). Own: "
+            f"{describe(settings['own'])}; chosen: {describe(settings['chosen'])}.",
             "",
             "| the camera's errors | own: success | own: coll. / wrong stop | own: still (s) | chosen: success "
-            "| chosen: coll. / wrong stop | chosen: still (s) |",
-            "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+            "| chosen: coll. (opening) / wrong stop | chosen: opened | chosen: still (s) |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
         ]
         for c in CONDITIONS:
             cells = []
@@ -131,11 +170,14 @@ def main() -> None:
                 coll = np.mean([r["collision_rate"] for r in rs])
                 wrong = np.mean([r["wrong_stop_rate"] for r in rs])
                 still = max((r["still_s"] for r in rs), key=lambda x: x[1])
-                cells += [
-                    f"{np.mean(ok):.3f} ({min(ok):.3f}-{max(ok):.3f})",
-                    f"{coll:.3f} / {wrong:.3f}",
-                    f"{still[0]:.2f} / {still[1]:.2f}",
-                ]
+                opening = np.mean([r["opening_collision_rate"] for r in rs])
+                opened = np.mean([r["opened_rate"] for r in rs])
+                cells += [f"{np.mean(ok):.3f} ({min(ok):.3f}-{max(ok):.3f})"]
+                if setting == "own":
+                    cells += [f"{coll:.3f} / {wrong:.3f}"]
+                else:
+                    cells += [f"{coll:.3f} ({opening:.3f}) / {wrong:.3f}", f"{opened:.2f}"]
+                cells += [f"{still[0]:.2f} / {still[1]:.2f}"]
             lines.append(f"| {c.name.removeprefix('camera: ')} | " + " | ".join(cells) + " |")
     print("\n".join(lines))
     write_results(args.out, args.name, lines, {"grid": grid, "best": best, "settings": settings, "rows": results})

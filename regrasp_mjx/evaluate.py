@@ -113,6 +113,8 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
             f"--look-frames {args.look_frames} is not accepted: an integer in [0, {MAX_LOOK}], with --closed-loop "
             "(fused frames, not --per-frame)"
         )
+    if (args.jaw_deg is not None or args.jaw_sigmas is not None) and not args.closed_loop:
+        p.error("--jaw-deg and --jaw-sigmas are not accepted without --closed-loop")
     if args.agreement and (args.robustness or args.noise_mm or args.bias_mm or args.closed_loop or robot):
         p.error("--agreement is not accepted with --robustness, --noise-mm, --bias-mm, --closed-loop or a robot error")
     if args.per_frame and not args.closed_loop:
@@ -179,6 +181,20 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="with --closed-loop: before the last moves and before stopping, hold still and fuse up to this many frames "
         "while the estimate is too uncertain to stop on (default: the policy's own; 0: never)",
+    )
+    p.add_argument(
+        "--jaw-deg",
+        type=float,
+        default=None,
+        help="with --closed-loop: open the regrasping jaws before the first move, as wide as this (deg, up to the "
+        "LND's 80) where the view leaves room (default: the policy's own; its scene's opening: never)",
+    )
+    p.add_argument(
+        "--jaw-sigmas",
+        type=float,
+        default=None,
+        help="with --jaw-deg: the room the opening keeps, in standard deviations of the view's known error "
+        "(default: the policy's own, 2)",
     )
     robot = p.add_argument_group(
         "the robot's errors (each fixed per episode and independent per arm; judged on the true poses)"
@@ -298,6 +314,7 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
             args.observe,
             camera=camera,
         )
+        closed_loop = {"look_frames": args.look_frames, "jaw_deg": args.jaw_deg, "jaw_sigmas": args.jaw_sigmas}
         r = robustness.measure(
             policy,
             episodes,
@@ -305,7 +322,7 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
             mode,
             args.seed,
             shield=not args.no_shield,
-            **({} if args.look_frames is None else {"look_frames": args.look_frames}),
+            **{k: v for k, v in closed_loop.items() if v is not None},
         )
         r.update(policy=name, testset=args.testset)
         if args.json:
@@ -324,6 +341,12 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
                     f"\n  frames fused: median {r['frames_median']:g}, {r['looked_mean']:.1f} of them looked at while "
                     "holding still (mean)"
                     if r["frames_median"] is not None  # None: no problem keeps the margin
+                    else ""
+                )
+                + (
+                    f"\n  jaws opened before the first move: {r['opened_rate']:.3f} of the problems; opening sweeps "
+                    f"not clear on the truth: {r['opening_collision_rate']:.3f}"
+                    if r["opened_rate"]
                     else ""
                 )
             )

@@ -100,6 +100,14 @@ class CameraErrors:
         """Today's model: the needle's frame noise and bias (``NeedleNoise``), white tool noise."""
         return cls(Tracking(bias_mm=bias_mm, white_mm=sigma_mm), Tracking(white_mm=tool_noise_mm))
 
+    def relative_sd_mm(self, frames: int) -> float:
+        """The standard deviation (mm) along the camera axis of the needle's position relative to the
+        regrasping tool in a view of ``frames`` fused frames: the needle's and both tools' errors (the
+        needle is placed relative to the grasping tool), each bias's per-axis spread ``b / sqrt(3)``
+        included (fixed per episode, but unknown), stretched by the depth factor."""
+        var = sum(t.bias_mm**2 / 3.0 + t.fused_sd_mm(frames) ** 2 for t in (self.needle, self.tools, self.tools))
+        return self.depth_factor * math.sqrt(var)
+
     def numbers(self) -> tuple[float, ...]:
         """The jitted programs' argument: the needle's, then the tools' numbers, then the depth factor."""
         return self.needle.numbers() + self.tools.numbers() + (self.depth_factor,)

@@ -128,7 +128,8 @@ def make_executor(
     ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on the true
     needle), ``time_out`` (no stop within the horizon), ``stopped`` (the view said the goal was
     reached), ``steps``, ``frames`` (every frame fused: warm-up, one per step, looked),
-    ``looked`` (the frames spent looking) and ``poses`` ``[B, horizon + 1, 7]`` (true). The loop is
+    ``looked`` (the frames spent looking), ``start_seen`` ``[B, 14]`` (the needle and the tool as the
+    view showed them when the first move was decided) and ``poses`` ``[B, horizon + 1, 7]`` (true). The loop is
     :func:`regrasp_mjx.envs.rollout.rollout` with a stopping rule (the view's) and the policy acting on
     the view."""
     if frames not in FRAMES:
@@ -234,6 +235,7 @@ def make_executor(
             "looked_near": jnp.zeros(b, bool),
             "looked_stop": jnp.zeros(b, bool),
             "acting": jnp.ones(b, bool),
+            "start_seen": jnp.concatenate([needle, ee0], -1),
         }
         if joints:
             info["readings"] = q0
@@ -273,7 +275,9 @@ def make_executor(
                 seen = seen_needle(info, frame_needle)
                 stopping = _at_goal(env, _with_needle(state, seen, info["ee_seen"]), seen, stop_tol)
             acting = live & ~stopping & (t < horizon)
-            info = {**info, "needle_seen": seen, "acting": acting}
+            # the view the first move is made on: what the jaw's opening is decided from (closed_loop_host)
+            start_seen = jnp.where(t == 0, jnp.concatenate([seen, info["ee_seen"]], -1), info["start_seen"])
+            info = {**info, "needle_seen": seen, "acting": acting, "start_seen": start_seen}
             if joints:
                 info["readings"] = q
             return state.replace(info=info), stopping, _at_goal(env, state, needle)
@@ -309,6 +313,7 @@ def make_executor(
             "steps": out.steps.astype(jnp.int32),
             "frames": info["frames"].astype(jnp.int32),
             "looked": info["looked"].astype(jnp.int32),
+            "start_seen": info["start_seen"],
             "poses": poses,
         }
 

@@ -16,6 +16,7 @@ from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.envs.camera_errors import CameraErrors
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import NeedleNoise
+from regrasp_mjx.inference import jaw_opening
 from regrasp_mjx.inference.closed_loop import FRAMES, MAX_LOOK, make_executor, make_stepper, tolerances
 from regrasp_mjx.inference.planner import members_apply
 from regrasp_mjx.inference.plans import auto_engine, checked_goals
@@ -112,6 +113,8 @@ def execute(
     observe: str = "camera",
     camera: CameraErrors | str | None = None,
     look_frames: int | None = None,
+    jaw_deg: float | None = None,
+    jaw_sigmas: float | None = None,
     **task: Any,
 ) -> dict[str, np.ndarray]:
     """Simulates regrasping under needle-pose noise on true needle, start and goal poses ``[B, 7]``
@@ -137,9 +140,15 @@ def execute(
     ``"fused"``, the frames a row holds still to fuse before its last moves and before it declares
     the goal reached, at most, while its estimate is too uncertain to stop on (:func:`make_executor`'s
     ``look``; None: the policy's own, else 0: no looking).
+    ``jaw_deg``: the widest the loop may open the regrasping jaws to before the first move, where the
+    view leaves ``jaw_sigmas`` times its known error (:meth:`CameraErrors.relative_sd_mm` after the
+    warm-up) around the opening sweep (:mod:`regrasp_mjx.inference.jaw_opening`; None: the policy's
+    own, else its scene's opening: no opening).
     ``task``: the goal grasp and needle keywords (a general policy's ranges). Returns
     numpy arrays per row: ``success``, ``collision``, ``time_out``, ``stopped``, ``steps``,
-    ``frames`` (fused: warm-up, one a step, looked), ``looked``, ``start_valid``, ``poses``."""
+    ``frames`` (fused: warm-up, one a step, looked), ``looked``, ``start_valid``, ``start_seen``,
+    ``jaw_deg`` (the row's opening), ``opening_collision`` (its sweep not proved clear on the
+    truth: counted in ``collision``), ``poses``."""
     noise = NeedleNoise() if noise is None else noise
     robot = RobotErrors() if robot is None else robot
     if not isinstance(noise, NeedleNoise):
@@ -175,14 +184,20 @@ def execute(
         raise ConfigError(f"warmup_frames={warmup_frames!r} is not accepted: an integer >= 1")
     if not (math.isfinite(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
         raise ConfigError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
+    jaw_deg, jaw_sigmas = jaw_opening.check(policy, jaw_deg, jaw_sigmas)
     needle, start, goal, radii, _ = _estimate_inputs(policy, needle, "start", start, goal, TaskSpec.of(task))
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     warmup = int(warmup_frames) if frames == "fused" else 1
     joints = robot.joint_offset > 0
-    # the stop tolerance is an argument (1.0 in the key)
-    run = _program(policy, "execute", shield, frames, float(clearance_mm), 1.0, warmup, observe, joints, look_frames)
     key = jax.random.PRNGKey(seed)
     errors = tuple(f32(v) for v in (robot.calibration_mm, robot.calibration_deg, robot.joint_offset))
     stop = tuple(f32(x) for x in tolerances(policy.env_config, float(stop_tolerance)))
-    out = run(f32(needle), f32(start), f32(goal), key, f32(camera.numbers()), f32(radii), errors, stop)
-    return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
+
+    def one_pass(p) -> dict[str, np.ndarray]:
+        # the stop tolerance is an argument (1.0 in the key)
+        run = _program(p, "execute", shield, frames, float(clearance_mm), 1.0, warmup, observe, joints, look_frames)
+        out = run(f32(needle), f32(start), f32(goal), key, f32(camera.numbers()), f32(radii), errors, stop)
+        return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
+
+    margin_mm = jaw_sigmas * camera.relative_sd_mm(warmup)
+    return jaw_opening.execute_opened(one_pass, policy, needle, start, radii, jaw_deg, margin_mm)

@@ -162,18 +162,21 @@ def untrained_policy(
 
 
 # a closed loop's settings where a policy file names none (regrasp_mjx.inference.closed_loop_host.execute)
-DEFAULT_STOP, DEFAULT_WARMUP, DEFAULT_LOOK = 0.7, 10, 0
+DEFAULT_STOP, DEFAULT_WARMUP, DEFAULT_LOOK, DEFAULT_JAW_SIGMAS = 0.7, 10, 0, 2.0
 
 
 def closed_loop_settings(contract: dict[str, Any]) -> dict[str, Any]:
-    """A policy's closed-loop settings: ``stop_tolerance``, ``warmup_frames`` and ``look_frames`` from
-    its file's ``closed_loop`` entry (chosen for it on validation problems), else
-    :data:`DEFAULT_STOP`, :data:`DEFAULT_WARMUP` and :data:`DEFAULT_LOOK` (no looking)."""
+    """A policy's closed-loop settings: ``stop_tolerance``, ``warmup_frames``, ``look_frames``,
+    ``jaw_deg`` and ``jaw_sigmas`` from its file's ``closed_loop`` entry (chosen for it on
+    validation problems), else :data:`DEFAULT_STOP`, :data:`DEFAULT_WARMUP`, :data:`DEFAULT_LOOK` (no
+    looking), None (the jaws kept at the scene's opening) and :data:`DEFAULT_JAW_SIGMAS`."""
     given = contract.get("closed_loop") or {}
     return {
         "stop_tolerance": float(given.get("stop_tolerance", DEFAULT_STOP)),
         "warmup_frames": int(given.get("warmup_frames", DEFAULT_WARMUP)),
         "look_frames": int(given.get("look_frames", DEFAULT_LOOK)),
+        "jaw_deg": None if given.get("jaw_deg") is None else float(given["jaw_deg"]),
+        "jaw_sigmas": float(given.get("jaw_sigmas", DEFAULT_JAW_SIGMAS)),
     }
 
 

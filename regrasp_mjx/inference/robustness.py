@@ -215,6 +215,11 @@ def measure(
         "steps": float(r["steps"][valid][ok].mean()) if ok.any() else None,
         "frames_median": float(np.median(r["frames"][valid])) if valid.any() else None,
         "looked_mean": float(r["looked"][valid].mean()) if valid.any() else None,
+        # the jaws opened before the first move (inference/jaw_opening.py): rows opened, sweeps not clear
+        "opened_rate": float((r["jaw_deg"][valid] > policy.env_config.scene.jaw_angle_deg).mean())
+        if valid.any()
+        else None,
+        "opening_collision_rate": float(r["opening_collision"][valid].mean()) if valid.any() else None,
         # frames taken holding still (the warm-up, the looks, the last): at the endoscope's 30 per second
         "still_s": [float(x) for x in np.percentile((r["frames"] - r["steps"])[valid] / FPS, (50, 95))]
         if valid.any()

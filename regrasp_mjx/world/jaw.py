@@ -1,0 +1,107 @@
+"""The regrasping tool's jaw opening: the jaws at another opening, and a proof that opening them
+from the scene's angle to a wider one, the tool holding still, sweeps clear of the needle and the
+grasping tool.
+
+The scene fixes the opening (``SceneConfig.jaw_angle_deg``, 20 degrees; MJCF capsules from the jaw
+pivot, the hinge the end-effector's x axis). Opening the jaws by ``d`` degrees turns each jaw
+capsule by ``d / 2`` about that hinge, away from the other jaw. Between two openings ``delta``
+apart, every angle is within ``delta / 4`` of half-angle of one of them, so every point of a jaw
+(at most :func:`jaw_reach` from the hinge) within ``reach * delta / 4`` of where it is at that
+opening: an opening whose sampled angles all keep more than that is clear at every angle between
+them, not only at the samples (the capsule distance moves no faster than its end points).
+
+The Large Needle Driver opens to 80 degrees (jhu-dvrk/sawIntuitiveResearchKit,
+``share/tool/LARGE_NEEDLE_DRIVER_400006.json``: jaw qmax 1.39626 rad); the dVRK's teleoperation
+moves the jaw at most 2 pi rad/s (jhu-dvrk's Python ``teleoperation``: ``jaw_rate``), the speed
+:data:`JAW_RATE_DEG_S` the timed trajectory opens it with.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from regrasp_mjx.core.geometry import rotation_matrix, segment_distance
+from regrasp_mjx.world.scene import REGRASP_JAWS, Scene
+
+JAW_MAX_DEG = 80.0  # the LND's widest opening
+JAW_RATE_DEG_S = math.degrees(2.0 * math.pi)  # how fast the dVRK moves a jaw
+SAMPLE_DEG = 1.0  # the sweep's check points, in degrees of opening
+
+
+def jaw_rows(scene: Scene) -> np.ndarray:
+    """The jaw capsules' rows in ``scene.capsule_frames.tool_ends``."""
+    ids = [scene.model.geom(name).id for name in REGRASP_JAWS]
+    return np.array([scene.capsule_frames.tool_ids.index(i) for i in ids])
+
+
+def jaw_reach(scene: Scene) -> float:
+    """The farthest a jaw capsule's axis reaches from the hinge (the end-effector's x axis) [m]."""
+    ends = scene.capsule_frames.tool_ends[jaw_rows(scene)]
+    return float(np.linalg.norm(ends[..., 1:], axis=-1).max())
+
+
+def opened_ends(scene: Scene, deg: float) -> np.ndarray:
+    """``scene.capsule_frames.tool_ends`` ``[T, 2, 3]`` with the jaws opened to ``deg`` (each turned by
+    half the change about the hinge, away from the other; a smaller angle closes them)."""
+    ends = np.array(scene.capsule_frames.tool_ends, np.float64)
+    half = math.radians(deg - scene.config.jaw_angle_deg) / 2.0
+    for row in jaw_rows(scene):
+        side = np.sign(ends[row, :, 1].sum())  # the jaw on +y opens towards +y
+        c, s = math.cos(side * half), math.sin(side * half)
+        y, z = ends[row, :, 1].copy(), ends[row, :, 2].copy()
+        ends[row, :, 1], ends[row, :, 2] = c * y + s * z, -s * y + c * z
+    return ends
+
+
+def sample_angles(base_deg: float, widest_deg: float, step_deg: float = SAMPLE_DEG) -> np.ndarray:
+    """The openings a sweep from ``base_deg`` to ``widest_deg`` is checked at: both ends and every
+    ``step_deg`` between (float64 degrees)."""
+    n = max(1, math.ceil((widest_deg - base_deg) / step_deg - 1e-9))
+    return np.linspace(base_deg, widest_deg, n + 1)
+
+
+def opening_fn(scene: Scene, widest_deg: float, step_deg: float = SAMPLE_DEG) -> tuple[np.ndarray, Callable]:
+    """``(angles, fn)``: :func:`sample_angles` from the scene's opening to ``widest_deg`` and the jitted
+    ``fn(needle_pos, needle_quat, ee_pos, ee_quat, radius, wire) -> [B, len(angles)]`` (``[B, 7]``
+    poses in e_g as ``[B, 3]`` and ``[B, 4]``, each row's needle radius and wire [m]): each row's
+    smallest clearance [m] between a jaw at that opening and the needle or the grasping tool, less
+    the sweep's slack (how far a jaw point moves between check points, ``reach * step / 4``). Every
+    value of a prefix >= 0 proves the jaws open clear from the scene's angle to that prefix's last
+    angle, the tool holding still."""
+    if not scene.config.jaw_angle_deg <= widest_deg <= JAW_MAX_DEG:
+        raise ValueError(
+            f"jaw opening {widest_deg!r} deg is not accepted: from the scene's {scene.config.jaw_angle_deg} "
+            f"to the LND's {JAW_MAX_DEG} deg"
+        )
+    angles = sample_angles(scene.config.jaw_angle_deg, widest_deg, step_deg)
+    rows = jaw_rows(scene)
+    jaws = jnp.asarray(np.stack([opened_ends(scene, a)[rows] for a in angles]), jnp.float32)  # [A, J, 2, 3]
+    radii = jnp.asarray(scene.capsule_frames.tool_radii[rows], jnp.float32)
+    slack = jaw_reach(scene) * math.radians(float(angles[1] - angles[0]) if len(angles) > 1 else 0.0) / 4.0
+    others = scene.motion_distance_fn()[0]
+
+    def one(needle_pos, needle_quat, ee_pos, ee_quat, radius, wire):
+        ends, other_radii = others(needle_pos, needle_quat, radius, wire)  # [1, O, 2, 3], [O]
+        placed = ee_pos + jnp.sum(rotation_matrix(ee_quat) * jaws[..., None, :], axis=-1)  # [A, J, 2, 3]
+        a, b = placed[:, :, None], ends[None]  # [A, J, 1, 2, 3] against [1, 1, O, 2, 3]
+        gap = segment_distance(a[..., 0, :], a[..., 1, :], b[..., 0, :], b[..., 1, :])
+        clearance = gap - radii[None, :, None] - other_radii[None, None, :]
+        return jnp.min(clearance, axis=(1, 2)) - slack
+
+    return angles, jax.jit(jax.vmap(one))
+
+
+def widest_clear(angles: np.ndarray, clearance: np.ndarray, rungs: np.ndarray, margin: float) -> np.ndarray:
+    """Each row's widest of ``rungs`` (degrees, ascending, the first the scene's opening) whose sweep
+    keeps ``margin`` [m] at every check point up to it (``clearance`` ``[B, len(angles)]``,
+    :func:`opening_fn`'s); the first rung where none does."""
+    kept = np.minimum.accumulate(np.asarray(clearance) >= margin, axis=1)  # [B, A]: clear up to each angle
+    index = np.searchsorted(angles, np.asarray(rungs) - 1e-9)  # each rung's check point
+    ok = kept[:, index]
+    ok[:, 0] = True  # the scene's own opening: the start as given
+    return np.asarray(rungs, np.float64)[ok.sum(axis=1) - 1]  # ok is True up to a rung, then False
