@@ -92,3 +92,17 @@ def member_actions(kernels, biases, layers, mean, std, obs, work, rows, own):
             _hidden(x, kernels[m * layers + k], biases[m * layers + k], out, rows)
             x = out
         _output(x, kernels[m * layers + layers - 1], biases[m * layers + layers - 1], own[m])
+
+
+@njit(cache=True)
+def buffers(mean, biases):
+    """What a step of the network and the shield write into, made once per query: the observation,
+    the layers' work rows, the members' own actions, the action and a candidate."""
+    width = max(mean.shape[1], biases[0].shape[0])
+    for b in biases:
+        width = max(width, b.shape[0])
+    obs = np.empty(mean.shape[1], np.float32)
+    work = np.zeros((3, width), np.float32)
+    rows = np.empty(width, np.int64)
+    own = np.empty((mean.shape[0], 6), np.float32)
+    return obs, work, rows, own, np.empty(6, np.float32), np.empty(6, np.float32)

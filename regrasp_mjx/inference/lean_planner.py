@@ -35,15 +35,50 @@ from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.lean_collision import Capsules, capsules, collides, fixed_ends, make_scratch, motion_collides
 from regrasp_mjx.envs.lean_geometry import angle, canonical, goal_pose, nearest_grasp, qexp, qmul, relative, unit
 from regrasp_mjx.envs.shield import candidate_noise, step_key
-from regrasp_mjx.inference.lean_network import member_actions, observe
+from regrasp_mjx.inference.lean_network import buffers, member_actions, observe
 
 # ---- the step and the rollout (regrasp_mjx.envs.env.RegraspEnv.step, regrasp_mjx.envs.rollout.rollout) -----
 
 
+class _Setup(NamedTuple):
+    """What every step of one query reads and nothing in it changes, made once per query by
+    :func:`_setup` in compiled code (numba builds and passes a named tuple there natively; only one
+    passed in from Python is typed field by field, hence the plain-tuple state)."""
+
+    net: tuple  # (kernels, biases, layers, mean, std) of the members
+    geo: lean_collision.Capsules
+    consts: np.ndarray  # max_dp, max_drot, clearance, success tolerances [m, rad]
+    fixed: lean_collision.Fixed  # the query's needle and grasping tool placed
+    scratch: tuple  # make_scratch's arrays
+    general: bool
+    shield: bool
+    needle: tuple  # (p, q): position and unit quaternion, tuples of float32 values
+    goal: tuple
+    goal_in_needle: tuple  # the goal in the needle's frame
+    radii: tuple  # the needle's radius and wire radius [m]
+    buffers: tuple  # lean_network.buffers': what a step of the network and the shield write into
+
+
 @njit(cache=True)
-def _step(geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, action):
-    """One step of the float32 ``action``: the new pose, whether the swept motion collides, whether
-    it reached the goal, and its translation [m]."""
+def _setup(state, needle, goal, radii):
+    """:class:`_Setup` of one query: the state (:attr:`LeanPlanner.state`), the needle's and the
+    goal's poses ``[7]`` and the radii ``[2]`` [m], each rounded to float32 as the JAX path takes them."""
+    net, geo, consts, _, varies, general, _, shield = state
+    geo = Capsules(*geo)
+    radii = (_f32(radii[0]), _f32(radii[1]))
+    needle, goal = _pose(needle), _pose(goal)
+    fixed = fixed_ends(geo, varies, *needle, *radii)
+    goal_in_needle = relative(*goal, *needle)
+    scratch, work = make_scratch(geo.tool_local), buffers(net[3], net[1])
+    return _Setup(net, geo, consts, fixed, scratch, general, shield, needle, goal, goal_in_needle, radii, work)
+
+
+@njit(cache=True)
+def _step(s, ee_p, ee_q, action):
+    """One step of the float32 ``action`` from the pose ``ee`` (``s``: the query's :class:`_Setup`):
+    the new pose, whether the swept motion collides, whether it reached the goal, and its
+    translation [m]."""
+    consts, scratch, (gn_p, gn_q) = s.consts, s.scratch, s.goal_in_needle
     max_dp, max_drot, clearance, tol_pos, tol_rot = consts[0], consts[1], consts[2], consts[3], consts[4]
     # the action clipped; the JAX path steps it in float32
     lo, hi = np.float32(-1.0), np.float32(1.0)
@@ -57,10 +92,10 @@ def _step(geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_
     quat = qmul(qexp(wx, wy, wz), ee_q)
     # the whole motion proved clear, not sampled poses (regrasp_mjx.world.continuous)
     collision = motion_collides(
-        geo, fixed, ee_p, ee_q, (dx, dy, dz), (wx, wy, wz), clearance, scratch[0], scratch[1], scratch[2]
+        s.geo, s.fixed, ee_p, ee_q, (dx, dy, dz), (wx, wy, wz), clearance, scratch[0], scratch[1], scratch[2]
     )
     quat = canonical(quat)
-    p, q = relative(pos, quat, needle_p, needle_q)
+    p, q = relative(pos, quat, *s.needle)
     ex, ey, ez = gn_p[0] - p[0], gn_p[1] - p[1], gn_p[2] - p[2]
     distance = math.sqrt(ex * ex + ey * ey + ez * ez)
     success = (not collision) and distance <= tol_pos and angle(gn_q, q) <= tol_rot
@@ -81,31 +116,15 @@ def _pose(v):
 
 
 @njit(cache=True)
-def _buffers(mean, biases):
-    """What a step of the network and the shield write into, made once per query: the observation,
-    the layers' work rows, the members' own actions, the action and a candidate."""
-    width = max(mean.shape[1], biases[0].shape[0])
-    for b in biases:
-        width = max(width, b.shape[0])
-    obs = np.empty(mean.shape[1], np.float32)
-    work = np.zeros((3, width), np.float32)
-    rows = np.empty(width, np.int64)
-    own = np.empty((mean.shape[0], 6), np.float32)
-    return obs, work, rows, own, np.empty(6, np.float32), np.empty(6, np.float32)
-
-
-@njit(cache=True)
-def _decide(
-    net, geo, consts, fixed, scratch, general, noise_t, shield,
-    needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, gn_p, gn_q, radius, wire, buffers,
-):  # fmt: skip
-    """One step of the policy from the pose ``ee``: the members' mean action (into ``buffers[4]``)
-    and, with ``shield``, where it collides, the first free alternative (``noise_t``: this step's
-    perturbations); returns :func:`_step`'s outcome of the action taken."""
-    kernels, biases, layers, mean, std = net
-    obs, work, rows, own, act, cand = buffers
+def _decide(s, noise_t, ee_p, ee_q):
+    """One step of the policy from the pose ``ee`` (``s``: the query's :class:`_Setup`): the members'
+    mean action (into ``s.buffers[4]``) and, with ``s.shield``, where it collides, the first free
+    alternative (``noise_t``: this step's perturbations); returns :func:`_step`'s outcome of the
+    action taken."""
+    kernels, biases, layers, mean, std = s.net
+    obs, work, rows, own, act, cand = s.buffers
     members = mean.shape[0]
-    observe(obs, general, needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, radius, wire)
+    observe(obs, s.general, *s.needle, ee_p, ee_q, *s.goal, *s.radii)
     member_actions(kernels, biases, layers, mean, std, obs, work, rows, own)
     for j in range(6):  # the members' mean, summed in their order as the JAX path does
         act[j] = own[0, j]
@@ -113,10 +132,8 @@ def _decide(
             act[j] += own[m, j]
         if members > 1:
             act[j] /= np.float32(members)
-    pos, quat, collision, success, dl = _step(
-        geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, act
-    )
-    if collision and shield:
+    pos, quat, collision, success, dl = _step(s, ee_p, ee_q, act)
+    if collision and s.shield:
         # the alternatives in shield_candidates' order: each member's own (an ensemble), half
         # the action, then the action plus the step's fixed noise, clipped; the first free one
         extra = members if members > 1 else 0
@@ -128,9 +145,7 @@ def _decide(
                     cand[j] = np.float32(0.5) * act[j]
                 else:
                     cand[j] = min(max(act[j] + noise_t[c - extra - 1, j], np.float32(-1.0)), np.float32(1.0))
-            p2, q2, col2, suc2, dl2 = _step(
-                geo, consts, fixed, scratch, needle_p, needle_q, ee_p, ee_q, gn_p, gn_q, cand
-            )
+            p2, q2, col2, suc2, dl2 = _step(s, ee_p, ee_q, cand)
             if not col2:
                 act[:] = cand
                 return p2, q2, col2, suc2, dl2
@@ -143,33 +158,24 @@ def _closed_loop_step(state, needle, ee, goal, radii, t, stop_scale, out):
     estimates ``needle``, ``ee``, ``goal`` ``[7]`` (rounded to float32 as the JAX path takes them):
     ``out[:7]`` the pose to command next and ``out[7:]`` the action (zero, and ``ee`` kept, where
     the estimate is within ``stop_scale`` of the success tolerances of the goal). Returns that."""
-    (kernels, biases, layers, mean, std), geo, consts, rewards, varies, general, noise, shield = state
-    geo = Capsules(*geo)
-    radius, wire = _f32(radii[0]), _f32(radii[1])
-    needle_p, needle_q = _pose(needle)
+    s = _setup(state, needle, goal, radii)
+    consts, noise = state[2], state[6]
     ee_p, ee_q = _pose(ee)
-    goal_p, goal_q = _pose(goal)
-    gn_p, gn_q = relative(goal_p, goal_q, needle_p, needle_q)
-    p, q = relative(ee_p, ee_q, needle_p, needle_q)
+    p, q = relative(ee_p, ee_q, *s.needle)
+    gn_p, gn_q = s.goal_in_needle
     ex, ey, ez = gn_p[0] - p[0], gn_p[1] - p[1], gn_p[2] - p[2]
     if math.sqrt(ex * ex + ey * ey + ez * ez) <= stop_scale * consts[3] and angle(gn_q, q) <= stop_scale * consts[4]:
         out[:3] = ee_p
         out[3:7] = ee_q
         out[7:] = 0.0
         return True
-    fixed = fixed_ends(geo, varies, needle_p, needle_q, radius, wire)
-    scratch = make_scratch(geo.tool_local)
-    buffers = _buffers(mean, biases)
-    pos, quat, _, _, _ = _decide(
-        (kernels, biases, layers, mean, std), geo, consts, fixed, scratch, general, noise[t], shield,
-        needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, gn_p, gn_q, radius, wire, buffers,
-    )  # fmt: skip
+    pos, quat, _, _, _ = _decide(s, noise[t], ee_p, ee_q)
     for r in range(3):
         out[r] = _f32(pos[r])
     for r in range(4):
         out[3 + r] = _f32(quat[r])
     for j in range(6):
-        out[7 + j] = min(max(buffers[4][j], np.float32(-1.0)), np.float32(1.0))
+        out[7 + j] = min(max(s.buffers[4][j], np.float32(-1.0)), np.float32(1.0))
     return False
 
 
@@ -180,34 +186,24 @@ def _rollout(state, needle, start, goal, radii, outcome):
     [m], discounted return`` (``rewards``: a step's, a collision's, a success's reward and gamma).
     ``state``: :attr:`LeanPlanner.state`. Returns ``(poses[steps + 1, 7], actions[steps, 6])``
     (float32, as the JAX planner returns them: every number of the state is float32 already)."""
-    (kernels, biases, layers, mean, std), geo, consts, rewards, varies, general, noise, shield = state
-    geo = Capsules(*geo)
-    radius, wire = _f32(radii[0]), _f32(radii[1])
+    rewards, noise = state[3], state[6]
+    s = _setup(state, needle, goal, radii)
     horizon = noise.shape[0]
     poses = np.empty((horizon + 1, 7), np.float32)
     actions = np.empty((horizon, 6), np.float32)
     for r in range(7):
         poses[0, r] = _f32(start[r])
-    needle_p, needle_q = _pose(needle)
     ee_p, ee_q = _pose(start)
-    goal_p, goal_q = _pose(goal)
-    fixed = fixed_ends(geo, varies, needle_p, needle_q, radius, wire)
-    scratch = make_scratch(geo.tool_local)
-    gn_p, gn_q = relative(goal_p, goal_q, needle_p, needle_q)
-    valid = not collides(geo, fixed, ee_p, ee_q, scratch[0], scratch[1], consts[2])
+    valid = not collides(s.geo, s.fixed, ee_p, ee_q, s.scratch[0], s.scratch[1], s.consts[2])
     outcome[0] = 1.0 if valid else 0.0
     if not valid:
         outcome[2] = 1.0
         return poses[:1], actions[:0]
     length = 0.0
     steps = 0
-    buffers = _buffers(mean, biases)
     for t in range(horizon):
-        pos, quat, collision, success, dl = _decide(
-            (kernels, biases, layers, mean, std), geo, consts, fixed, scratch, general, noise[t], shield,
-            needle_p, needle_q, ee_p, ee_q, goal_p, goal_q, gn_p, gn_q, radius, wire, buffers,
-        )  # fmt: skip
-        act = buffers[4]
+        pos, quat, collision, success, dl = _decide(s, noise[t], ee_p, ee_q)
+        act = s.buffers[4]
         # the state as the JAX path keeps it, in float32 (the two paths' rounding drifts apart less)
         ee_p = (_f32(pos[0]), _f32(pos[1]), _f32(pos[2]))
         ee_q = (_f32(quat[0]), _f32(quat[1]), _f32(quat[2]), _f32(quat[3]))
