@@ -77,7 +77,7 @@ def test_conservative_chords_contain_the_true_wire():
 
 def _segment_chord_distances(a0, a1, caps) -> np.ndarray:
     """The model's clearance of segments ``[n, 3]``-``[n, 3]`` to the needle capsules (float64,
-    Ericson's closest points as ``scene.segment_distance``)."""
+    Ericson's closest points as ``geometry.segment_distance``)."""
     out = np.full(len(a0), np.inf)
     for c in caps:
         d1, d2, r = a1 - a0, c.p1 - c.p0, a0 - c.p0

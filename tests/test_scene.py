@@ -11,7 +11,7 @@ import pytest
 from regrasp_mjx.core import geometry as g
 from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.envs.host import HostChecker
-from regrasp_mjx.world.scene import load_scene, segment_distance
+from regrasp_mjx.world.scene import load_scene
 
 
 def test_needle_capsules_follow_the_arc():
@@ -98,7 +98,7 @@ def test_segment_distance_by_hand():
     b0 = jnp.array([[1.0, -1, 1], [1, 0.5, 0], [3, 0, 0], [2, -1, 3]])
     b1 = jnp.array([[1.0, 1, 1], [3, 0.5, 0], [4, 0, 0], [2, 1, 3]])
     expected = [1.0, 0.5, 2.0, math.sqrt(1 + 9)]
-    np.testing.assert_allclose(np.asarray(segment_distance(a0, a1, b0, b1)), expected, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(g.segment_distance(a0, a1, b0, b1)), expected, atol=1e-6)
 
 
 def test_missing_mjcf_is_a_clear_error(tmp_path):

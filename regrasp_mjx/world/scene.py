@@ -1,4 +1,5 @@
-"""The regrasp scene: the MJCF loaded once, names resolved once, the counted collision pairs.
+"""The regrasp scene: the MJCF loaded once, names resolved once, the counted collision pairs (their
+distances as JAX functions: :mod:`regrasp_mjx.world.distances`).
 
 ``regrasp_mjx/models/regrasp_scene.xml`` (package data; ``models/mjcf`` in the repository links to it) is
 the single source of truth for geometry. :func:`load_scene`
@@ -23,13 +24,7 @@ import numpy as np
 from mujoco import mjx
 
 from regrasp_mjx.core.config import SceneConfig
-from regrasp_mjx.core.geometry import (
-    dot3,
-    rotation_matrix,
-    segment_distance,
-    segment_gap,
-)  # segment_distance re-exported: the capsule distance lives with the other geometry
-from regrasp_mjx.world import continuous
+from regrasp_mjx.world import distances
 
 MJCF_PATH = Path(__file__).resolve().parents[1] / "models" / "regrasp_scene.xml"  # package data
 
@@ -40,8 +35,6 @@ REGRASP_JAWS = ("regrasp_jaw_a", "regrasp_jaw_b")
 _DEFAULT_JAW_HALF_ANGLE = math.radians(10.0)  # what the MJCF file holds
 _DEFAULT_NEEDLE_RADIUS = 0.0054
 _DEFAULT_WIRE_RADIUS_MM = 0.25  # the wire of the MJCF's needle mesh (models/meshes/needle_tube.stl)
-
-DistanceFn = Callable[[jax.Array, jax.Array, jax.Array, jax.Array], jax.Array]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +96,11 @@ class Scene:
         """:attr:`body_model` on this process's first device."""
         return mjx.put_model(self.body_model, device=jax.local_devices()[0])
 
+    @functools.cached_property
+    def body_ids(self) -> tuple[int, int]:
+        """The needle's and the regrasping tool's body ids in :attr:`body_model`."""
+        return self.body_model.body(NEEDLE_BODY).id, self.body_model.body(REGRASP_BODY).id
+
     def qpos(self, needle_pos, needle_quat, ee_pos, ee_quat) -> np.ndarray | jax.Array:
         """The model's ``qpos`` for a needle pose and a regrasping end-effector pose (world = e_g)."""
         arrays = (needle_pos, needle_quat, ee_pos, ee_quat)
@@ -158,103 +156,16 @@ class Scene:
             chords=np.searchsorted(others, needle_ids),
         )
 
-    def distance_fn(self) -> DistanceFn:
+    def distance_fn(self) -> distances.DistanceFn:
         """A pure JAX function ``(needle_pos, needle_quat, ee_pos, ee_quat[, radius, wire]) ->
-        distances[npairs]``.
-
-        With ``radius`` and ``wire`` [m] (traced values: one compiled program serves every needle)
-        the needle is that one instead of the scene's: its chords scaled by ``radius / R`` about the
-        needle centre, their radius the wire's plus the scaled inflation (with
-        ``conservative_needle``), exactly the capsules :func:`load_scene` builds for that needle.
-
-        Signed surface distances (m) of the counted pairs in the order of :attr:`pairs` (regrasping
-        capsule by regrasping capsule), negative when they penetrate; the minimum is the clearance.
-        The two free bodies are posed by ``mjx.kinematics`` (on :attr:`mjx_body_model`) and the
-        counted capsules placed from their bodies' frames, only those; the distances are
-        the exact closest points of the capsule axes (Ericson, Real-Time Collision Detection,
-        5.1.9), what CPU MuJoCo's ``mj_geomDistance`` computes, every regrasping capsule against
-        every counted one by broadcasting ``[T, 1] x [1, O]`` rather than gathering both capsules
-        of each of the T x O pairs. (``mjx.collision``'s
-        capsule-capsule contact is one clip-and-project pass that overestimates some distances by
-        tens of microns, up to 20x at a few microns' clearance on this scene, so it is not used.)
-        """
-        f = self.capsule_frames
-        bodies = self.mjx_body_model
-        data0 = mjx.make_data(bodies, device=jax.local_devices()[0])
-        tool_ends = jnp.asarray(f.tool_ends, jnp.float32)  # [T, 2, 3] in e_r
-        other_ends = jnp.asarray(f.other_ends, jnp.float32)  # [O, 2, 3] in n (needle) or e_g
-        on_needle = jnp.asarray(f.on_needle)
-        tool_radii = jnp.asarray(f.tool_radii, jnp.float32)[:, None]
-        other_radii = jnp.asarray(f.other_radii, jnp.float32)
-        inflation0 = jnp.asarray(f.inflation, jnp.float32)
-        radius0 = self.config.needle_radius_mm * 1e-3
-        needle_body, tool_body = (self.body_model.body(n).id for n in (NEEDLE_BODY, REGRASP_BODY))
-
-        def place(ends, d, body, scale=1.0):
-            # products and sums, not a matmul: on the GPU a float32 matmul may run in TF32 (10-bit
-            # mantissa), which moves a capsule 50 mm from its body's origin by tens of microns
-            return d.xpos[body] + jnp.sum(d.xmat[body] * (scale * ends)[..., None, :], axis=-1)
-
-        def distances(needle_pos, needle_quat, ee_pos, ee_quat, radius=None, wire=None):
-            d = mjx.kinematics(bodies, data0.replace(qpos=self.qpos(needle_pos, needle_quat, ee_pos, ee_quat)))
-            tool = place(tool_ends, d, tool_body)[:, None]  # [T, 1, 2, 3]
-            scale = 1.0 if radius is None else radius / radius0
-            needle = place(other_ends, d, needle_body, scale)  # another needle: chords scaled about its centre
-            other = jnp.where(on_needle[:, None, None], needle, other_ends)[None]  # [1, O, 2, 3]
-            others = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
-            gap = segment_distance(tool[..., 0, :], tool[..., 1, :], other[..., 0, :], other[..., 1, :])
-            return (gap - tool_radii - others).reshape(-1)
-
-        return distances
+        distances[npairs]``, the counted pairs' signed distances around the scene's needle or
+        another (:func:`regrasp_mjx.world.distances.distance_fn`)."""
+        return distances.distance_fn(self)
 
     def motion_distance_fn(self) -> tuple[Callable, Callable, Callable]:
         """:meth:`distance_fn` cut in parts for the many poses of one motion (the continuous test):
-        ``others(needle_pos, needle_quat[, radius, wire]) -> (ends [1, O, 2, 3], radii [O])``, the
-        counted capsules placed once; ``gaps(others, ee_pos, ee_quat) -> [npairs]``, the signed
-        distances for one end-effector pose; and ``interval(others, ee_pos, ee_quat, dp, rotvec, h)
-        -> (gaps, low)``, those and their lower bounds over the interval of half-width h about the
-        pose of the motion ``(dp, rotvec)`` (:func:`regrasp_mjx.world.continuous.interval_low`). The
-        bodies are posed from their quaternions directly (the same frames ``mjx.kinematics``
-        computes, without its per-call work)."""
-        f = self.capsule_frames
-        tool_ends = jnp.asarray(f.tool_ends, jnp.float32)
-        other_ends = jnp.asarray(f.other_ends, jnp.float32)
-        on_needle = jnp.asarray(f.on_needle)
-        tool_radii = jnp.asarray(f.tool_radii, jnp.float32)[:, None]
-        other_radii = jnp.asarray(f.other_radii, jnp.float32)
-        inflation0 = jnp.asarray(f.inflation, jnp.float32)
-        radius0 = self.config.needle_radius_mm * 1e-3
-        levers = jnp.asarray(continuous.levers(f.tool_ends), jnp.float32)
-
-        def place(ends, pos, quat):
-            # products and sums, not a matmul (TF32 on a GPU; see distance_fn)
-            return pos + jnp.sum(rotation_matrix(quat) * ends[..., None, :], axis=-1)
-
-        def others(needle_pos, needle_quat, radius=None, wire=None):
-            scale = 1.0 if radius is None else radius / radius0
-            needle = place(scale * other_ends, needle_pos, needle_quat)
-            ends = jnp.where(on_needle[:, None, None], needle, other_ends)[None]
-            radii = other_radii if radius is None else jnp.where(on_needle, wire + inflation0 * scale, other_radii)
-            return ends, radii
-
-        def pose(placed, ee_pos, ee_quat):
-            ends, radii = placed
-            tool = place(tool_ends, ee_pos, ee_quat)  # [T, 2, 3]
-            t = tool[:, None]
-            gap = segment_gap(t[..., 0, :], t[..., 1, :], ends[..., 0, :], ends[..., 1, :])  # [T, O, 3]
-            return tool, gap, jnp.sqrt(dot3(gap, gap)) - tool_radii - radii
-
-        def gaps(placed, ee_pos, ee_quat):
-            """Every pair's signed distance."""
-            return pose(placed, ee_pos, ee_quat)[2].reshape(-1)
-
-        def interval(placed, ee_pos, ee_quat, dp, rotvec, h):
-            """Every pair's signed distance and its lower bound over the interval."""
-            tool, gap, d = pose(placed, ee_pos, ee_quat)
-            low = continuous.interval_low(tool, ee_pos, placed[0][0], gap, d, h, dp, rotvec, levers)
-            return d.reshape(-1), low.reshape(-1)
-
-        return others, gaps, interval
+        ``(others, gaps, interval)`` (:func:`regrasp_mjx.world.distances.motion_distance_fn`)."""
+        return distances.motion_distance_fn(self)
 
 
 @dataclasses.dataclass(frozen=True)
