@@ -26,7 +26,7 @@ from regrasp_mjx.core.atomic import machine, write_json, write_text
 from regrasp_mjx.core.config import EnvConfig
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.host import HostEnv
-from regrasp_mjx.world import continuous, walk_kernel
+from regrasp_mjx.world import continuous_walk, walk_kernel
 from regrasp_mjx.world.testsets import make_testset
 
 POSE_FIELDS = ("needle_pos", "needle_quat", "start_pos", "start_quat")
@@ -73,12 +73,14 @@ def set_walk(walk: str | None) -> str:
     if walk_kernel.use_kernel():
         return f"kernel:{walk_kernel.BLOCK}:{walk_kernel.NUM_WARPS}"
     if walk == "chunk":
-        continuous.SUBTREE_DEPTH = None
+        continuous_walk.SUBTREE_DEPTH = None
     elif walk is not None:
-        continuous.SUBTREE_DEPTH, continuous.HEAD_STEPS, continuous.TAIL_DEPTH = (int(x) for x in walk.split(":"))
-    if continuous.SUBTREE_DEPTH is None:
+        continuous_walk.SUBTREE_DEPTH, continuous_walk.HEAD_STEPS, continuous_walk.TAIL_DEPTH = (
+            int(x) for x in walk.split(":")
+        )
+    if continuous_walk.SUBTREE_DEPTH is None:
         return "chunk"
-    return f"{continuous.SUBTREE_DEPTH}:{continuous.HEAD_STEPS}:{continuous.TAIL_DEPTH}"
+    return f"{continuous_walk.SUBTREE_DEPTH}:{continuous_walk.HEAD_STEPS}:{continuous_walk.TAIL_DEPTH}"
 
 
 def bench_mjx(
@@ -91,9 +93,9 @@ def bench_mjx(
     root_share: float | None = None,
     walk: str | None = None,
 ) -> dict:
-    share = continuous.PENDING_SHARE if share is None else share
-    root_share = continuous.ROOT_SHARE if root_share is None else root_share
-    continuous.PENDING_SHARE, continuous.ROOT_SHARE = share, root_share  # read when the step is traced
+    share = continuous_walk.PENDING_SHARE if share is None else share
+    root_share = continuous_walk.ROOT_SHARE if root_share is None else root_share
+    continuous_walk.PENDING_SHARE, continuous_walk.ROOT_SHARE = share, root_share  # read when the step is traced
     walk = set_walk(walk)
     env = RegraspEnv(config)
     rollout = make_rollout(env, batch, steps)
@@ -171,20 +173,20 @@ def main() -> None:
         "--pending-shares",
         default=None,
         help="comma-separated shares of a batch whose pending lanes the continuous test gathers a round "
-        f"(regrasp_mjx.world.continuous.PENDING_SHARE, default {continuous.PENDING_SHARE:g}; 1 = none gathered)",
+        f"(regrasp_mjx.world.continuous_walk.PENDING_SHARE, default {continuous_walk.PENDING_SHARE:g}; 1 = none gathered)",
     )
     p.add_argument(
         "--root-shares",
         default=None,
         help="comma-separated shares of a batch whose root intervals are tested a round where the end pose has "
-        f"not proved the step (regrasp_mjx.world.continuous.ROOT_SHARE, default {continuous.ROOT_SHARE:g})",
+        f"not proved the step (regrasp_mjx.world.continuous_walk.ROOT_SHARE, default {continuous_walk.ROOT_SHARE:g})",
     )
     p.add_argument(
         "--walks",
         default=None,
         help="comma-separated walks of the continuous test on an accelerator: kernel[:BLOCK[:WARPS]] (one Pallas kernel, "
         "BLOCK lanes a program on WARPS warps), chunk (WALK_CHUNK intervals a loop "
-        "iteration) or DEPTH:HEAD:TAIL_DEPTH (regrasp_mjx.world.continuous.SUBTREE_DEPTH, HEAD_STEPS, TAIL_DEPTH); "
+        "iteration) or DEPTH:HEAD:TAIL_DEPTH (regrasp_mjx.world.continuous_walk.SUBTREE_DEPTH, HEAD_STEPS, TAIL_DEPTH); "
         "default: the module's",
     )
     p.add_argument("--out", default=None, help="folder for bench_env.json and bench_env.md")

@@ -2,7 +2,7 @@
 
 Every step of ``bench_env.py``'s rollout (``reset`` of B environments from the paper's distributions,
 uniformly random actions, auto-reset) is tested twice with every lane pending (the root and its walk,
-neither end pose standing in): by :func:`regrasp_mjx.world.continuous.motion_collides` (the XLA walk)
+neither end pose standing in): by :func:`regrasp_mjx.world.continuous_walk.motion_collides` (the XLA walk)
 and by :mod:`regrasp_mjx.world.walk_kernel` (compiled for the GPU; Pallas's interpreter on a CPU).
 Prints and writes how many verdicts differ and how many interval tests the kernel's walks took.
 
@@ -22,7 +22,7 @@ import numpy as np
 from regrasp_mjx.core.atomic import machine, write_json
 from regrasp_mjx.core.config import EnvConfig
 from regrasp_mjx.envs.env import RegraspEnv
-from regrasp_mjx.world import continuous, walk_kernel
+from regrasp_mjx.world import continuous, continuous_walk, walk_kernel
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_env import make_rollout  # noqa: E402  (beside this script)
@@ -40,7 +40,7 @@ def check(batch: int, steps: int, seed: int) -> dict:
         dp, rotvec = a[:3] * env.max_dp, a[3:] * env.max_drot
         placed = env._place_others(es.needle_pos, es.needle_quat)
         fastest = jnp.max(jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * env.levers)
-        xla = continuous.motion_collides(
+        xla = continuous_walk.motion_collides(
             env._bounds_along, (placed, es.ee_pos, es.ee_quat, dp, rotvec), fastest, env.clearance
         )
         ends, radii = placed

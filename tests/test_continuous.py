@@ -13,7 +13,7 @@ from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.host import HostChecker, HostEnv, quat_from_rotvec, quat_mul
 from regrasp_mjx.envs.lean_checker import LeanChecker, _placed
 from regrasp_mjx.envs.lean_collision import Capsules, Fixed, make_scratch, motion_collides
-from regrasp_mjx.world import continuous
+from regrasp_mjx.world import continuous, continuous_walk
 from regrasp_mjx.world.sampling import Episode
 
 # paper300 row 161 and the first action the shipped default's shielded plan took there before the
@@ -177,7 +177,7 @@ def test_the_test_budget_and_resolution_by_hand():
         dist = lambda s, h, reach=None, gap=gap: (np.array([gap, 1.0]), np.array([gap, 1.0]) - h * speed)  # noqa: E731
         assert continuous.motion_collides_host(dist, speed.max(), 0.0) == expect
         jdist = lambda motion, s, h: (jnp.array([motion, 1.0]), jnp.array([motion, 1.0]) - h * 1e-3)  # noqa: E731
-        assert bool(continuous.motion_collides(jdist, jnp.float32(gap), 1e-3, 0.0)) == expect
+        assert bool(continuous_walk.motion_collides(jdist, jnp.float32(gap), 1e-3, 0.0)) == expect
 
 
 @pytest.mark.parametrize("unrolled", [False, pytest.param(True, marks=pytest.mark.slow)])
@@ -187,7 +187,7 @@ def test_a_vmapped_batch_tests_its_pending_lanes_alone_with_the_same_verdicts(un
     # JAX (the stackless walk), vmapped whole, vmapped in rounds of 1/8 of the batch (the pending
     # lanes gathered), and under two vmaps (seeds x lanes), the walk looped and unrolled (as on a
     # GPU): the same verdicts
-    monkeypatch.setattr(continuous, "UNROLLED", unrolled)
+    monkeypatch.setattr(continuous_walk, "UNROLLED", unrolled)
     rng = np.random.default_rng(3)
     n, p = 64, 4
     a = rng.uniform(2e-4, 3e-3, (n, p)).astype(np.float32)
@@ -201,7 +201,7 @@ def test_a_vmapped_batch_tests_its_pending_lanes_alone_with_the_same_verdicts(un
         return d, d - h * v
 
     def verdict(share):
-        return lambda a, b, c, v: continuous.motion_collides(dist, (a, b, c, v), v.max(), 1e-5, share=share)
+        return lambda a, b, c, v: continuous_walk.motion_collides(dist, (a, b, c, v), v.max(), 1e-5, share=share)
 
     host = [
         continuous.motion_collides_host(
@@ -306,8 +306,8 @@ def test_the_end_pose_stands_in_for_the_root_with_the_same_verdicts(unrolled, mo
     # clear by each capsule's v_t (most steps) the root is not tested, the others' roots run
     # gathered (rounds of 1/16 of the batch: several rounds a step); the verdicts are those of the
     # root tested on every lane, and both kinds of lane and both verdicts occur
-    monkeypatch.setattr(continuous, "UNROLLED", unrolled)
-    monkeypatch.setattr(continuous, "ROOT_SHARE", 1 / 16)
+    monkeypatch.setattr(continuous_walk, "UNROLLED", unrolled)
+    monkeypatch.setattr(continuous_walk, "ROOT_SHARE", 1 / 16)
     env = RegraspEnv(EnvConfig())
     batch, steps = 256, 8
 
@@ -322,7 +322,7 @@ def test_the_end_pose_stands_in_for_the_root_with_the_same_verdicts(unrolled, mo
         clear = jnp.all(end.reshape(speed.shape[0], -1) >= speed[:, None] + 1e-6)  # well clear: the root skipped
         motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec)
         fastest = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * jnp.max(env.levers)
-        every_root = continuous.motion_collides(env._bounds_along, motion, fastest, env.clearance)
+        every_root = continuous_walk.motion_collides(env._bounds_along, motion, fastest, env.clearance)
         return from_env, every_root, clear
 
     record = lambda state, action: jax.vmap(verdicts)(state, action)  # noqa: E731
@@ -338,8 +338,8 @@ def test_the_subtree_walk_gives_the_walks_verdicts_deep_and_at_the_budget(depth,
     # 0.1 mm): walks from 1 to past the budget of tests, 8 into collision by a stop, 12 by the
     # budget or the resolution, 42 proved after more than 8 tests. The subtree walk (`depth` levels a loop iteration, vmapped as on a GPU) gives the
     # host walk's verdict on every lane
-    monkeypatch.setattr(continuous, "SUBTREE_DEPTH", depth)
-    monkeypatch.setattr(continuous, "UNROLLED", True)
+    monkeypatch.setattr(continuous_walk, "SUBTREE_DEPTH", depth)
+    monkeypatch.setattr(continuous_walk, "UNROLLED", True)
     rng = np.random.default_rng(7)
     n = 96
     a = (10 ** rng.uniform(-6.3, -4.5, n)).astype(np.float32)
@@ -367,5 +367,5 @@ def test_the_subtree_walk_gives_the_walks_verdicts_deep_and_at_the_budget(depth,
     tests_taken, host = np.array(tests_taken), np.array(host)
     assert host.sum() > 8 and (~host).sum() > 8
     assert (tests_taken >= continuous.MAX_TESTS).any() and ((tests_taken > 8) & ~host).any()
-    verdict = jax.jit(jax.vmap(lambda *m: continuous.motion_collides(dist, m, speed, 0.0, share=1 / 4)))(a, s0, b)
+    verdict = jax.jit(jax.vmap(lambda *m: continuous_walk.motion_collides(dist, m, speed, 0.0, share=1 / 4)))(a, s0, b)
     np.testing.assert_array_equal(np.asarray(verdict), host)

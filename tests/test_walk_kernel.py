@@ -14,7 +14,7 @@ import pytest
 
 from regrasp_mjx.core.config import EnvConfig
 from regrasp_mjx.envs.env import RegraspEnv
-from regrasp_mjx.world import continuous, walk_kernel
+from regrasp_mjx.world import continuous_walk, walk_kernel
 from tests.test_continuous import ACTION, NEEDLE, START, _state, random_steps
 
 BATCH, STEPS = 256, 8
@@ -49,7 +49,7 @@ def test_the_kernel_gives_the_xla_walks_verdicts_lane_by_lane(env, monkeypatch):
             placed = env._place_others(es.needle_pos, es.needle_quat)
             fastest = jnp.max(jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * env.levers)
             motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec)
-            xla = continuous.motion_collides(env._bounds_along, motion, fastest, env.clearance)
+            xla = continuous_walk.motion_collides(env._bounds_along, motion, fastest, env.clearance)
             return xla, placed[0][0], jnp.broadcast_to(placed[1], placed[0].shape[1:2]), dp, rotvec, fastest
 
         xla, ends, radii, dp, rotvec, fastest = jax.vmap(lane)(states, actions)

@@ -22,7 +22,7 @@ from flax import struct
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError, EnvConfig
-from regrasp_mjx.world import continuous, walk_kernel
+from regrasp_mjx.world import continuous, continuous_walk, walk_kernel
 from regrasp_mjx.world.sampling import Episode, sample_episode
 from regrasp_mjx.world.scene import Scene, load_scene
 
@@ -202,7 +202,7 @@ class RegraspEnv(Env):
         ``dp = a[0:3] max_dp`` in the e_g frame and ``q_t = exp(a[3:6] max_drot) q_{t-1}`` (paper
         eq. 7); actions are clipped to [-1, 1]. The step collides unless every pose along it,
         ``(p + s dp, exp(s w) q)`` for s in [0, 1], is proved clear of the margin
-        (:func:`regrasp_mjx.world.continuous.motion_collides`: not only sampled poses).
+        (:func:`regrasp_mjx.world.continuous_walk.motion_collides`: not only sampled poses).
         """
         a = self.checked_action(action)
         return self.move(state, a[:3] * self.max_dp, a[3:] * self.max_drot)
@@ -249,7 +249,7 @@ class RegraspEnv(Env):
             pending = ~ends_in & ~clear
             collision = ends_in | walk(ends[0], radii, es.ee_pos, es.ee_quat, dp, rotvec, jnp.max(speed), pending)
         else:
-            collision = continuous.motion_collides(
+            collision = continuous_walk.motion_collides(
                 self._bounds_along, motion, jnp.max(speed), self.clearance, known=ends_in, proved=clear
             )
 

@@ -1,6 +1,6 @@
 """The continuous test of a batch of steps as one Pallas kernel: each lane walks its intervals in registers.
 
-:func:`regrasp_mjx.world.continuous.motion_collides` on an accelerator runs its walk as XLA loops over
+:func:`regrasp_mjx.world.continuous_walk.motion_collides` on an accelerator runs its walk as XLA loops over
 the whole batch: every loop iteration is a chain of small kernels and a wait for the device, and a
 batch of 32,768 has a lane that grazes the wire every step (issue 44: about 280 kernels a step). Here
 the root test and the walk of :func:`~regrasp_mjx.world.continuous.motion_collides_host` run in one
@@ -9,7 +9,7 @@ lane), lays each lane's counted capsules across its threads, poses the lane's to
 midpoint, computes every pair's distance and both lower bounds
 (:func:`~regrasp_mjx.world.continuous.interval_low`, the same formulas in the same order, float32),
 takes the least over the pairs and advances the depth-first walk
-(:func:`~regrasp_mjx.world.continuous._advance`), looping until its own lanes are done: a grazing
+(:func:`~regrasp_mjx.world.continuous_walk._advance`), looping until its own lanes are done: a grazing
 lane holds up its own program alone, where an XLA loop holds up the batch.
 
 The verdicts are those of the XLA path up to float32 rounding (the kernel's compiler may contract
@@ -34,7 +34,8 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 from regrasp_mjx.core.geometry import segment_params
-from regrasp_mjx.world.continuous import RESOLUTION, SLACK, _advance
+from regrasp_mjx.world.continuous import RESOLUTION, SLACK
+from regrasp_mjx.world.continuous_walk import Walk, _advance
 
 # lanes a program walks (a grazing lane holds up this many), their pairs across NUM_WARPS warps
 BLOCK = 1
@@ -182,14 +183,14 @@ def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarra
             return proved, stop
 
         def advance(c):
-            return _advance(c, c[4], *test(c[0], c[1]))
+            return _advance(c, c.active, *test(c.k, c.i))
 
         zero = jnp.zeros(fastest.shape, jnp.int32)
-        start = (zero, zero, zero, jnp.zeros(fastest.shape, jnp.bool_), pending)
-        busy = lambda c: jnp.max(c[4].astype(jnp.int32)) > 0  # noqa: E731
-        _, _, tests, collision, _ = jax.lax.while_loop(busy, advance, start)
-        out_ref[0, :] = collision.astype(jnp.int32)
-        out_ref[1, :] = tests
+        start = Walk(zero, zero, zero, jnp.zeros(fastest.shape, jnp.bool_), pending)
+        busy = lambda c: jnp.max(c.active.astype(jnp.int32)) > 0  # noqa: E731
+        walk = jax.lax.while_loop(busy, advance, start)
+        out_ref[0, :] = walk.collision.astype(jnp.int32)
+        out_ref[1, :] = walk.tests
 
     return kernel
 
