@@ -38,8 +38,8 @@ from regrasp_mjx.core.atomic import output_folder_problem, write_figure, write_j
 from regrasp_mjx.core.config import ConfigError, parse_overrides
 from regrasp_mjx.core.host_loop import run_command
 from regrasp_mjx.core.jobs import Job, gpu_slots, run_jobs
-from regrasp_mjx.train import before_the_work, restart_args
 from regrasp_mjx.workflows import analysis
+from regrasp_mjx.workflows.preflight import before_the_work, restart_args
 from regrasp_mjx.world.sampling import DEFAULT_TESTSET
 
 FORMAT = "regrasp_mjx.sweep"

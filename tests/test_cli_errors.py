@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from regrasp_mjx import train
+from regrasp_mjx.workflows.preflight import run_outputs
 
 
 def _tree(folder: Path) -> dict[str, float]:
@@ -76,6 +77,7 @@ OTHER_CASES = [
     ),
     ("evaluate", ["--testset", "general1000", "--repeats", "0"], "--testset general1000: needle_radius_mm=9.32168"),
     ("evaluate", ["--testset", "general1000", "--agreement"], "--testset general1000: needle_radius_mm=9.32168"),
+    ("evaluate", ["--jaw-deg", "40"], "--jaw-deg and --jaw-sigmas are not accepted without --closed-loop"),
     ("grasps", ["--out", "{w}/afile/g.npz"], "is not a writable folder"),
     ("grasps", ["--out", "{w}/g.npz", "--n", "0"], "--n 0 is not accepted: an integer >= 1"),
 ]
@@ -97,10 +99,10 @@ def test_data_writing_clis_refuse_bad_input_and_change_nothing(workdir, module, 
 
 def test_run_outputs_are_what_a_run_wrote(tmp_path):
     (tmp_path / "sweep_stdout.txt").write_text("")
-    assert train.run_outputs(tmp_path) == []  # another tool's file is no run
+    assert run_outputs(tmp_path) == []  # another tool's file is no run
     (tmp_path / "mixed" / "seed0").mkdir(parents=True)
     (tmp_path / "events.out.tfevents.1").write_text("")
-    assert [p.name for p in train.run_outputs(tmp_path)] == ["events.out.tfevents.1", "mixed"]
+    assert [p.name for p in run_outputs(tmp_path)] == ["events.out.tfevents.1", "mixed"]
 
 
 def test_the_grasp_library_command_needs_an_out():

@@ -1,5 +1,5 @@
 """The package's layers as docs/architecture.md draws them: no module imports from a layer above its
-own, no import cycles (imports inside functions counted), and few imports inside functions, each
+own, the command lines are the top layer and no module imports one, no import cycles (imports inside functions counted), and few imports inside functions, each
 saying why (an optional dependency or start-up time)."""
 
 from __future__ import annotations
@@ -86,6 +86,20 @@ def test_every_module_has_a_layer_and_imports_only_from_its_own_or_lower_ones():
     graph, _ = imports(mods)
     up = [(a, level[a], b, level[b]) for a in level for b in graph[a] if b in level and level[b] > level[a]]
     assert up == [], f"imports from a higher layer: {up}"
+
+
+def test_the_commands_are_the_top_layer_and_no_module_imports_one():
+    """The command-line modules (the package root's row) only parse arguments, call and print: they sit
+    alone above every other layer, and what another module needs (a library module or another command)
+    lives in a layer below, so no module imports a command, not even inside a function."""
+    rows = table()
+    top = next(level for level, prefix, _, _ in rows if prefix == "regrasp_mjx.")
+    below = [(level, prefix) for level, prefix, _, _ in rows if prefix != "regrasp_mjx."]
+    assert all(level < top for level, _ in below), f"a layer at or above the commands' ({top}): {below}"
+    commands = {name for name, level in layers().items() if level == top}
+    graph, _ = imports(modules())
+    into = sorted((a, b) for a in graph for b in graph[a] if b in commands)
+    assert into == [], f"modules importing a command module: {into}"
 
 
 def test_no_import_cycles_counting_imports_inside_functions():

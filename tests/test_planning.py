@@ -409,11 +409,11 @@ class _InstantPool:
 
 @pytest.mark.slow  # 17 s on the 2-core VM (the replay's compile)
 def test_demos_stop_submitting_when_the_workers_keep_up(tmp_path, monkeypatch):
-    from regrasp_mjx import demos
+    from regrasp_mjx.planning import demonstrations
 
     pools = []
-    monkeypatch.setattr(demos, "PlannerPool", lambda *a, **k: pools.append(_InstantPool(*a, **k)) or pools[-1])
-    path = demos.build(6, tmp_path / "d", workers=2, budget_s=2.0, checker="lean", quiet=True)
+    monkeypatch.setattr(demonstrations, "PlannerPool", lambda *a, **k: pools.append(_InstantPool(*a, **k)) or pools[-1])
+    path = demonstrations.build(6, tmp_path / "d", workers=2, budget_s=2.0, checker="lean", quiet=True)
     assert load_demos(path).num_episodes == 6
     # one refill of 4 x workers, collected and verified: not a plan more
     assert pools[0].submitted == 8

@@ -1,5 +1,5 @@
 """What the host loops of training (:mod:`regrasp_mjx.workflows.trainer`) and distillation
-(:mod:`regrasp_mjx.distill`) share: where the wall-clock time goes (:class:`Phases`), the choice of the
+(:mod:`regrasp_mjx.workflows.distillation`) share: where the wall-clock time goes (:class:`Phases`), the choice of the
 exported network by validation (:class:`BestOf`), the JSONL run log with its TensorBoard mirror
 (:class:`RunLog`) and the progress line's ETA (:func:`eta`); and what every long command line shares:
 one run per output folder (:func:`folder_lock`), Ctrl-C as one line (:func:`run_command`) and a

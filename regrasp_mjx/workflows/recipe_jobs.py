@@ -10,11 +10,11 @@ from typing import Any
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.core.config import TASKS, parse_overrides
 from regrasp_mjx.core.jobs import Job
-from regrasp_mjx.distill import DISTILL_OUTPUTS
 from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy_file import DEFAULT_WARMUP, untrained_policy
-from regrasp_mjx.train import restart_args
 from regrasp_mjx.workflows import recipes
+from regrasp_mjx.workflows.distillation import DISTILL_OUTPUTS
+from regrasp_mjx.workflows.preflight import restart_args
 from regrasp_mjx.workflows.recipes import Recipe
 
 

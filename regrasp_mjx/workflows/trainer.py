@@ -4,7 +4,7 @@ Python runs only between iterations: the planner exchange (:mod:`regrasp_mjx.age
 and per epoch the evaluation on the test set and on validation problems of the run's own seed (which
 choose the exported policy), the log line, TensorBoard and JSONL logs, and an atomic checkpoint
 (:mod:`regrasp_mjx.agents.ddpg_bc.checkpoint`). It sits above the inference layer (it exports,
-tests and distils policies), beside the CLIs; ``python -m regrasp_mjx.train`` is its command line. At the end each member's policy is exported and tested, distilled when asked,
+tests and distils policies), below the CLIs; ``python -m regrasp_mjx.train`` is its command line. At the end each member's policy is exported and tested, distilled when asked,
 and the best seed of each setting copied to ``OUT/policy``. In a distributed run every process runs
 this loop; process 0 writes (:mod:`regrasp_mjx.core.distributed`).
 """
@@ -21,7 +21,6 @@ from typing import Any
 import jax
 import numpy as np
 
-from regrasp_mjx import demos as demos_cli
 from regrasp_mjx.agents.ddpg_bc import checkpoint
 from regrasp_mjx.agents.ddpg_bc.config import (
     TrainConfig,
@@ -32,11 +31,12 @@ from regrasp_mjx.core import distributed, geometry
 from regrasp_mjx.core.atomic import atomic_write, write_json
 from regrasp_mjx.core.config import EnvConfig
 from regrasp_mjx.core.host_loop import BestOf, Phases, RunLog, epoch_line, eta, folder_lock, mm, tensorboard_writer
-from regrasp_mjx.distill import distill
 from regrasp_mjx.envs.rollout import summarize
 from regrasp_mjx.inference.policy import load_policy, save_policy
 from regrasp_mjx.inference.testset_plans import outcomes
+from regrasp_mjx.planning import demonstrations
 from regrasp_mjx.planning.episodes import Demos, DemosError, check_made_for, load_demos
+from regrasp_mjx.workflows.distillation import distill
 from regrasp_mjx.world.sampling import load_testset
 from regrasp_mjx.world.testsets import make_testset
 
@@ -91,7 +91,7 @@ class Run:
         path = self.out / "demos"
         if not (path / "demos.npz").exists() and distributed.is_main():
             self.log(f"building {self.cfg.num_demos} demonstrations in {path} (BIT* reverse) ...")
-            demos_cli.build(
+            demonstrations.build(
                 self.cfg.num_demos,
                 path,
                 seed=self.cfg.seed,
