@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from regrasp_mjx.core.atomic import dumps, write_results
+from regrasp_mjx.core.atomic import dumps, machine, write_results
 from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.world.sampling import load_testset
@@ -134,6 +134,8 @@ def main() -> None:
         "errors: fused closed loop, shielded, tools and needle seen by the camera, calibration 5 mm / 3 deg, joint "
         "offsets up to 0.5; judged on the true poses.",
         "",
+        f"Measured on {machine()}" + (f"; the choice from {args.validation}" if args.validation else "") + ".",
+        "",
         f"Chosen on {args.val_n} validation problems (seed {args.val_seed}), mean success over the rows but "
         f"'{NOT_CHOSEN_FOR}':",
         "",
@@ -180,7 +182,8 @@ def main() -> None:
                 cells += [f"{still[0]:.2f} / {still[1]:.2f}"]
             lines.append(f"| {c.name.removeprefix('camera: ')} | " + " | ".join(cells) + " |")
     print("\n".join(lines))
-    write_results(args.out, args.name, lines, {"grid": grid, "best": best, "settings": settings, "rows": results})
+    data = {"grid": grid, "best": best, "settings": settings, "machine": machine(), "rows": results}
+    write_results(args.out, args.name, lines, data)
 
 
 if __name__ == "__main__":

@@ -292,7 +292,13 @@ def test_export_writes_the_closed_loop_and_the_recipe_into_a_loadable_policy(tmp
         source, tmp_path / "policy", {"stop_tolerance": 0.9, "warmup_frames": 5}, "validation", provenance
     )
     policy = load_policy(tmp_path / "policy")
-    assert policy.closed_loop_defaults == {"stop_tolerance": 0.9, "warmup_frames": 5, "look_frames": 0}
+    assert policy.closed_loop_defaults == {
+        "stop_tolerance": 0.9,
+        "warmup_frames": 5,
+        "look_frames": 0,
+        "jaw_deg": None,  # the jaws kept at the scene's opening
+        "jaw_sigmas": 2.0,
+    }
     contract = json.loads((tmp_path / "policy" / "policy.json").read_text())
     assert contract["training"]["recipe"]["overrides"] == ["iterations=3"]
     assert set(contract["training"]["recipe"]["commit"]) == {"commit", "dirty"}
