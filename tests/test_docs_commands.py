@@ -114,11 +114,12 @@ def _same_file_arrays(new: Path, shipped: Path) -> None:
 
 
 RUNS = {
-    "python -m regrasp_mjx.testset --n 300 --seed 2021 --out regrasp_mjx/data/paper300.npz [--jaw-angle-deg 20]": (
-        _same_testset
+    # the test sets are drawn beside the committed ones (never over the package's data) and compared with them
+    "python -m regrasp_mjx.testset --n 300 --seed 2021 --out paper300.npz [--jaw-angle-deg 20]": (
+        lambda new, _: _same_testset(new, ROOT / "regrasp_mjx" / "data" / "paper300.npz")
     ),
-    "python -m regrasp_mjx.testset --task general --n 1000 --seed 2026 --out regrasp_mjx/data/general1000.npz": (
-        _same_testset
+    "python -m regrasp_mjx.testset --task general --n 1000 --seed 2026 --out general1000.npz": (
+        lambda new, _: _same_testset(new, ROOT / "regrasp_mjx" / "data" / "general1000.npz")
     ),
     "python -m regrasp_mjx.grasps --n 1000 --seed 7 --out regrasp_mjx/data/grasps1000.npz": _same_file_arrays,
     "python -m regrasp_mjx.export_onnx --out actor.onnx [--policy P] [--no-check]": None,
