@@ -148,11 +148,9 @@ def tables(policies: dict, args: argparse.Namespace) -> None:
         print(f"{name} ({folder}) on {problems}", flush=True)
         t0 = time.perf_counter()
         rows = robustness.table(policy, episodes, modes, args.seed, conditions, log=print)
-        found.append(
-            {"policy": name, "folder": folder, "policy_hash": robustness.policy_hash(folder), "hidden": policy.hidden,
-             "problems": problems, "wall_s": time.perf_counter() - t0, "machine": meta["machine"], "seed": args.seed,
-             "rows": rows}
-        )  # fmt: skip
+        who = {"policy": name, "folder": folder, "policy_hash": robustness.policy_hash(folder), "hidden": policy.hidden}
+        run = {"problems": problems, "wall_s": time.perf_counter() - t0, "machine": meta["machine"], "seed": args.seed}
+        found.append({**who, **run, "rows": rows})
         lines += robustness_report.title(found[-1]) + robustness_report.markdown(rows, modes) + [""]
         write_results(args.out, args.name, lines, {**meta, "tables": found})
         release_programs()
@@ -192,8 +190,12 @@ def main(argv: list[str] | None = None) -> int:
             p.error("--no-testset is not accepted without --heldout: no problems would be left")
         args.testset = []
     if not args.robustness:
-        given = [o for o, v in (("--modes", args.modes != ",".join(robustness.MODES)), ("--conditions", args.conditions),
-                                ("--merge", args.merge)) if v]  # fmt: skip
+        chosen = {
+            "--modes": args.modes != ",".join(robustness.MODES),
+            "--conditions": args.conditions,
+            "--merge": args.merge,
+        }
+        given = [option for option, value in chosen.items() if value]
         if given:
             p.error(f"{', '.join(given)} is not accepted without --robustness (it selects the robustness table's rows)")
     if set(args.modes.split(",")) - set(robustness.MODES):

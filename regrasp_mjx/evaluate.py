@@ -101,8 +101,8 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     try:
         args.robot = RobotErrors(args.calibration_mm, args.calibration_deg, args.joint_offset, args.tool_noise_mm)
     except ConfigError as err:
-        p.error(str(err).replace("=", " ", 1).replace("calibration_", "--calibration-").replace("joint_", "--joint-")
-                .replace("tool_noise_", "--tool-noise-"))  # fmt: skip
+        message = str(err).replace("=", " ", 1).replace("calibration_", "--calibration-")
+        p.error(message.replace("joint_", "--joint-").replace("tool_noise_", "--tool-noise-"))
     robot = args.robot != RobotErrors() or args.camera is not None
     if args.camera is not None and (args.noise_mm or args.bias_mm or args.tool_noise_mm):
         p.error(f"--camera {args.camera} is not accepted with --noise-mm, --bias-mm or --tool-noise-mm: it sets them")

@@ -226,7 +226,7 @@ RECIPES: dict[str, Recipe] = {
                 ("goal_tolerance", 0.7),
             ),
             (("t07", NOISE),),
-        ),  # fmt: skip
+        ),
         Selection(
             20, 7000001, (("fused", "sigma 0.25 mm"),), 10, 7000017, "0.25", loop_warmups=(10,), loop_stops=(0.8, 0.9)
         ),

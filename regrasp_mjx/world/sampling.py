@@ -75,11 +75,9 @@ class Episode:
         """A batch of problems from ``[B, 7]`` needle, start and goal poses (the grasps unknown:
         zeros), on needles ``radii`` ``[B, 2]`` (radius, wire radius [m]; None: the scene's)."""
         zeros = jnp.zeros((needle.shape[0], 4))
-        return cls(
-            needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:], zeros, zeros[:, 0],
-            needle_radius=None if radii is None else radii[:, 0],
-            wire_radius=None if radii is None else radii[:, 1],
-        )  # fmt: skip
+        poses = (needle[:, :3], needle[:, 3:], start[:, :3], start[:, 3:], goal[:, :3], goal[:, 3:])
+        radius, wire_radius = (None, None) if radii is None else (radii[:, 0], radii[:, 1])
+        return cls(*poses, zeros, zeros[:, 0], needle_radius=radius, wire_radius=wire_radius)
 
     def row(self, i: Any) -> Episode:
         """The i-th problem of a batch, or the problems ``i`` picks (a slice, indices or a mask)."""

@@ -167,12 +167,9 @@ class TrainConfig:
     shard: str = "auto"
 
     def __post_init__(self) -> None:
-        require_integers(
-            self,
-            ("num_envs", "updates_per_iteration", "iterations_per_epoch", "epochs", "batch_size", "buffer_size",
-             "target_every", "num_demos", "planner_queue", "demo_chunk", "num_seeds", "checkpoint_every"),
-            1,
-        )  # fmt: skip
+        learner = ("num_envs", "updates_per_iteration", "iterations_per_epoch", "epochs", "batch_size", "buffer_size")
+        others = ("target_every", "num_demos", "planner_queue", "demo_chunk", "num_seeds", "checkpoint_every")
+        require_integers(self, learner + others, 1)
         require_integers(self, ("planner_workers", "seed", "devices", "bc_decay_epochs"), 0)
         for name, lo, hi in (("gamma", 0.0, 0.9999), ("polyak", 0.0, 1.0), ("demo_fraction", 0.0, 0.99)):
             require_numbers(self, (name,), lambda v, lo=lo, hi=hi: lo <= v <= hi, f"a number in [{lo}, {hi}]")
