@@ -18,6 +18,7 @@ moves the jaw at most 2 pi rad/s (jhu-dvrk's Python ``teleoperation``: ``jaw_rat
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -65,6 +66,7 @@ def sample_angles(base_deg: float, widest_deg: float, step_deg: float = SAMPLE_D
     return np.linspace(base_deg, widest_deg, n + 1)
 
 
+@functools.lru_cache(maxsize=16)  # one compiled check per scene and ladder (a table asks for it many times)
 def opening_fn(scene: Scene, widest_deg: float, step_deg: float = SAMPLE_DEG) -> tuple[np.ndarray, Callable]:
     """``(angles, fn)``: :func:`sample_angles` from the scene's opening to ``widest_deg`` and the jitted
     ``fn(needle_pos, needle_quat, ee_pos, ee_quat, radius, wire) -> [B, len(angles)]`` (``[B, 7]``
