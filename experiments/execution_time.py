@@ -21,7 +21,8 @@ from regrasp_mjx.envs.estimates import NeedleNoise
 from regrasp_mjx.envs.host import HostChecker
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.robot import dvrk
-from regrasp_mjx.robot.psm_timing import MotionRefused, time_executed, time_joints, time_plan, tool_poses
+from regrasp_mjx.robot.executed_motion import MotionRefused, time_executed, time_plan, tool_poses
+from regrasp_mjx.robot.psm_timing import time_joints
 from regrasp_mjx.world.sampling import episode_poses, load_testset
 from regrasp_mjx.world.scene import load_scene
 

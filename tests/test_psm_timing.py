@@ -12,20 +12,15 @@ import pytest
 
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.robot import dvrk, psm_timing
-from regrasp_mjx.robot.psm_timing import (
-    A_MAX,
-    HEADROOM,
-    V_MAX,
+from regrasp_mjx.robot.executed_motion import (
     MotionRefused,
     check_motion,
-    limit_ratio,
-    sample_const_accel,
     time_executed,
-    time_joints,
     time_plan,
     time_waypoints,
     tool_poses,
 )
+from regrasp_mjx.robot.psm_timing import A_MAX, HEADROOM, V_MAX, limit_ratio, sample_const_accel, time_joints
 from regrasp_mjx.robot.topp import Spline
 from regrasp_mjx.world.sampling import episode_poses
 from tests.test_clearance import _as_pose

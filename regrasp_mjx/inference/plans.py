@@ -73,7 +73,7 @@ class Plan:
         :class:`~regrasp_mjx.robot.psm_joints.JointTrajectory` of the valid poses (a list of them for a batch).
       grasping_joints: likewise the grasping PSM's :class:`~regrasp_mjx.robot.dvrk.IKResult` at its pose.
       motion: with ``plan_from_camera(..., psm=..., timed=True)``, the regrasping PSM's motion
-        (:class:`~regrasp_mjx.robot.psm_timing.TimedPlan`: a 1-kHz joint trajectory at the dVRK's limits,
+        (:class:`~regrasp_mjx.robot.executed_motion.TimedPlan`: a 1-kHz joint trajectory at the dVRK's limits,
         re-checked, or why it was refused; a list of them for a batch).
     """
 
@@ -298,7 +298,7 @@ def plan_from_camera(
     ``respect_limits`` (and the shield) the shield also replaces an action whose end pose would
     leave the regrasping arm's joint limits, as it replaces a colliding one. With ``timed`` (and
     ``psm``) each plan's motion on the arm, timed at the dVRK's limits and re-checked where it goes,
-    is ``Plan.motion`` (:mod:`regrasp_mjx.robot.psm_timing`)."""
+    is ``Plan.motion`` (:mod:`regrasp_mjx.robot.executed_motion`)."""
     spec = TaskSpec.of(task)
     (c_eg, c_er, c_n), single = batch_poses(grasping_ee=grasping_ee, regrasping_ee=regrasping_ee, needle=needle)
     grasp, radii = policy.task_ranges.resolve(len(c_eg), spec)
@@ -336,7 +336,7 @@ def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool, timed: t
     motion = None
     if timed is not None:
         # here: toppra (and the matplotlib it imports) load in ~0.7 s, only where a timed motion is asked
-        from regrasp_mjx.robot.psm_timing import motion_or_reason
+        from regrasp_mjx.robot.executed_motion import motion_or_reason
 
         policy, c_n = timed
         ok = np.atleast_1d(plan.success)

@@ -152,8 +152,10 @@ def _dh_batch(alpha: float, a: float, theta, d, xp):
     return xp.stack([xp.stack(r, -1) for r in rows], -2)
 
 
-def _fk_batch(q, xp):
-    """Tool-tip poses ``[K, 4, 4]`` of joint vectors ``q`` ``[K, 6]`` (:func:`forward_kinematics`)."""
+def fk_batch(q, xp=np):
+    """Tool-tip poses ``[K, 4, 4]`` (base frame) of joint vectors ``q`` ``[K, 6]``: :func:`forward_kinematics`
+    of a batch at once, in the array module ``xp`` (numpy, or jax.numpy inside jitted code); ``q`` is
+    not validated."""
     t = None
     for i, (alpha, a, d, offset, kind) in enumerate(DH):
         theta, dd = (q[:, i] + offset, d) if kind == "revolute" else (q[:, i] * 0.0 + offset, q[:, i] + d)
@@ -166,7 +168,7 @@ def forward_kinematics_jax(q):
     """JAX: tool-tip poses ``[..., 4, 4]`` (base frame) of joint vectors ``q`` ``[..., 6]``
     (:func:`forward_kinematics` in jax.numpy, for jitted simulations of the arm)."""
     q = jnp.asarray(q)
-    return _fk_batch(q.reshape(-1, 6), jnp).reshape(q.shape[:-1] + (4, 4))
+    return fk_batch(q.reshape(-1, 6), jnp).reshape(q.shape[:-1] + (4, 4))
 
 
 def inverse_kinematics_jax(t, q_ref):
@@ -242,7 +244,7 @@ def _ik_candidates(p, rot, xp, family=()):
 def _residuals(q, t, xp):
     """Position (m) and rotation (rad) residuals ``[K]`` of joint vectors ``q`` ``[K, 6]`` against
     the pose ``t`` (4x4)."""
-    back = _fk_batch(q, xp)
+    back = fk_batch(q, xp)
     pos = xp.linalg.norm(back[:, :3, 3] - t[:3, 3], axis=-1)
     rel = xp.swapaxes(back[:, :3, :3], -1, -2) @ t[:3, :3]
     skew = xp.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
