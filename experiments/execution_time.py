@@ -1,5 +1,6 @@
 """How long a regrasp takes on the dVRK: every paper300 plan of a policy (the shipped default)
-timed at the PSM's own joint limits and re-checked along its executed motion (``regrasp_mjx.robot.psm_timing``).
+timed at the PSM's own joint limits and re-checked along its executed motion (``regrasp_mjx.robot.psm_timing``,
+``regrasp_mjx.robot.executed_motion``).
 
     python experiments/execution_time.py --out experiments/results/psm_timing
 
@@ -58,7 +59,7 @@ def _off_path(points: np.ndarray, path: np.ndarray) -> float:
 def closed_loop_motion(
     policy, needle, start, goal, depth, base, checker, noise_mm: float, seed: int, **options
 ) -> dict:
-    """The closed loop's executed steps as the arm's motion (``psm_timing.time_executed``): every row
+    """The closed loop's executed steps as the arm's motion (``executed_motion.time_executed``): every row
     of ``policy.execute`` (fused, the policy's own settings, needle noise sigma ``noise_mm``, or
     ``options``' camera errors and look budget) that succeeded, timed and re-checked against the
     true needle; MuJoCo's clearance at every sample. ``total_s``: the motion and the frames taken
@@ -189,7 +190,7 @@ def main() -> None:
     }  # fmt: skip
     lines = [
         f"Policy `{row['policy']}` on {args.testset} ({row['problems']} problems), one fixed port; timed at the dVRK "
-        "PSM's joint limits, 1 kHz, every 1-ms piece re-checked (`regrasp_mjx.robot.psm_timing`).",
+        "PSM's joint limits, 1 kHz, every 1-ms piece re-checked (`regrasp_mjx.robot.executed_motion`).",
         "",
         "| timed | refused | with inserted waypoints | duration mean / median / p95 / max (s) | off the checked path, "
         "median / max (mm) | smallest clearance at a sample (um) | penetrations | time_joints alone, median / max (ms) | "
@@ -230,7 +231,7 @@ def main() -> None:
             + ", the policy's own settings"
             + (f" but {args.look_frames} look frames" if args.look_frames is not None else "")
             + ", seed 0), each succeeded row's motion timed and re-checked the same way "
-            "(`psm_timing.time_executed`; the warm-up frames, the tool still, not counted):",
+            "(`executed_motion.time_executed`; the warm-up frames, the tool still, not counted):",
             "",
             "| succeeded | timed | refused | with inserted waypoints | steps, median | duration median / p95 / max (s) "
             "| smallest clearance at a sample (um) | penetrations | timing and re-check, median (ms) |",
