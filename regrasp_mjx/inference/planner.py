@@ -11,7 +11,10 @@ judged by; the alternatives are computed only at steps where some query's action
 
 from __future__ import annotations
 
+import functools
+import json
 import types
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -26,13 +29,37 @@ from regrasp_mjx.envs.shield import shield_rows
 from regrasp_mjx.robot import dvrk
 from regrasp_mjx.world.sampling import Episode
 
-PLANNERS: dict[tuple, Any] = {}  # planners by (hidden, members, env, camera, shield)
+PLANNERS: dict[tuple, Any] = {}  # programs by (hidden, members, env, *setting): :func:`program`
 CUT_FROM_QUERIES = 2048  # batches this large, off the CPU, copy only the planned part of their trajectories
 
 # The network's matmuls when a policy plans or acts: full float32. JAX's default on recent NVIDIA
 # GPUs is TF32 (a 10-bit mantissa), with which a GPU's plans drifted from the CPU's (and the lean
 # path's) by up to 1e-2 in an action; on the CPU both are float32 and the programs are the same.
 PLAN_MATMUL_PRECISION = "highest"
+
+
+def program(policy: Any, setting: tuple, build: Callable[[], Callable] | None = None) -> Callable:
+    """The jitted program of ``setting`` with ``policy``'s weights bound: ``(camera, shield)`` for
+    planning (:func:`make_planner`), else what ``build()`` makes. Built once per network shape and
+    environment (in :data:`PLANNERS`: policies of one shape share it), looked up once per policy (in
+    its own ``_programs``)."""
+    if setting not in policy._programs:
+        key = (policy.hidden, policy.members, json.dumps(policy.contract["env"]), *setting)
+        if key not in PLANNERS:
+            PLANNERS[key] = build() if build else make_planner(policy.env_config, policy.hidden, *setting)
+        policy._programs[setting] = functools.partial(PLANNERS[key], policy._weights)
+    return policy._programs[setting]
+
+
+def lean(policy: Any, shield: bool):
+    """``policy``'s numba-compiled one-query planner
+    (:class:`~regrasp_mjx.inference.lean_planner.LeanPlanner`), built once per policy."""
+    if ("lean", shield) not in policy._programs:
+        # imported here: numba's import (0.4 s) and first compilation are paid only where it is used
+        from regrasp_mjx.inference.lean_planner import LeanPlanner
+
+        policy._programs[("lean", shield)] = LeanPlanner(policy.env_config, policy._weights, shield)
+    return policy._programs[("lean", shield)]
 
 
 def members_apply(hidden: tuple[int, ...]):

@@ -3,7 +3,8 @@
 
 What a policy does with poses lives in plain functions: planning in :mod:`regrasp_mjx.inference.plans`, the
 closed loop in :mod:`regrasp_mjx.inference.closed_loop`, the checks of a query in :mod:`regrasp_mjx.inference.queries`.
-The file format and the shipped policies are :mod:`regrasp_mjx.inference.policy_file`, re-exported here.
+The file format and the shipped policies are :mod:`regrasp_mjx.inference.policy_file` (what callers import of
+it re-exported here), the compiled programs :func:`regrasp_mjx.inference.planner.program`.
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
-import json
 import os
 import types
 from collections.abc import Callable
@@ -24,17 +24,11 @@ import numpy as np
 
 from regrasp_mjx.core.config import env_config_from_dict
 from regrasp_mjx.core.config import replace as config_replace
-from regrasp_mjx.inference import camera_loop, closed_loop_host, plans
-from regrasp_mjx.inference.planner import PLANNERS, make_planner, mean_action, members_apply
-from regrasp_mjx.inference.plans import ENGINES, Plan, auto_engine
+from regrasp_mjx.inference import camera_loop, closed_loop_host, planner, plans
+from regrasp_mjx.inference.planner import mean_action, members_apply
+from regrasp_mjx.inference.plans import Plan
 from regrasp_mjx.inference.policy_file import (
-    ACTION_LAYOUT,
     DEFAULT_POLICY,
-    OBS_LAYOUT,
-    POLICY_FORMAT,
-    POLICY_VERSION,
-    SHIPPED,
-    WEIGHT_DTYPES,
     PolicyError,
     closed_loop_settings,
     obs_size,
@@ -42,42 +36,21 @@ from regrasp_mjx.inference.policy_file import (
     save_policy,
     shipped_policies,
 )
-from regrasp_mjx.inference.queries import (
-    OOD_WARN_DISTANCE,
-    START_WARN_MM,
-    PoseError,
-    TaskRanges,
-    TaskSpec,
-    check_poses,
-    far_starts,
-    start_distance_mm,
-)
+from regrasp_mjx.inference.queries import START_WARN_MM, PoseError, TaskRanges, check_poses
 
+# what callers import through this module (the re-exported names live in policy_file, queries, planner)
 __all__ = [
-    "ACTION_LAYOUT",
     "DEFAULT_POLICY",
-    "ENGINES",
-    "OBS_LAYOUT",
-    "OOD_WARN_DISTANCE",
-    "POLICY_FORMAT",
-    "POLICY_VERSION",
-    "SHIPPED",
     "START_WARN_MM",
-    "WEIGHT_DTYPES",
-    "Plan",
     "Policy",
     "PolicyError",
     "PoseError",
-    "TaskSpec",
-    "auto_engine",
     "check_poses",
     "ensemble_policies",
-    "far_starts",
     "load_policy",
     "mean_action",
     "save_policy",
     "shipped_policies",
-    "start_distance_mm",
 ]
 
 
@@ -85,8 +58,8 @@ __all__ = [
 class Policy:
     """A loaded policy: the network (``act(obs[..., 21]) -> action[..., 6]``), what it was trained
     for, its compiled programs, and planning and the closed loop (plain functions in
-    :mod:`regrasp_mjx.inference.plans` and :mod:`regrasp_mjx.inference.closed_loop`). The task keywords every entry point
-    takes are :class:`~regrasp_mjx.inference.queries.TaskSpec`'s (``goal_alpha_rad``, ``goal_depth_mm``,
+    :mod:`regrasp_mjx.inference.plans` and :mod:`regrasp_mjx.inference.closed_loop`). The task keywords every
+    entry point takes are :class:`~regrasp_mjx.inference.queries.TaskSpec`'s (``goal_alpha_rad``, ``goal_depth_mm``,
     ``goal_theta_rad``, ``goal_phi_rad``, ``needle_radius_mm``, ``wire_radius_mm``; None: its own)."""
 
     contract: dict[str, Any]
@@ -107,11 +80,12 @@ class Policy:
         object.__setattr__(self, "_member_actions", functools.partial(apply, weights))
         object.__setattr__(self, "_actor", lambda obs: mean_action(apply(weights, obs)))
         object.__setattr__(self, "_act", jax.jit(self._actor))
-        object.__setattr__(self, "_programs", {})  # what program() and lean() built, weights bound
+        object.__setattr__(self, "_programs", {})  # what planner.program() and planner.lean() built
 
     def __repr__(self) -> str:
         ens = f"{self.members} x " if self.members > 1 else ""
-        return f"Policy({ens}{'x'.join(map(str, self.hidden))}, {self.obs_size} inputs, {'general' if self.general else 'paper'} task)"
+        task = "general" if self.general else "paper"
+        return f"Policy({ens}{'x'.join(map(str, self.hidden))}, {self.obs_size} inputs, {task} task)"
 
     # ---- the network -------------------------------------------------------------------------
     @property
@@ -126,16 +100,6 @@ class Policy:
     def obs_size(self) -> int:
         """Inputs of the network: 21 (the paper's task), 37 (a general task)."""
         return obs_size(self.env_config)
-
-    def member(self, i: int) -> Policy:
-        """Network ``i`` of an ensemble as a policy of its own."""
-        if not 0 <= i < self.members:
-            raise ValueError(f"member {i} is not accepted: this policy has {self.members} (0..{self.members - 1})")
-        contract = copy.deepcopy(self.contract)
-        contract["network"]["ensemble"] = 1
-        norm = types.SimpleNamespace(mean=self.normalizer.mean[i : i + 1], std=self.normalizer.std[i : i + 1])
-        params = jax.tree.map(lambda x: x[i : i + 1], self.actor_params)
-        return dataclasses.replace(self, contract=contract, actor_params=params, normalizer=norm)
 
     def act(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
@@ -190,29 +154,18 @@ class Policy:
 
     @property
     def closed_loop_defaults(self) -> dict[str, Any]:
-        """Its closed loop's ``stop_tolerance`` and ``warmup_frames`` (:func:`regrasp_mjx.inference.policy_file.closed_loop_settings`)."""
+        """Its closed loop's ``stop_tolerance`` and ``warmup_frames``
+        (:func:`regrasp_mjx.inference.policy_file.closed_loop_settings`)."""
         return closed_loop_settings(self.contract)
 
     # ---- its programs -----------------------------------------------------------------------
     def program(self, setting: tuple, build: Callable[[], Callable] | None = None) -> Callable:
-        """The jitted program of ``setting`` with this policy's weights bound: ``(camera, shield)``
-        for planning (:func:`~regrasp_mjx.inference.planner.make_planner`), else what ``build()`` makes. Built
-        once per network shape and environment (policies of one shape share it), looked up once here."""
-        if setting not in self._programs:
-            key = (self.hidden, self.members, json.dumps(self.contract["env"]), *setting)
-            if key not in PLANNERS:
-                PLANNERS[key] = build() if build else make_planner(self.env_config, self.hidden, *setting)
-            self._programs[setting] = functools.partial(PLANNERS[key], self._weights)
-        return self._programs[setting]
+        """The jitted program of ``setting``, weights bound: :func:`regrasp_mjx.inference.planner.program`."""
+        return planner.program(self, setting, build)
 
     def lean(self, shield: bool):
-        """The numba-compiled one-query planner (:class:`~regrasp_mjx.inference.lean_planner.LeanPlanner`), built once."""
-        if ("lean", shield) not in self._programs:
-            # imported here: numba's import (0.4 s) and first compilation are paid only where it is used
-            from regrasp_mjx.inference.lean_planner import LeanPlanner
-
-            self._programs[("lean", shield)] = LeanPlanner(self.env_config, self._weights, shield)
-        return self._programs[("lean", shield)]
+        """The numba-compiled one-query planner: :func:`regrasp_mjx.inference.planner.lean`."""
+        return planner.lean(self, shield)
 
     # ---- what it does with poses (the functions say how) -------------------------------------
     def plan(self, needle: Any, start: Any, goal: Any = None, **options: Any) -> Plan:
