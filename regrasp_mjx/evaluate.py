@@ -10,9 +10,11 @@ one query at a time (compiled and warmed up first; the wall time from the poses 
 trajectory, numpy in and out; on the CPU ``Policy.plan``'s lean numba path, on a GPU the JAX
 program), mean and median; batched throughput (``batch_size`` queries in one call, or
 in equal chunks of at most
-:data:`~regrasp_mjx.inference.testset_plans.BATCH_CHUNK` one after the other, repeated, plans/s); path length in mm over the successes; starts that collide before any step
+:data:`~regrasp_mjx.inference.testset_plans.BATCH_CHUNK` one after the other, repeated, plans/s);
+path length in mm over the successes; starts that collide before any step
 (``invalid_starts``) and starts implausibly far from their needle (``far_starts``: beyond
-``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about. Planning runs on JAX's default device:
+``policy.START_WARN_MM``, usually poses in millimetres or another frame), counted and warned about.
+Planning runs on JAX's default device:
 ``JAX_PLATFORMS=cpu taskset -c 0 python -m regrasp_mjx.evaluate`` times one CPU core.
 ``--agreement`` instead checks the two engines of ``Policy.plan`` against each other on every
 problem (:func:`~regrasp_mjx.inference.testset_plans.engine_agreement`).
@@ -133,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--policy",
         default=None,
-        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY.name})",
+        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; "
+        f"default: the shipped one, {DEFAULT_POLICY.name})",
     )
     p.add_argument(
         "--testset",
@@ -146,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
         "--batch-size",
         type=int,
         default=None,
-        help=f"queries of the throughput batch (test set repeated; default its size); more than {BATCH_CHUNK} run as equal chunks of at most that many, one after the other",
+        help=f"queries of the throughput batch (test set repeated; default its size); more than {BATCH_CHUNK} run as "
+        "equal chunks of at most that many, one after the other",
     )
     p.add_argument("--no-shield", action="store_true", help="roll the bare policy out (no collision shield)")
     p.add_argument(
@@ -179,8 +183,8 @@ def main(argv: list[str] | None = None) -> int:
         "--look-frames",
         type=int,
         default=None,
-        help="with --closed-loop: before the last moves and before stopping, hold still and fuse up to this many frames "
-        "while the estimate is too uncertain to stop on (default: the policy's own; 0: never)",
+        help="with --closed-loop: before the last moves and before stopping, hold still and fuse up to this many "
+        "frames while the estimate is too uncertain to stop on (default: the policy's own; 0: never)",
     )
     p.add_argument(
         "--jaw-deg",
@@ -329,14 +333,16 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
             print(dumps(r))
         else:
             print(
-                f"{name} on {args.testset} ({r['problems_valid']} of {r['problems']} problems keep the margin; {mode}, needle noise {r['sigma_mm']:g} mm, bias "
-                f"{r['bias_mm']:g} mm, clearance margin {r['clearance_mm']:g} mm, shield {'on' if r['shield'] else 'off'}; "
-                f"calibration {r['calibration_mm']:g} mm / {r['calibration_deg']:g} deg, joint offsets {r['joint_offset']:g}, "
-                f"tool noise {r['tool_noise_mm']:g} mm, tools seen by the {r['observe']}"
+                f"{name} on {args.testset} ({r['problems_valid']} of {r['problems']} problems keep the margin; {mode}, "
+                f"needle noise {r['sigma_mm']:g} mm, bias {r['bias_mm']:g} mm, "
+                f"clearance margin {r['clearance_mm']:g} mm, shield {'on' if r['shield'] else 'off'}; "
+                f"calibration {r['calibration_mm']:g} mm / {r['calibration_deg']:g} deg, "
+                f"joint offsets {r['joint_offset']:g}, tool noise {r['tool_noise_mm']:g} mm, "
+                f"tools seen by the {r['observe']}"
                 + (f"; the camera's errors {args.camera}" if args.camera else "")
                 + "; judged on the true poses)\n"
-                f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}"
-                f"  stopped short of the true goal {r['wrong_stop_rate']:.3f}"
+                f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}"
+                f"  time-out {r['time_out_rate']:.3f}  stopped short of the true goal {r['wrong_stop_rate']:.3f}"
                 + (
                     f"\n  frames fused: median {r['frames_median']:g}, {r['looked_mean']:.1f} of them looked at while "
                     "holding still (mean)"
@@ -379,8 +385,8 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
         )
         + f"  path length {path}"
         + (
-            f"\n  warning: {r['far_starts']} starts lie beyond {START_WARN_MM:g} mm of their needle (no start was trained "
-            "there): check the test set's units (metres) and frame"
+            f"\n  warning: {r['far_starts']} starts lie beyond {START_WARN_MM:g} mm of their needle "
+            "(no start was trained there): check the test set's units (metres) and frame"
             if r["far_starts"]
             else ""
         )

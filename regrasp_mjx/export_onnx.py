@@ -59,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--policy",
         default=None,
-        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; default: the shipped one, {DEFAULT_POLICY})",
+        help=f"policy folder, or a shipped name ({', '.join(shipped_policies())}; "
+        f"default: the shipped one, {DEFAULT_POLICY})",
     )
     p.add_argument("--out", required=True, help="the .onnx file to write")
     p.add_argument("--no-check", action="store_true", help="skip the ONNX Runtime comparison")

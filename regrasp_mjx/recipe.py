@@ -229,7 +229,8 @@ def summary(out: Path, run: dict[str, Any], log) -> int:
     missed = [n for n, r in run["jobs"].items() if r["exit"] not in (0, "stopped") and r["stage"] == "precompile"]
     if missed:
         log(
-            f"{len(missed)} precompile job(s) did not finish ({', '.join(missed)}): the jobs they help compiled their own"
+            f"{len(missed)} precompile job(s) did not finish ({', '.join(missed)}): "
+            "the jobs they help compiled their own"
         )
     if failed:
         print(
@@ -240,7 +241,8 @@ def summary(out: Path, run: dict[str, Any], log) -> int:
         return 1
     if (out / "selection.json").is_file() and (out / "robustness.json").is_file():
         log(
-            f"exported {out / 'policy'}; its robustness table: {out / 'robustness.md'}; the choice: {out / 'selection.md'}"
+            f"exported {out / 'policy'}; its robustness table: {out / 'robustness.md'}; "
+            f"the choice: {out / 'selection.md'}"
         )
     return 0
 

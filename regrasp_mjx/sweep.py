@@ -155,7 +155,8 @@ def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tu
     lines = [
         "Bare policy (no shield) on the run's test set; mean ± std over seeds.",
         "",
-        "| point | overrides | setting | epochs | last epoch | mean of last 10 | best epoch | exported (best on validation) | exported, shielded | collision, last | path (mm), last |",
+        "| point | overrides | setting | epochs | last epoch | mean of last 10 | best epoch "
+        "| exported (best on validation) | exported, shielded | collision, last | path (mm), last |",
         "| --- | --- | --- | ---: | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:

@@ -1,1 +1,2 @@
-"""Layer 1, foundations: typed configs, frames and poses, atomic files, the multi-process and GPU-memory helpers, the loops' shared parts, the job scheduler."""
+"""Layer 1, foundations: typed configs, frames and poses, atomic files, the multi-process and
+GPU-memory helpers, the loops' shared parts, the job scheduler."""

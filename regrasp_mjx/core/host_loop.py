@@ -161,7 +161,8 @@ def epoch_line(epochs: int, rows: list[dict[str, Any]], demos_received: list[int
     return (
         f"epoch {r0['epoch']}/{epochs}  val success {each(col('validation', 'success_rate'))}  "
         f"test success {each(col('test', 'success_rate'))} "
-        f"(collision {each(col('test', 'collision_rate'))}, path {'/'.join(mm(x) for x in col('test', 'path_length_mm'))})  "
+        f"(collision {each(col('test', 'collision_rate'))}, "
+        f"path {'/'.join(mm(x) for x in col('test', 'path_length_mm'))})  "
         f"return {each(col('return'), '{:+.3f}')}  critic {each(col('critic_loss'), '{:.4f}')}  "
         f"actor {each(col('actor_loss'), '{:+.5f}')}  Q {each(col('q'), '{:+.3f}')}  "
         f"E_R {each(col('E_R'))}  E_T {each(col('E_T'))}  demos+ {each(demos_received, '{}')}  "

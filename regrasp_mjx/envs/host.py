@@ -72,8 +72,8 @@ class HostChecker:
     """Collision verdicts and clearances for a needle pose and a regrasping end-effector pose.
 
     ``clearance_mm`` (kept in metres as ``margin``): a pose collides when a counted pair is closer
-    than this (0: when it penetrates), as ``EnvConfig.clearance_mm`` in :class:`regrasp_mjx.envs.env.RegraspEnv`. Not thread-safe (it owns one
-    ``MjData``); give each worker process its own.
+    than this (0: when it penetrates), as ``EnvConfig.clearance_mm`` in :class:`regrasp_mjx.envs.env.RegraspEnv`.
+    Not thread-safe (it owns one ``MjData``); give each worker process its own.
     """
 
     def __init__(self, scene: Scene | None = None, clearance_mm: float = 0.0):

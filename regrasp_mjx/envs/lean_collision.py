@@ -329,8 +329,8 @@ def motion_collides(geo, fixed, p0, q0, dp, w, threshold, tool, tool_mid, stack)
     """Whether the motion ``(p0 + s dp, exp(s w) q0)``, s in [0, 1] (tuples; ``q0`` unit), comes
     below ``threshold`` anywhere: :func:`regrasp_mjx.world.continuous_walk.motion_collides`' verdict, each
     interval proved by one :func:`interval_collides` at its midpoint (``stack``: ``[64, 2]`` int64
-    scratch): the root's midpoint first, which proves most steps in one test; where it does not, the end pose is tested for a collision
-    before the halves (a step into the needle usually ends in it)."""
+    scratch): the root's midpoint first, which proves most steps in one test; where it does not, the end
+    pose is tested for a collision before the halves (a step into the needle usually ends in it)."""
     move, turn = (
         math.sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]),
         math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]),

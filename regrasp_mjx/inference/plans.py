@@ -94,7 +94,10 @@ class Plan:
     def __repr__(self) -> str:
         ok = np.atleast_1d(self.success)
         if ok.size == 1 and np.ndim(self.success) == 0:
-            return f"Plan(success={bool(self.success)}, steps={int(self.steps)}, path_length_mm={float(self.path_length_mm):.2f})"
+            return (
+                f"Plan(success={bool(self.success)}, steps={int(self.steps)}, "
+                f"path_length_mm={float(self.path_length_mm):.2f})"
+            )
         return f"Plan({ok.size} queries: success {ok.mean():.3f}, collision {np.mean(self.collision):.3f})"
 
     def trajectory(self, frame: str = "eg", query: int | None = None) -> np.ndarray:

@@ -261,7 +261,8 @@ def table(
             if log is not None:
                 r = rows[-1]
                 log(
-                    f"  {condition.name:<30} {mode:<9} success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}"
+                    f"  {condition.name:<30} {mode:<9} success {r['success_rate']:.3f}  "
+                    f"collision {r['collision_rate']:.3f}"
                 )
     return rows
 

@@ -44,7 +44,8 @@ def title(table: dict[str, Any], machine: bool = False) -> list[str]:
     where = f"; {table['machine']}" if machine else ""
     net = "x".join(map(str, table["hidden"]))
     return [
-        f"**{table['policy']}** (`{table['folder']}`, {net}, hash {table['policy_hash']}) on {table['problems']}{where}:",
+        f"**{table['policy']}** (`{table['folder']}`, {net}, hash {table['policy_hash']}) "
+        f"on {table['problems']}{where}:",
         "",
     ]
 
@@ -116,7 +117,8 @@ def docs_blocks(tables: list[dict[str, Any]], policies: tuple[str, ...] = DOC_PO
         for t in chosen:
             o, f1, fs, fu = (cell(t, condition, m) for m in DOC_MODES)
             cells.append(
-                f"{o['success_rate']:.3f} / {f1['success_rate']:.3f} ({fs['success_rate']:.3f}) / {fu['success_rate']:.3f}"
+                f"{o['success_rate']:.3f} / {f1['success_rate']:.3f} ({fs['success_rate']:.3f}) / "
+                f"{fu['success_rate']:.3f}"
             )
         first = cell(chosen[0], condition, "open")
         note = f" [{first['problems_valid']} valid]" if first["problems_valid"] < first["problems"] else ""

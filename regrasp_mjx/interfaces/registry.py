@@ -74,7 +74,8 @@ ENVS = {
         "paper",
         needle_sigma_mm=0.5,
         needle_bias_mm=0.25,
-        about="the needle through its estimate: sigma U[0, 0.5] mm per frame, bias U[0, 0.25] mm (the shipped default's training)",
+        about="the needle through its estimate: sigma U[0, 0.5] mm per frame, bias U[0, 0.25] mm "
+        "(the shipped default's training)",
     ),
     "NeedleRegraspCalibration": Variant(
         "paper",

@@ -78,7 +78,9 @@ def make_replay(env: RegraspEnv):
     replays are demonstrations."""
 
     def replay(episodes: Episode, actions: jax.Array) -> Rollout:
-        keep = lambda state, a, nxt: {"obs": state.obs, "next_obs": nxt.obs, "reward": nxt.reward, "done": nxt.done}  # noqa: E731
+        def keep(state, a, nxt):
+            return {"obs": state.obs, "next_obs": nxt.obs, "reward": nxt.reward, "done": nxt.done}
+
         return rollout(env, lambda state, t: actions[:, t], jax.vmap(env.reset_from)(episodes), trace=keep)
 
     return jax.jit(replay)
@@ -199,7 +201,8 @@ def load_demos(path: str | os.PathLike) -> Demos:
     missing = [k for k in (*TRANSITION_KEYS, *EPISODE_KEYS) if k not in data]
     if missing or meta.get("format") != DEMOS_FORMAT:
         raise DemosError(
-            f"{path} lacks {missing or 'its format tag'}; a demonstration set holds {sorted([*TRANSITION_KEYS, *EPISODE_KEYS, 'meta'])}"
+            f"{path} lacks {missing or 'its format tag'}; a demonstration set holds "
+            f"{sorted([*TRANSITION_KEYS, *EPISODE_KEYS, 'meta'])}"
         )
     s, d = data["obs"].shape[0], data["length"].shape[0]
     width = data["obs"].shape[1] if data["obs"].ndim == 2 else -1

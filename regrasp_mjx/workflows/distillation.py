@@ -134,8 +134,8 @@ def distill(
         log(
             f"distill {it + 1}/{cfg.iterations}  val success {va['success_rate']:.3f}"
             + (f" (noisy {vn['success_rate']:.3f})" if vn else "")
-            + f"  test success "
-            f"{te['success_rate']:.3f} (collision {te['collision_rate']:.3f})  rollouts {metrics['rollout_success']:.3f}  "
+            + f"  test success {te['success_rate']:.3f} (collision {te['collision_rate']:.3f})  "
+            f"rollouts {metrics['rollout_success']:.3f}  "
             f"overridden {metrics['overridden']:.3f}  teacher reaches {metrics['teacher_reaches']:.3f}  "
             f"loss {metrics['loss']:.5f}  {row['iteration_s']:.1f} s/it  {eta(it + 1, cfg.iterations, row['wall_s'])}"
         )
@@ -159,9 +159,9 @@ def distill(
     write_json(out / "distill_eval.json", final)
     st, tt = final["test"], final["teacher_test"]
     log(
-        f"student (iteration {best.step[0]}, best on validation) on the test set: bare {st['bare']['success_rate']:.3f}, "
-        f"shielded {st['shielded']['success_rate']:.3f}; teacher bare {tt['bare']['success_rate']:.3f}, "
-        f"shielded {tt['shielded']['success_rate']:.3f}"
+        f"student (iteration {best.step[0]}, best on validation) on the test set: "
+        f"bare {st['bare']['success_rate']:.3f}, shielded {st['shielded']['success_rate']:.3f}; "
+        f"teacher bare {tt['bare']['success_rate']:.3f}, shielded {tt['shielded']['success_rate']:.3f}"
     )
     return final
 

@@ -55,7 +55,8 @@ class Students:
 class Selection:
     """The candidates' robustness rows on ``n`` validation problems of ``seed`` (never a test set);
     the score is the mean success over ``rule``'s (mode, condition) rows; the winner's closed loop
-    is then tuned on ``loop_n`` problems of ``loop_seed`` (:func:`regrasp_mjx.inference.selection.closed_loop_settings`)."""
+    is then tuned on ``loop_n`` problems of ``loop_seed``
+    (:func:`regrasp_mjx.inference.selection.closed_loop_settings`)."""
 
     n: int
     seed: int
@@ -124,8 +125,8 @@ def route(recipe: Recipe, overrides: dict[str, Any]) -> dict[str, dict[str, Any]
         if not hit:
             raise ConfigError(
                 f"--set {key} is not accepted: no stage of recipe {recipe.name} has {head!r}; accepted: a TrainConfig "
-                f"field (env.*, epochs, ...) for the teachers, a DistillConfig field ({', '.join(sorted(student_fields))}) "
-                f"for the students, or STAGE.KEY with STAGE one of {STAGES}"
+                f"field (env.*, epochs, ...) for the teachers, a DistillConfig field "
+                f"({', '.join(sorted(student_fields))}) for the students, or STAGE.KEY with STAGE one of {STAGES}"
             )
     return out
 
@@ -159,7 +160,8 @@ def markdown(recipe: Recipe) -> list[str]:
     if s is not None:
         variants = "; ".join(f"`{name}`: `{_sets(v)}`" for name, v in s.variants)
         rows.append(
-            f"| students | from each teacher seed S: `distill --seed S {_sets(s.settings)}`, then per variant ({variants}) |"
+            f"| students | from each teacher seed S: `distill --seed S {_sets(s.settings)}`, "
+            f"then per variant ({variants}) |"
         )
     rule = ", ".join(f"{mode} {cond}" for mode, cond in sel.rule)
     who = "every student" if s is not None else "every teacher seed"

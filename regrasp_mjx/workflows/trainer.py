@@ -4,7 +4,8 @@ Python runs only between iterations: the planner exchange (:mod:`regrasp_mjx.age
 and per epoch the evaluation on the test set and on validation problems of the run's own seed (which
 choose the exported policy), the log line, TensorBoard and JSONL logs, and an atomic checkpoint
 (:mod:`regrasp_mjx.agents.ddpg_bc.checkpoint`). It sits above the inference layer (it exports,
-tests and distils policies), below the CLIs; ``python -m regrasp_mjx.train`` is its command line. At the end each member's policy is exported and tested, distilled when asked,
+tests and distils policies), below the CLIs; ``python -m regrasp_mjx.train`` is its command line.
+At the end each member's policy is exported and tested, distilled when asked,
 and the best seed of each setting copied to ``OUT/policy``. In a distributed run every process runs
 this loop; process 0 writes (:mod:`regrasp_mjx.core.distributed`).
 """
@@ -345,9 +346,9 @@ class Run:
             ev = members[-1]["test"]
             self.log(
                 f"{members[-1]['setting'] or 'seed'} {members[-1]['seed']}: exported {policy_dir} (epoch "
-                f"{meta['best_epoch'][m]}, best on validation); on the test set: success {ev['bare']['success_rate']:.3f} "
-                f"bare, {ev['shielded']['success_rate']:.3f} shielded; collision {ev['bare']['collision_rate']:.3f} bare; "
-                f"path {mm(ev['bare']['path_length_mm'])}"
+                f"{meta['best_epoch'][m]}, best on validation); on the test set: "
+                f"success {ev['bare']['success_rate']:.3f} bare, {ev['shielded']['success_rate']:.3f} shielded; "
+                f"collision {ev['bare']['collision_rate']:.3f} bare; path {mm(ev['bare']['path_length_mm'])}"
             )
         with self.phases("distill"):
             students = self.distill(members) if cfg.distill.iterations > 0 else None

@@ -119,8 +119,8 @@ def interval_low(tool, origin, other, gap, d, h, dp, rotvec, levers, xp=jnp):
 
 
 def motion_collides_host(bound_at, fastest: float, margin: float) -> bool:
-    """:func:`~regrasp_mjx.world.continuous_walk.motion_collides` in plain Python (float64), for the host checker: ``bound_at(s, h,
-    reach)`` returns every pair's signed distance at pose s and its lower bound over the interval of
+    """:func:`~regrasp_mjx.world.continuous_walk.motion_collides` in plain Python (float64), for the host checker:
+    ``bound_at(s, h, reach)`` returns every pair's signed distance at pose s and its lower bound over the interval of
     half-width h (:func:`interval_low`), where pairs farther than ``reach`` [m] may be reported at
     ``reach`` for both (a distance query may stop there: ``reach`` exceeds m by the motion bound)."""
     fastest = float(fastest)

@@ -65,8 +65,8 @@ def motion_collides(
 
     ``bound_fn(motion, s, h) -> (d [P], low [P])``: every counted pair's signed distance at the pose
     s of the motion ``motion`` (a pytree of arrays: the lane's poses and placed capsules) and its
-    lower bound over the interval of half-width h about it (:func:`~regrasp_mjx.world.continuous.interval_low`); ``fastest``: the
-    largest ``v_t``. The root interval is tested, then its halves where it is not proved, walked
+    lower bound over the interval of half-width h about it (:func:`~regrasp_mjx.world.continuous.interval_low`);
+    ``fastest``: the largest ``v_t``. The root interval is tested, then its halves where it is not proved, walked
     depth first (:func:`_halves`).
 
     Vmapped, the halves run on the lanes the root left pending alone, gathered ``share`` of the
@@ -135,7 +135,9 @@ def _tail_lane(bound_fn, margin: float):
     ``tests`` taken, where ``pending``, to its end, :data:`TAIL_DEPTH` levels a loop iteration."""
 
     def one(motion, fastest, k, i, tests, pending):
-        step = lambda c: _subtree_step(lambda s, h: bound_fn(motion, s, h), fastest, margin, c, TAIL_DEPTH)  # noqa: E731
+        def step(c):
+            return _subtree_step(lambda s, h: bound_fn(motion, s, h), fastest, margin, c, TAIL_DEPTH)
+
         return jax.lax.while_loop(lambda c: c.active, step, Walk(k, i, tests, jnp.bool_(False), pending)).collision
 
     return one
@@ -189,8 +191,8 @@ def _pending_lanes(batched, args, size: int, share: float) -> jax.Array:
 
 def _halves(bound_at, fastest, margin: float, pending: jax.Array, batched: bool = False) -> jax.Array:
     """Whether the root's halves, tested depth first where ``pending``, fail to be proved: the walk
-    of :func:`~regrasp_mjx.world.continuous.motion_collides_host` without its stack (:func:`_advance`), an interval a step.
-    ``batched`` (on a GPU each loop iteration waits for the device): a subtree of
+    of :func:`~regrasp_mjx.world.continuous.motion_collides_host` without its stack (:func:`_advance`), an
+    interval a step. ``batched`` (on a GPU each loop iteration waits for the device): a subtree of
     :data:`SUBTREE_DEPTH` levels a loop iteration, tested at once and walked in one replay
     (:func:`_subtree_step`); or, where that is None, :data:`WALK_CHUNK` steps, unrolled."""
 

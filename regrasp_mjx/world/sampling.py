@@ -341,7 +341,8 @@ def load_testset(path: str | os.PathLike) -> tuple[Episode, dict[str, Any]]:
         bad = np.flatnonzero((fields[name] < lo - 1e-12) | (fields[name] > hi + 1e-12))
         if bad.size:
             raise TestsetError(
-                f"{path}: {name} {float(fields[name][bad[0]]):g} in row {bad[0]} is out of range; accepted: [{lo:g}, {hi:g}] m"
+                f"{path}: {name} {float(fields[name][bad[0]]):g} in row {bad[0]} is out of range; "
+                f"accepted: [{lo:g}, {hi:g}] m"
             )
     return Episode(**fields), meta
 
