@@ -8,7 +8,7 @@ EGL renders on the CPU too), else GLFW. Where no backend works it raises :class:
 and :func:`sketch` draws the collision capsules with matplotlib instead.
 
 Poses are 7-vectors ``[x, y, z, qw, qx, qy, qz]`` (metres) in the grasping end-effector frame e_g,
-as :class:`regrasp_mjx.inference.policy.Plan` gives them.
+as :class:`regrasp_mjx.inference.plans.Plan` gives them.
 """
 
 from __future__ import annotations
