@@ -92,6 +92,30 @@ def seen_from(es, needle: jax.Array):
     return es.replace(needle_pos=pos, needle_quat=quat, goal_pos=goal[0], goal_quat=goal[1])
 
 
+def estimated_observation(
+    env: RegraspEnv,
+    es,
+    k_bias: jax.Array,
+    k_frame: jax.Array,
+    sigma_mm: jax.Array,
+    bias_mm: jax.Array,
+    tool_mm: jax.Array | None = None,
+    k_tools: jax.Array | None = None,
+) -> jax.Array:
+    """What a policy sees at batched states ``es`` when each row's needle is estimated with its own
+    noise, each row's keys given: ``k_bias`` ``[B, 2]`` (this episode's bias), ``k_frame`` ``[B, 2]``
+    (this frame's noise), ``sigma_mm`` and ``bias_mm`` ``[B]``; with ``tool_mm`` ``[B]``, the camera
+    sees both tools too, each with that noise, drawn by ``k_tools`` ``[B, 2]`` (:func:`camera_view`)."""
+    needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
+    seen = jax.vmap(needle_estimate)(k_bias, k_frame, needle[:, None], sigma_mm, bias_mm)[:, 0]
+    if tool_mm is None:
+        return jax.vmap(env.observe)(seen_from(es, seen))
+    ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
+    seen, seen_ee = jax.vmap(camera_view)(k_tools, seen[:, None], ee[:, None], tool_mm)
+    seen_es = seen_from(es, seen[:, 0]).replace(ee_pos=seen_ee[:, 0, :3], ee_quat=seen_ee[:, 0, 3:])
+    return jax.vmap(env.observe)(seen_es)
+
+
 def noisy_observation(
     env: RegraspEnv, es, keys: jax.Array, sigma_mm: jax.Array, bias_mm: jax.Array, tool_mm: jax.Array | None = None
 ) -> jax.Array:
@@ -99,18 +123,12 @@ def noisy_observation(
     noise: ``keys`` ``[B, 2]`` per row (its bias key is ``keys``' first split, fixed for the
     episode; its frame key at step ``t`` folds ``es.t`` in), ``sigma_mm`` and ``bias_mm`` ``[B]``;
     with ``tool_mm`` ``[B]``, the camera sees both tools too, each with that noise per frame
-    (:func:`camera_view`). A pure function of the state, so a rollout's act and trace see the same frame."""
+    (:func:`camera_view`; its key folds 7 into the frame key). A pure function of the state, so a
+    rollout's act and trace see the same frame. The keys split, :func:`estimated_observation`."""
     split = jax.vmap(jax.random.split)(keys)
     k_frame = jax.vmap(jax.random.fold_in)(split[:, 1], es.t)
-    needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
-    seen = jax.vmap(needle_estimate)(split[:, 0], k_frame, needle[:, None], sigma_mm, bias_mm)[:, 0]
-    if tool_mm is None:
-        return jax.vmap(env.observe)(seen_from(es, seen))
-    ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
-    k_tools = jax.vmap(jax.random.fold_in)(k_frame, jnp.full_like(es.t, 7))
-    seen, seen_ee = jax.vmap(camera_view)(k_tools, seen[:, None], ee[:, None], tool_mm)
-    seen_es = seen_from(es, seen[:, 0]).replace(ee_pos=seen_ee[:, 0, :3], ee_quat=seen_ee[:, 0, 3:])
-    return jax.vmap(env.observe)(seen_es)
+    k_tools = None if tool_mm is None else jax.vmap(jax.random.fold_in)(k_frame, jnp.full_like(es.t, 7))
+    return estimated_observation(env, es, split[:, 0], k_frame, sigma_mm, bias_mm, tool_mm, k_tools)
 
 
 def evaluate_noisy(
