@@ -1,13 +1,13 @@
-"""One jitted program per iteration: vmapped rollouts, buffer inserts, the updates in a scan.
+"""The learner: one jitted program per iteration joining the exploration rollouts, the buffer inserts
+and the DDPG+BC gradient steps in a scan.
 
-An iteration resets ``num_envs`` environments to fresh problems and runs ``horizon`` steps with
-exploration (an action is uniformly random with probability E_R, else the policy's); an environment
-that ends restarts its problem (brax's auto-reset), so every one of the ``num_envs * horizon``
-transitions is valid and goes into the online buffer. Then ``updates_per_iteration`` DDPG+BC
-updates, each on ``online_batch`` online and ``demo_batch`` demonstration samples (flashbax item
-buffers); the target networks move by polyak averaging every ``target_every`` updates. The first
-episode of each environment is the one that counts for Algorithm 1: the host sends failed ones to
-the planner pool with probability E_T.
+An iteration resets ``num_envs`` environments to fresh problems and runs their exploration rollout
+(:mod:`~regrasp_mjx.agents.ddpg_bc.exploration`: ``horizon`` steps, random actions with probability
+E_R, noisy observations when asked); every one of the ``num_envs * horizon`` transitions goes into the
+online buffer. Then ``updates_per_iteration`` DDPG+BC updates (this module), each on ``online_batch``
+online and ``demo_batch`` demonstration samples (flashbax item buffers); the target networks move by
+polyak averaging every ``target_every`` updates. The first episode of each environment is the one
+that counts for Algorithm 1: the host sends failed ones to the planner pool with probability E_T.
 
 Members are a batch axis: ``num_members`` independent learners (seeds ``seed, seed + 1, ...``, for
 each of the config's ``settings``; E_R comes per member), each with its own networks, optimisers,
@@ -34,14 +34,13 @@ from flax import struct
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from regrasp_mjx.agents.ddpg_bc import losses
+from regrasp_mjx.agents.ddpg_bc import exploration, losses
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig
 from regrasp_mjx.agents.ddpg_bc.networks import DDPGNetworks, init_params, make_networks
 from regrasp_mjx.agents.ddpg_bc.placement import AXIS, Placement
 from regrasp_mjx.agents.ddpg_bc.schedules import Schedules
-from regrasp_mjx.envs import estimates
 from regrasp_mjx.envs.env import RegraspEnv
-from regrasp_mjx.envs.rollout import Rollout, record_step, rollout, start_outcome
+from regrasp_mjx.envs.rollout import Rollout, rollout
 from regrasp_mjx.world.sampling import Episode
 
 TRANSITION = ("obs", "action", "reward", "next_obs", "terminal")
@@ -183,70 +182,9 @@ class Learner(Placement, Schedules):
         return jnp.concatenate([jax.random.split(jax.random.split(k)[0], self.local_envs) for k in per_device])
 
     def _rollout(self, ts: TrainingState, first, key: jax.Array, random_eps: jax.Array):
-        env, cfg, n = self.env, self.config, self.local_envs
-        k_steps = jax.random.split(self._device_key(key))[1]
-        policy = self._policy(ts)
-
-        noisy = cfg.obs_noise_mm > 0 or cfg.obs_bias_mm > 0 or cfg.obs_tool_noise_mm > 0
-        if noisy:  # domain randomisation: this iteration's noise level and bias per environment
-            # folded off the rollout's key, so runs without noise keep their random streams
-            k_sigma, k_bias_size, k_bias = jax.random.split(jax.random.fold_in(k_steps, 17), 3)
-            sigma = jax.random.uniform(k_sigma, (n,), maxval=cfg.obs_noise_mm)
-            bias = jax.random.uniform(k_bias_size, (n,), maxval=cfg.obs_bias_mm)
-            tool = jax.random.uniform(jax.random.fold_in(k_steps, 19), (n,), maxval=cfg.obs_tool_noise_mm)
-
-        def observe(state, k):
-            """What the policy sees: the observation of a needle estimate, and with tool noise the
-            camera's view of both tools (noise-free when off)."""
-            if not noisy:
-                return state.obs
-            es = state.pipeline_state
-            needle = jnp.concatenate([es.needle_pos, es.needle_quat], -1)
-            biased = jax.vmap(estimates.episode_bias)(jax.random.split(k_bias, n), needle, bias)
-            seen = jax.vmap(estimates.frame_estimate)(jax.random.split(k, n), biased, sigma)
-            if cfg.obs_tool_noise_mm == 0:
-                return jax.vmap(env.observe)(estimates.seen_from(es, seen))
-            ee = jnp.concatenate([es.ee_pos, es.ee_quat], -1)
-            keys = jax.random.split(jax.random.fold_in(k, 7), n)  # each environment its own frame and level
-            seen, seen_ee = jax.vmap(estimates.camera_view)(keys, seen[:, None], ee[:, None], tool)
-            seen_es = estimates.seen_from(es, seen[:, 0]).replace(ee_pos=seen_ee[:, 0, :3], ee_quat=seen_ee[:, 0, 3:])
-            return jax.vmap(env.observe)(seen_es)
-
-        def step(carry, k):
-            state, outcome = carry
-            k_coin, k_rand, k_noise = jax.random.split(k, 3)
-            k_obs, k_next = jax.random.split(jax.random.fold_in(k, 17))
-            explore = jax.random.uniform(k_coin, (n, 1)) < random_eps
-            obs = observe(state, k_obs)
-            greedy = policy(obs)
-            if cfg.action_noise > 0:
-                noise = cfg.action_noise * jax.random.normal(k_noise, greedy.shape)
-                greedy = jnp.clip(greedy + noise, -1.0, 1.0)
-            action = jnp.where(
-                explore,
-                jax.random.uniform(k_rand, (n, env.action_size), minval=-1.0, maxval=1.0),
-                greedy,
-            )
-            nxt = jax.vmap(env.step)(state, action)
-            terminal = nxt.done * (1.0 - nxt.info["truncation"])
-            transition = {
-                "obs": obs,
-                "action": action,
-                "reward": nxt.reward,
-                "next_obs": observe(nxt, k_next),
-                "terminal": terminal,
-            }
-            # The first episode of each environment decides Algorithm 1's "failed episode".
-            first_live = ~(outcome.success | outcome.collision | outcome.time_out)
-            outcome, _ = record_step(outcome, first_live, nxt, cfg.gamma**state.pipeline_state.t)
-            reset = nxt.done > 0
-            state = jax.tree.map(lambda f, x: jnp.where(reset.reshape((-1,) + (1,) * (x.ndim - 1)), f, x), first, nxt)
-            return (state, outcome), (transition, nxt.reward)
-
-        (_, outcome), (transitions, rewards) = jax.lax.scan(
-            step, (first, start_outcome(n)), jax.random.split(k_steps, cfg.env.horizon)
-        )
-        return outcome, transitions, rewards
+        """One learner's exploration rollout on this device (:func:`~regrasp_mjx.agents.ddpg_bc.exploration.explore`)
+        with its actor: ``(outcome, transitions, rewards)``."""
+        return exploration.explore(self.env, self.config, self._policy(ts), first, self._device_key(key), random_eps)
 
     def update(self, ts: TrainingState, key: jax.Array):
         """One DDPG+BC gradient step of one learner: this device's share of a batch, then :meth:`learn`."""
