@@ -38,6 +38,7 @@ from regrasp_mjx.inference.testset_plans import outcomes
 from regrasp_mjx.planning import demonstrations
 from regrasp_mjx.planning.episodes import Demos, DemosError, check_made_for, load_demos
 from regrasp_mjx.workflows.distillation import distill
+from regrasp_mjx.workflows.epochs import EpochAcc, Loop, epoch_rows
 from regrasp_mjx.world.sampling import load_testset
 from regrasp_mjx.world.testsets import make_testset
 
@@ -177,120 +178,100 @@ class Run:
         meta.setdefault("run_id", uuid.uuid4().hex[:12])
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
-        # numpy, not device arrays: in a distributed run a host value given to a jitted program is
-        # the same on every process and is placed on the global mesh as such
-        test = jax.tree.map(lambda x: np.asarray(x, np.float32), self.testset)
-        val = jax.tree.map(lambda x: np.asarray(x, np.float32), self.valset)
         explos = [cfg.member_setting(m)[1] for m in range(seeds)]
         targeted = any(x.targeted_eps > 0 for x in explos)
-        exchange = PlannerExchange(cfg, learner) if targeted else None
-        steps_per_iter = seeds * cfg.num_envs * cfg.env.horizon
-        t_start, compile_s, last, epochs_run = time.perf_counter(), None, [], 0
-        writer = checkpoint.Writer()
+        loop = Loop(
+            ts=ts,
+            meta=meta,
+            best=best,
+            rng=rng,
+            explos=explos,
+            exchange=PlannerExchange(cfg, learner) if targeted else None,
+            log=log,
+            # numpy, not device arrays: in a distributed run a host value given to a jitted program is
+            # the same on every process and is placed on the global mesh as such
+            test=jax.tree.map(lambda x: np.asarray(x, np.float32), self.testset),
+            val=jax.tree.map(lambda x: np.asarray(x, np.float32), self.valset),
+            t_start=time.perf_counter(),
+        )
         try:
             for epoch in range(meta["epoch"], cfg.epochs):
-                t_epoch = time.perf_counter()
-                metrics_acc: list[dict[str, np.ndarray]] = []
-                outcomes = []
-                pending = None  # the iteration whose host work is left: it runs while the next is on the device
-                for _ in range(cfg.iterations_per_epoch):
-                    e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos], np.float32).T
-                    t_it = time.perf_counter()
-                    ts, metrics, outcome, problems = learner.iteration(ts, e_r)  # queued behind `pending`
-                    if compile_s is None:
-                        compile_s = time.perf_counter() - t_it  # tracing and compiling block the call
-                        phases.add("compile", compile_s)
-                        self.log(
-                            f"compiled the iteration program in {compile_s:.1f} s (backend {jax.default_backend()})"
-                        )
-                    meta["iteration"] += 1
-                    if pending is not None:
-                        ts = self._after_iteration(ts, *pending, exchange, rng, metrics_acc, outcomes, meta)
-                    pending = (outcome, metrics, problems, e_t)
-                ts = self._after_iteration(ts, *pending, exchange, rng, metrics_acc, outcomes, meta)
-                # the iterations' rate, host work overlapped; the process's first epoch less the compile
-                iter_s = time.perf_counter() - t_epoch - ((compile_s or 0.0) if epochs_run == 0 else 0.0)
-                eval_s = time.perf_counter()
-                evs, vas = self._evaluate_and_select(ts, test, val, best, epoch + 1)
-                eval_s = time.perf_counter() - eval_s
-                epoch_s = time.perf_counter() - t_epoch
-                mean = {k: np.mean([x[k] for x in metrics_acc], axis=0) for k in metrics_acc[0]}  # [seed]
-                out = jax.tree.map(lambda *x: np.concatenate(x, axis=1), *outcomes)
-                e_r, e_t = np.array([x.at(meta["iteration"]) for x in explos]).T
-                per_s = cfg.iterations_per_epoch / max(iter_s, 1e-9)  # iterations per second
-                meta["epoch"] = epoch + 1
-                meta["rng"] = rng.bit_generator.state
-                meta["config"] = checkpoint.config_json(cfg)
-                if (epoch + 1) % cfg.checkpoint_every == 0 or epoch + 1 == cfg.epochs:
-                    with phases("checkpoint"):  # the copy to the host; the file is written beside the training
-                        writer.save(self.ckpt, ts, meta)
-                timing = phases.take()  # this epoch's seconds per phase (the first epoch's hold the set-up)
-                rows = []
-                for m in range(seeds):
-                    rows.append(
-                        {
-                            "run_id": meta["run_id"],
-                            "epoch": epoch + 1,
-                            "setting": cfg.member_setting(m)[0] or None,
-                            "seed": cfg.member_seed(m),
-                            "iteration": meta["iteration"],
-                            "rollout": "bare",  # test and validation: the network alone, no shield
-                            "test": evs[m],
-                            "validation": vas[m],
-                            "train_success": float(out.success[m].mean()),
-                            "train_collision": float(out.collision[m].mean()),
-                            "return": float(mean["rollout_reward"][m]),
-                            "critic_loss": float(mean["critic_loss"][m]),
-                            "actor_loss": float(mean["actor_loss"][m]),
-                            "bc_loss": float(mean["bc_loss"][m]),
-                            "q": float(mean["q"][m]),
-                            "q_filter_kept": float(mean["q_filter_kept"][m]),
-                            "E_R": float(e_r[m]),
-                            "E_T": float(e_t[m]),
-                            "demos_received": meta["demos_received"][m],
-                            "planned": meta["planned"][m],
-                            "env_steps_per_s": steps_per_iter * per_s,  # all seeds together
-                            "updates_per_s": seeds * cfg.updates_per_iteration * per_s,
-                            "epoch_s": epoch_s,
-                            "eval_s": eval_s,
-                            "wall_s": time.perf_counter() - t_start,
-                            "timing": timing,  # the whole run's, the same in every member's row
-                        }
-                    )
-                if main:
-                    with phases("log"):
-                        log.write(rows)
-                epochs_run += 1
-                trained_s = time.perf_counter() - t_start - (compile_s or 0.0)
-                self.log(
-                    epoch_line(
-                        cfg.epochs,
-                        rows,
-                        meta["demos_received"],
-                        eta(epochs_run, epochs_run + cfg.epochs - epoch - 1, trained_s),
-                    )
-                )
-                last = rows
+                self._epoch(loop, epoch)
             with phases("checkpoint"):
-                writer.wait()  # the last checkpoint is on disk before the run reports
+                loop.writer.wait()  # the last checkpoint is on disk before the run reports
         finally:
-            if exchange is not None:
-                exchange.close()
+            if loop.exchange is not None:
+                loop.exchange.close()
             log.close()
-        return self.finish(ts, last, compile_s, meta, time.perf_counter() - t_start)
+        return self.finish(loop.ts, loop.last, loop.compile_s, meta, time.perf_counter() - loop.t_start)
 
-    def _after_iteration(self, ts, outcome, metrics, problems, e_t, exchange, rng, metrics_acc, outcomes, meta):
-        """The host's part of a finished iteration, run while the next one is on the device: its
-        outcome and metrics fetched (waiting for it), its chosen failed episodes sent to the planners
-        and the demonstrations that came back inserted (behind the queued iteration)."""
+    def _epoch(self, loop: Loop, epoch: int) -> None:
+        """Epoch ``epoch`` (0-based): its iterations, the evaluation and selection, the checkpoint when
+        due, the log rows and the progress line."""
+        cfg, learner, meta, phases = self.cfg, self.learner, loop.meta, self.phases
+        t_epoch = time.perf_counter()
+        acc = EpochAcc()
+        for _ in range(cfg.iterations_per_epoch):
+            e_r, e_t = np.array([x.at(meta["iteration"]) for x in loop.explos], np.float32).T
+            if loop.compile_s is None:  # the first call traces and compiles: the longest wait of a short run
+                self.log(
+                    "compiling the iteration program (once per process; tens of seconds on a CPU, "
+                    "less with a warm compilation cache) ..."
+                )
+            t_it = time.perf_counter()
+            loop.ts, metrics, outcome, problems = learner.iteration(loop.ts, e_r)  # queued behind `pending`
+            if loop.compile_s is None:
+                loop.compile_s = time.perf_counter() - t_it  # tracing and compiling block the call
+                phases.add("compile", loop.compile_s)
+                self.log(f"compiled the iteration program in {loop.compile_s:.1f} s (backend {jax.default_backend()})")
+                self.log(
+                    f"epoch {epoch + 1}/{cfg.epochs}: {cfg.iterations_per_epoch} iterations, then the evaluation "
+                    "(its programs compile on the first epoch) ..."
+                )
+            meta["iteration"] += 1
+            if acc.pending is not None:
+                self._after_iteration(loop, acc)
+            acc.pending = (outcome, metrics, problems, e_t)
+        self._after_iteration(loop, acc)
+        # the iterations' rate, host work overlapped; the process's first epoch less the compile
+        iter_s = time.perf_counter() - t_epoch - ((loop.compile_s or 0.0) if loop.epochs_run == 0 else 0.0)
+        eval_s = time.perf_counter()
+        evs, vas = self._evaluate_and_select(loop.ts, loop.test, loop.val, loop.best, epoch + 1)
+        eval_s = time.perf_counter() - eval_s
+        epoch_s = time.perf_counter() - t_epoch
+        meta["epoch"] = epoch + 1
+        meta["rng"] = loop.rng.bit_generator.state
+        meta["config"] = checkpoint.config_json(cfg)
+        if (epoch + 1) % cfg.checkpoint_every == 0 or epoch + 1 == cfg.epochs:
+            with phases("checkpoint"):  # the copy to the host; the file is written beside the training
+                loop.writer.save(self.ckpt, loop.ts, meta)
+        timing = phases.take()  # this epoch's seconds per phase (the first epoch's hold the set-up)
+        per_s = cfg.iterations_per_epoch / max(iter_s, 1e-9)  # iterations per second
+        seconds = {"epoch_s": epoch_s, "eval_s": eval_s, "wall_s": time.perf_counter() - loop.t_start}
+        rows = epoch_rows(cfg, meta, acc, evs, vas, loop.explos, per_s, seconds, timing)
+        if distributed.is_main():
+            with phases("log"):
+                loop.log.write(rows)
+        loop.epochs_run += 1
+        trained_s = time.perf_counter() - loop.t_start - (loop.compile_s or 0.0)
+        # the ETA is measured on the epochs alone: the final tests (and distillation) come after it
+        after = "the final tests" + (" and distillation" if cfg.distill.iterations > 0 else "")
+        left = eta(loop.epochs_run, loop.epochs_run + cfg.epochs - epoch - 1, trained_s)
+        self.log(epoch_line(cfg.epochs, rows, meta["demos_received"], f"{left} for the epochs, then {after}"))
+        loop.last = rows
+
+    def _after_iteration(self, loop: Loop, acc: EpochAcc) -> None:
+        """The host's part of the finished iteration ``acc.pending``, run while the next one is on the
+        device: its outcome and metrics fetched (waiting for it), its chosen failed episodes sent to
+        the planners and the demonstrations that came back inserted (behind the queued iteration)."""
+        outcome, metrics, problems, e_t = acc.pending
         with self.phases("iterations"):  # waiting for the device
             outcome = distributed.to_host(outcome)  # Rollout of [seed, env]
         with self.phases("exchange"):
-            metrics_acc.append(distributed.to_host(dict(metrics)))
-            outcomes.append(outcome)
-            if exchange is not None:
-                ts = exchange.after_iteration(ts, outcome.success, problems, e_t, rng, meta)
-        return ts
+            acc.metrics.append(distributed.to_host(dict(metrics)))
+            acc.outcomes.append(outcome)
+            if loop.exchange is not None:
+                loop.ts = loop.exchange.after_iteration(loop.ts, outcome.success, problems, e_t, loop.rng, loop.meta)
 
     def _evaluate_and_select(self, ts: TrainingState, test: Any, val: Any, best: BestOf, epoch: int):
         """Each member's bare success on the test set and the validation problems; the members whose
@@ -325,6 +306,8 @@ class Run:
         best seed (by validation) to ``OUT/policy`` (``OUT/SETTING/policy`` for several settings),
         its student to ``.../student/policy``."""
         cfg, t_finish = self.cfg, time.perf_counter()
+        # the bare and shielded tests compile their programs first: a silent wait without this line
+        self.log("final tests on the test set (bare and shielded; their programs compile first) and export ...")
         host = self._host_policy(ts)  # a collective: every process
         if not distributed.is_main():
             return {}  # the tests, distillation and the summary are process 0's
@@ -389,7 +372,10 @@ class Run:
         for m, mem in enumerate(members):
             cfg = dataclasses.replace(self.cfg.distill, seed=mem["seed"])
             folder = self.member_dir(m) / "student"
-            self.log(f"{mem['setting'] or 'seed'} {mem['seed']}: distilling {mem['policy']} into {folder}")
+            self.log(  # the student's programs compile before its first line: tens of seconds on a CPU
+                f"{mem['setting'] or 'seed'} {mem['seed']}: distilling {mem['policy']} into {folder} "
+                "(compiling the distillation programs first) ..."
+            )
             with folder_lock(folder):  # as the distill command takes it: no second distillation into it meanwhile
                 result = distill(load_policy(mem["policy"]), folder, cfg, self.testset, mem["policy"], self.quiet)
             students.append({"setting": mem["setting"], "seed": mem["seed"], **result})
