@@ -94,6 +94,8 @@ def distill(
     )
     for it in range(1 if precompile else cfg.iterations):
         t_it = time.perf_counter()
+        if it == 0:  # the first iteration compiles its programs: tens of seconds on a CPU without a line
+            log("distillation: compiling the iteration and evaluation programs (once per process) ...")
         with phases("iterations"):
             ds, metrics = distiller.iteration(ds, it == 0)
             metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
