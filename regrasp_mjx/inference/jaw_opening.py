@@ -70,16 +70,18 @@ def choose(policy: Any, seen: np.ndarray, radii: np.ndarray, jaw_deg: float, mar
     return jaw.widest_clear(angles, clearance, ladder, margin_mm * 1e-3)
 
 
-def proved_clear(policy: Any, opening: np.ndarray, needle: np.ndarray, start: np.ndarray, radii) -> np.ndarray:
+def proved_clear(policy: Any, opening: np.ndarray, needle, start, radii, jaw_deg: float) -> np.ndarray:
     """Whether each row's sweep to ``opening`` is proved clear on the true poses (the scene's own
-    opening: True, the start as given)."""
-    scene = load_scene(policy.env_config.scene)
-    base = scene.config.jaw_angle_deg
+    opening: True, the start as given), by :func:`choose`'s check (the same compiled program, the
+    check points up to the first at or past each row's opening, as :func:`~regrasp_mjx.world.jaw.widest_clear`
+    reads them)."""
+    base = policy.env_config.scene.jaw_angle_deg
     ok = np.ones(len(opening), bool)
     if not np.any(opening > base):
         return ok
-    angles, clearance = _clearance(scene, float(opening.max()), np.concatenate([needle, start], -1), radii)
-    upto = angles[None, :] <= opening[:, None] + 1e-9
+    scene = load_scene(policy.env_config.scene)
+    angles, clearance = _clearance(scene, jaw_deg, np.concatenate([needle, start], -1), radii)
+    upto = np.arange(len(angles))[None, :] <= np.searchsorted(angles, opening - 1e-9)[:, None]
     return np.all((clearance >= 0.0) | ~upto, axis=1)
 
 
@@ -114,7 +116,7 @@ def execute_opened(
         for k, v in wide.items():
             if k != "start_valid":
                 out[k] = np.where(rows.reshape((-1,) + (1,) * (v.ndim - 1)), v, out[k])
-    hit = ~proved_clear(policy, chosen, needle, start, radii)
+    hit = ~proved_clear(policy, chosen, needle, start, radii, jaw_deg)
     out["opening_collision"] = hit
     out["collision"] = out["collision"] | hit
     out["success"] = out["success"] & ~hit
