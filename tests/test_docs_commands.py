@@ -6,12 +6,15 @@ folder compared with the files they document."""
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import json
 import os
 import re
 import runpy
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
@@ -195,3 +198,31 @@ def test_every_experiment_script_answers_help(script, monkeypatch, capsys):
         os.sched_setaffinity(0, affinity)
     assert done.value.code in (0, None)
     assert "usage:" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "experiments").glob("*.sh")))
+def test_every_experiment_shell_script_parses_and_what_it_calls_is_there(script):
+    """``bash -n experiments/X.sh`` passes, every ``python -m MODULE`` it calls is importable, every
+    ``python experiments/Y.py`` it calls exists and the imports of its ``python -c "..."`` lines run
+    (nothing else runs: they are device calls)."""
+    path = ROOT / "experiments" / script
+    done = subprocess.run(["bash", "-n", str(path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    text = path.read_text()
+    modules = re.findall(r"\bpython -m ([\w.]+)", text)
+    scripts = re.findall(r"\bpython (experiments/\w+\.py)", text)
+    assert modules or scripts, f"{script} calls no python program"
+    for module in modules:
+        assert importlib.util.find_spec(module) is not None, f"{script} calls {module}, which is not there"
+    for called in scripts:
+        assert (ROOT / called).is_file(), f"{script} calls {called}, which is not there"
+    for code in re.findall(r"\bpython -c \"([^\"]*)\"", text):
+        imports = [n for n in ast.parse(code).body if isinstance(n, (ast.Import, ast.ImportFrom))]
+        exec(compile(ast.Module(imports, type_ignores=[]), script, "exec"), {})
+
+
+def test_every_experiment_script_is_cited():
+    """Each script in experiments/ is named by experiments/RESULTS.md, README.md or docs/ (issue 70)."""
+    cited = " ".join(p.read_text() for p in (*PAGES, ROOT / "experiments" / "RESULTS.md"))
+    scripts = [p.name for p in (ROOT / "experiments").iterdir() if p.suffix in (".py", ".sh")]
+    assert scripts and not [s for s in scripts if f"experiments/{s}" not in cited]

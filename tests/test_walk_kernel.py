@@ -2,8 +2,8 @@
 
 On a GPU the environment tests its steps with :mod:`regrasp_mjx.world.walk_kernel`; here, on the CPU,
 the same kernel runs in Pallas's interpreter (the same program, its arithmetic done by XLA's CPU
-backend) and is compared with the XLA walk that CPUs step with. The GPU's own verdicts are checked by
-``experiments/walk_kernel_check.py`` (experiments/results/continuous/kernel/)."""
+backend) and is compared with the XLA walk that CPUs step with. The GPU's own verdicts were checked on
+655,360 steps (experiments/RESULTS.md, "Verdicts"; experiments/results/continuous/kernel/)."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ lane holds up its own program alone, where an XLA loop holds up the batch.
 
 The verdicts are those of the XLA path up to float32 rounding (the kernel's compiler may contract
 products and sums differently; both are within :data:`~regrasp_mjx.world.continuous.SLACK` of the
-exact bounds): 0 of 655,360 random-action steps differ on an H200 (experiments/walk_kernel_check.py),
+exact bounds): 0 of 655,360 random-action steps differ on an H200 (experiments/RESULTS.md, "Verdicts"),
 and tests/test_walk_kernel.py compares them lane by lane in Pallas's interpreter.
 
 Data: ``lanes [16, B]`` (position, quaternion, translation, rotation vector, fastest ``v_t``,
