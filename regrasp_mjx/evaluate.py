@@ -26,21 +26,14 @@ import argparse
 import sys
 
 import jax
-import numpy as np
 
 from regrasp_mjx.core.atomic import dumps
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import run_command
 from regrasp_mjx.envs.camera_errors import PRESETS
-from regrasp_mjx.inference import robustness, robustness_report
+from regrasp_mjx.inference import robustness, robustness_report, testset_report
 from regrasp_mjx.inference.closed_loop import MAX_LOOK
-from regrasp_mjx.inference.policy import (
-    DEFAULT_POLICY,
-    START_WARN_MM,
-    PolicyError,
-    load_policy,
-    shipped_policies,
-)
+from regrasp_mjx.inference.policy import DEFAULT_POLICY, PolicyError, load_policy, shipped_policies
 from regrasp_mjx.inference.queries import PoseError
 from regrasp_mjx.inference.robustness import check_condition
 from regrasp_mjx.inference.testset_plans import BATCH_CHUNK, engine_agreement, evaluate
@@ -58,31 +51,9 @@ from regrasp_mjx.world.sampling import TESTSETS, TestsetError, load_testset
 def _agreement(policy, episodes, name: str, args: argparse.Namespace) -> int:
     """``--agreement``: :func:`engine_agreement` on the test set, printed; 1 when a verdict differs."""
     r = engine_agreement(policy, episodes, shield=not args.no_shield)
-    late = r["time_out"]
-    rows = sorted({i for i, _ in r["differ"]})
-    out = {
-        "policy": name,
-        "testset": args.testset,
-        "shield": not args.no_shield,
-        "problems": len(late),
-        "success_jax": float(np.mean(r["batch"].success)),
-        "verdicts_differ": len(rows),
-        "rows_differ": rows[:20],
-        "max_action_diff": float(r["action_diff"][~late].max(initial=0.0)),
-        "max_action_diff_time_out": float(r["action_diff"][late].max(initial=0.0)),
-        "max_pose_diff": float(r["pose_diff"].max(initial=0.0)),
-    }
-    if args.json:
-        print(dumps(out))
-    else:
-        print(
-            f"{name} on {args.testset}, shield {'on' if out['shield'] else 'off'}: each problem one at a time on the "
-            f"lean path against one batch on the JAX path\n  verdicts that differ: {len(rows)} of {out['problems']}"
-            + (f" (rows {rows[:20]})" if rows else "")
-            + f"\n  largest action difference {out['max_action_diff']:.1e} (plans that end before the horizon), "
-            f"{out['max_action_diff_time_out']:.1e} (time-outs); pose {out['max_pose_diff']:.1e}"
-        )
-    return 1 if rows else 0
+    out = testset_report.agreement_row(r, name, args.testset, not args.no_shield)
+    print(dumps(out) if args.json else testset_report.agreement_text(out))
+    return 1 if out["verdicts_differ"] else 0
 
 
 def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -329,68 +300,13 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
             **{k: v for k, v in closed_loop.items() if v is not None},
         )
         r.update(policy=name, testset=args.testset)
-        if args.json:
-            print(dumps(r))
-        else:
-            print(
-                f"{name} on {args.testset} ({r['problems_valid']} of {r['problems']} problems keep the margin; {mode}, "
-                f"needle noise {r['sigma_mm']:g} mm, bias {r['bias_mm']:g} mm, "
-                f"clearance margin {r['clearance_mm']:g} mm, shield {'on' if r['shield'] else 'off'}; "
-                f"calibration {r['calibration_mm']:g} mm / {r['calibration_deg']:g} deg, "
-                f"joint offsets {r['joint_offset']:g}, tool noise {r['tool_noise_mm']:g} mm, "
-                f"tools seen by the {r['observe']}"
-                + (f"; the camera's errors {args.camera}" if args.camera else "")
-                + "; judged on the true poses)\n"
-                f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}"
-                f"  time-out {r['time_out_rate']:.3f}  stopped short of the true goal {r['wrong_stop_rate']:.3f}"
-                + (
-                    f"\n  frames fused: median {r['frames_median']:g}, {r['looked_mean']:.1f} of them looked at while "
-                    "holding still (mean)"
-                    if r["frames_median"] is not None  # None: no problem keeps the margin
-                    else ""
-                )
-                + (
-                    f"\n  jaws opened before the first move: {r['opened_rate']:.3f} of the problems; opening sweeps "
-                    f"not clear on the truth: {r['opening_collision_rate']:.3f}"
-                    if r["opened_rate"]
-                    else ""
-                )
-            )
+        print(dumps(r) if args.json else testset_report.condition_text(r, mode, args.camera))
         return 0
     r = evaluate(policy, episodes, args.queries, args.repeats, args.batch_size, shield=not args.no_shield)
     r["policy"] = name
     r["clearance_mm"] = policy.env_config.clearance_mm
     r["testset"] = args.testset
-    if args.json:
-        print(dumps(r))
-        return 0
-    path = "-" if r["path_length_mm"] is None else f"{r['path_length_mm']:.2f} mm"
-    print(
-        f"{r['policy']} on {r['testset']} ({r['problems']} problems, {r['backend']}: {r['device']}; "
-        f"shield {'on' if r['shield'] else 'off'}, clearance margin {r['clearance_mm']:g} mm)\n"
-        f"  success {r['success_rate']:.3f}  collision {r['collision_rate']:.3f}  time-out {r['time_out_rate']:.3f}\n"
-        + (
-            f"  planning time per query: mean {r['planning_time_ms_mean']:.3f} ms, median "
-            f"{r['planning_time_ms_median']:.3f} ms ({r['timed_queries']} queries, one at a time, "
-            f"{r['single_query_engine']} path)\n"
-            if r["timed_queries"]
-            else ""
-        )
-        + (
-            f"  batched: {r['batch_plans_per_s']:,.0f} plans/s (batch {r['batch_size']}"
-            + (f" in chunks of {r['batch_chunk']}" if r["batch_chunk"] < r["batch_size"] else "")
-            + ")\n"
-            if args.repeats
-            else ""
-        )
-        + f"  path length {path}"
-        + (
-            f"\n  warning: {r['far_starts']} starts lie beyond {START_WARN_MM:g} mm of their needle "
-            "(no start was trained there): check the test set's units (metres) and frame"
-            if r["far_starts"]
-            else ""
-        )
-    )
+    print(dumps(r) if args.json else testset_report.evaluation_text(r, timed_batch=bool(args.repeats)))
     return 0
 
 
