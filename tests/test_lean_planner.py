@@ -6,6 +6,7 @@ of engine. The full agreement on a test set is ``python -m regrasp_mjx.evaluate 
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import jax
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 
 from regrasp_mjx.envs import lean_collision, lean_geometry
 from regrasp_mjx.envs.lean_geometry import nearest_grasp
-from regrasp_mjx.inference import plans
+from regrasp_mjx.inference import planner, plans
 from regrasp_mjx.inference.grasps import GraspLibrary
 from regrasp_mjx.inference.plans import default_goal
 from regrasp_mjx.inference.policy import load_policy
@@ -249,3 +250,31 @@ def test_a_querys_task_keywords_are_checked_once_and_kept():
     for _ in range(2):  # out of range, not a scalar: None both times (the caller's checks name it)
         assert ranges.keywords_vector({"needle_radius_mm": 99.0}) is None
         assert ranges.keywords_vector({"needle_radius_mm": np.array([6.0, 7.0])}) is None
+
+
+def test_the_first_lean_plan_in_a_process_says_it_prepares_the_planner_once(monkeypatch, capsys, caplog):
+    """Issue 70, defect 16: the lean planner's numba compile (about 20 s on a 2-core CPU without numba's
+    cache) is announced by one line before it, once per process: on stderr where logging is not set up,
+    through the ``regrasp_mjx`` logger where it is, and not at all with that logger above INFO."""
+    needle, start, goal = (x[0] for x in episode_poses(load_testset("paper300")[0]))
+
+    def first_plans():
+        monkeypatch.setattr(planner, "_said", False)  # as in a fresh process
+        for policy in (load_policy("default"), load_policy("default")):  # the second builds its own planner
+            policy.plan(needle, start, goal)
+            policy.plan(needle, start, goal, shield=False)
+
+    monkeypatch.setattr(planner.LOG, "hasHandlers", lambda: False)  # no logging set up (pytest sets it up)
+    first_plans()
+    out, err = capsys.readouterr()
+    assert err.count(planner.LEAN_PREPARES) == 1 and planner.LEAN_PREPARES not in out
+    package = logging.getLogger("regrasp_mjx")
+    monkeypatch.setattr(package, "level", logging.WARNING)  # what setLevel(logging.WARNING) sets
+    first_plans()
+    assert planner.LEAN_PREPARES not in capsys.readouterr().err
+    monkeypatch.undo()  # logging as pytest set it up: the line goes to the logger at INFO
+    monkeypatch.setattr(planner, "_said", False)
+    with caplog.at_level(logging.INFO, logger="regrasp_mjx"):
+        load_policy("default").plan(needle, start, goal)
+    assert [r.getMessage() for r in caplog.records if r.name == planner.LOG.name] == [planner.LEAN_PREPARES]
+    assert planner.LEAN_PREPARES not in capsys.readouterr().err

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
+import sys
 import types
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -51,10 +53,41 @@ def program(policy: Any, setting: tuple, build: Callable[[], Callable] | None = 
     return policy._programs[setting]
 
 
+# Said once per process before the lean planner is first built: its numba functions compile on first
+# use (about 20 s on an idle 2-core CPU, over a minute on a busy one) or load from numba's on-disk cache
+# (a second or two), without a line otherwise (issue 70, defect 16). Through the logging module where
+# the application set up logging; else on stderr. Silenced by
+# logging.getLogger("regrasp_mjx").setLevel(logging.WARNING).
+LEAN_PREPARES = (
+    "preparing the lean planner (numba, once per process: its first call compiles it, tens of seconds on a CPU, "
+    "or loads it from numba's cache in about a second) ..."
+)
+LOG = logging.getLogger(__name__)
+_said = False  # LEAN_PREPARES said in this process
+
+
+def _say_lean_prepares() -> None:
+    """:data:`LEAN_PREPARES`, the first time in a process: :data:`LOG`'s ``info`` where logging has a
+    handler for it; else printed to stderr unless a ``regrasp_mjx`` logger's level is set above INFO."""
+    global _said
+    if _said:
+        return
+    _said = True
+    if LOG.hasHandlers():  # the application set up logging: its levels and handlers decide
+        LOG.info(LEAN_PREPARES)
+        return
+    logger = LOG  # the package's nearest logger whose level is set, if any
+    while logger.parent is not None and logger.name.startswith("regrasp_mjx.") and not logger.level:
+        logger = logger.parent
+    if not (logger.name.startswith("regrasp_mjx") and logger.level > logging.INFO):
+        print(LEAN_PREPARES, file=sys.stderr, flush=True)
+
+
 def lean(policy: Any, shield: bool):
     """``policy``'s numba-compiled one-query planner
     (:class:`~regrasp_mjx.inference.lean_planner.LeanPlanner`), built once per policy."""
     if ("lean", shield) not in policy._programs:
+        _say_lean_prepares()
         # imported here: numba's import (0.4 s) and first compilation are paid only where it is used
         from regrasp_mjx.inference.lean_planner import LeanPlanner
 
