@@ -63,6 +63,11 @@ def _require_range(field: str, rng: tuple[float, float], lo: float, hi: float, u
     require(lo <= rng[0] <= rng[1] <= hi, field, rng, f"low <= high within [{lo:g}, {hi:g}] {unit}")
 
 
+# the Large Needle Driver's widest jaw opening [deg] (jhu-dvrk/sawIntuitiveResearchKit,
+# share/tool/LARGE_NEEDLE_DRIVER_400006.json: jaw qmax 1.39626 rad)
+JAW_MAX_DEG = 80.0
+
+
 @dataclasses.dataclass(frozen=True)
 class SceneConfig:
     """Geometry that varies from the MJCF defaults (``regrasp_mjx/models/regrasp_scene.xml``).
@@ -249,6 +254,10 @@ class EnvConfig:
         :mod:`regrasp_mjx.world.continuous`, the whole motion and not sampled poses.
       check_actions: raise a runtime error on a non-finite action (costs a little speed; the
         learner, whose actions are tanh outputs, turns it off).
+      jaw_open_deg: the opening the regrasping jaws open to on the way (ours, issue 67; None: they
+        stay at the scene's): at the first step whose start leaves room for the whole opening sweep
+        (``jaw_open_margin_mm`` at every opening, the tool holding still), before its motion.
+      jaw_open_margin_mm: that room [mm], at least ``clearance_mm``.
     """
 
     scene: SceneConfig = SceneConfig()
@@ -263,6 +272,8 @@ class EnvConfig:
     success_rot_deg: float = 5.0
     clearance_mm: float = 0.0
     check_actions: bool = True
+    jaw_open_deg: float | None = None
+    jaw_open_margin_mm: float = 0.5
 
     def __post_init__(self) -> None:
         require(isinstance(self.scene, SceneConfig), "scene", self.scene, "a SceneConfig")
@@ -312,6 +323,20 @@ class EnvConfig:
             "a margin in [0, 1] mm",
         )
         require(isinstance(self.check_actions, bool), "check_actions", self.check_actions, "True or False")
+        require(
+            self.jaw_open_deg is None
+            or (is_number(self.jaw_open_deg) and self.scene.jaw_angle_deg < self.jaw_open_deg <= JAW_MAX_DEG),
+            "jaw_open_deg",
+            self.jaw_open_deg,
+            f"None or degrees wider than the scene's jaw_angle_deg ({self.scene.jaw_angle_deg}) up to the "
+            f"Large Needle Driver's {JAW_MAX_DEG:g}",
+        )
+        require(
+            is_number(self.jaw_open_margin_mm) and self.clearance_mm <= self.jaw_open_margin_mm <= 5.0,
+            "jaw_open_margin_mm",
+            self.jaw_open_margin_mm,
+            f"a room in [clearance_mm ({self.clearance_mm}), 5] mm",
+        )
         for field, value, rng in (
             ("needle_radius_mm", self.scene.needle_radius_mm, self.task.needle_radius_range_mm),
             ("wire_radius_mm", self.scene.wire_radius_mm, self.task.wire_radius_range_mm),

@@ -22,7 +22,7 @@ from flax import struct
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError, EnvConfig
-from regrasp_mjx.world import continuous, continuous_walk, walk_kernel
+from regrasp_mjx.world import continuous, continuous_walk, jaw, walk_kernel
 from regrasp_mjx.world.sampling import Episode, sample_episode
 from regrasp_mjx.world.scene import Scene, load_scene
 
@@ -42,6 +42,8 @@ class EpisodeState:
       t: steps taken.
       path_length: sum of ``|dp|`` so far [m].
       needle_radius, wire_radius: the needle [m] (the scene's, unless the task draws needles).
+      jaw_deg: the regrasping jaws' opening [deg]: the scene's at the start, wider once opened
+        (``EnvConfig.jaw_open_deg``; :meth:`RegraspEnv.move`'s ``open_to``).
     """
 
     needle_pos: jax.Array
@@ -56,6 +58,7 @@ class EpisodeState:
     path_length: jax.Array
     needle_radius: jax.Array
     wire_radius: jax.Array
+    jaw_deg: jax.Array
 
 
 METRIC_NAMES = (
@@ -115,7 +118,14 @@ class RegraspEnv(Env):
         self.distances = self.scene.distance_fn()
         self._place_others, self._gaps, self._interval = self.scene.motion_distance_fn()
         # the same test as one Pallas kernel a batch (where walk_kernel.use_kernel(): on a GPU)
-        self._walk_kernel = walk_kernel.make_kernel(frames.tool_ends, frames.tool_radii, levers, self.clearance)
+        # the jaws may open on the way (issue 67): the opening sweep's check and the kernel that turns them
+        self.opens = config.jaw_open_deg is not None
+        self._sweep = jaw.sweep_fn(self.scene)
+        self.jaw_margin = config.jaw_open_margin_mm * 1e-3
+        sides = frames.jaw_sides if self.opens else None
+        self._walk_kernel = walk_kernel.make_kernel(
+            frames.tool_ends, frames.tool_radii, levers, self.clearance, jaw_sides=sides
+        )
         # what the validity tests use: clearances less the margin (negative = colliding)
         distances, margin = self.distances, self.clearance
         self._free_distances = distances if margin == 0.0 else (lambda *pose: distances(*pose) - margin)
@@ -181,6 +191,7 @@ class RegraspEnv(Env):
             path_length=jnp.float32(0.0),
             needle_radius=jnp.asarray(episode.needle_radius, jnp.float32),
             wire_radius=jnp.asarray(episode.wire_radius, jnp.float32),
+            jaw_deg=jnp.float32(self.config.scene.jaw_angle_deg),
         )
         dist = self.needle_distances(es, es.ee_pos, es.ee_quat)
         metrics = self._metrics(es, jnp.min(dist), jnp.bool_(False), jnp.bool_(False), jnp.bool_(False))
@@ -226,19 +237,27 @@ class RegraspEnv(Env):
             )
         return jnp.clip(action.astype(jnp.float32), -1.0, 1.0)
 
-    def move(self, state: State, dp: jax.Array, rotvec: jax.Array) -> State:
+    def move(self, state: State, dp: jax.Array, rotvec: jax.Array, open_to: jax.Array | None = None) -> State:
         """:meth:`step` by a translation ``dp`` [m] and rotation vector ``rotvec`` [rad] (e_g frame)
         as given, not clipped to the action bounds: the motion an arm carries out, which an error
-        of its view may turn off the action's axes (:mod:`regrasp_mjx.robot.robot_errors`)."""
+        of its view may turn off the action's axes (:mod:`regrasp_mjx.robot.robot_errors`).
+
+        The jaws (issue 67): where ``open_to`` [deg] is wider than they are, they first open to it,
+        the tool holding still (a sweep not proved clear of the margin is a collision): the caller
+        decided on its view. Without it, where ``EnvConfig.jaw_open_deg`` is set, they open to that
+        once the sweep keeps ``jaw_open_margin_mm`` on this state (:meth:`_opening`). The motion is
+        then tested with the jaws where they are."""
         es: EpisodeState = state.pipeline_state
         end_pos = es.ee_pos + dp
         end_quat = geometry.quat_mul(geometry.quat_from_rotvec(rotvec), es.ee_quat)
         needle = (es.needle_radius, es.wire_radius) if self.varies_needle else ()
         placed = self._place_others(es.needle_pos, es.needle_quat, *needle)  # once for the step's poses
-        end = self._gaps(placed, end_pos, end_quat)
+        jaw_deg, opening_hit = self._opening(placed, es, open_to)
+        held = {} if jaw_deg is None else {"jaw_deg": jaw_deg}
+        end = self._gaps(placed, end_pos, end_quat, **held)
 
         speed = jnp.linalg.norm(dp) + jnp.linalg.norm(rotvec) * self.levers  # [T]: v_t, each tool capsule's
-        motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec)
+        motion = (placed, es.ee_pos, es.ee_quat, dp, rotvec) + (() if jaw_deg is None else (jaw_deg,))
         ends_in = jnp.any(end < self.clearance)  # a collision whatever the motion before: not walked
         # the end pose clear by v_t: clear along the whole step (s = 1 back to 0), the root not tested
         clear = jnp.all(end.reshape(speed.shape[0], -1) - speed[:, None] - self.clearance >= continuous.SLACK)
@@ -247,17 +266,22 @@ class RegraspEnv(Env):
             ends, radii = placed
             radii = jnp.broadcast_to(radii, ends.shape[1:2])
             pending = ~ends_in & ~clear
-            collision = ends_in | walk(ends[0], radii, es.ee_pos, es.ee_quat, dp, rotvec, jnp.max(speed), pending)
+            turned = () if jaw_deg is None else (jnp.radians(jaw_deg - self.config.scene.jaw_angle_deg) / 2.0,)
+            collision = ends_in | walk(
+                ends[0], radii, es.ee_pos, es.ee_quat, dp, rotvec, jnp.max(speed), pending, *turned
+            )
         else:
             collision = continuous_walk.motion_collides(
                 self._bounds_along, motion, jnp.max(speed), self.clearance, known=ends_in, proved=clear
             )
+        collision = collision | opening_hit
 
         es = es.replace(
             ee_pos=end_pos,
             ee_quat=geometry.canonical_quat(end_quat),
             t=es.t + 1,
             path_length=es.path_length + jnp.linalg.norm(dp),
+            jaw_deg=es.jaw_deg if jaw_deg is None else jaw_deg,
         )
         distance, angle = self._goal_error(es)
         success = (
@@ -285,11 +309,25 @@ class RegraspEnv(Env):
         )
 
     def _bounds_along(self, motion, s, h) -> tuple[jax.Array, jax.Array]:
-        """The counted pairs' signed distances at the pose s of a step's motion (:meth:`move`) and
-        their lower bounds over the interval of half-width h about it."""
-        placed, pos, quat, dp, rotvec = motion
+        """The counted pairs' signed distances at the pose s of a step's motion (:meth:`move`: its
+        ``(placed, pos, quat, dp, rotvec[, jaw_deg])``) and their lower bounds over the interval of
+        half-width h about it."""
+        placed, pos, quat, dp, rotvec, *held = motion
         at = geometry.quat_mul(geometry.quat_from_rotvec(s * rotvec), quat)
-        return self._interval(placed, pos + s * dp, at, dp, rotvec, h)
+        return self._interval(placed, pos + s * dp, at, dp, rotvec, h, *held)
+
+    def _opening(self, placed, es: EpisodeState, open_to) -> tuple[jax.Array | None, jax.Array]:
+        """The jaws' opening a step moves with (None: the scene's, never opened) and whether opening
+        to it collided (:meth:`move`)."""
+        if open_to is None and not self.opens:
+            return None, jnp.bool_(False)
+        if open_to is None:  # the environment's rule, on its own state: open once there is room
+            want = jnp.float32(self.config.jaw_open_deg)
+            room = self._sweep(placed, es.ee_pos, es.ee_quat, es.jaw_deg, want)
+            return jnp.where((want > es.jaw_deg) & (room >= self.jaw_margin), want, es.jaw_deg), jnp.bool_(False)
+        want = jnp.maximum(es.jaw_deg, jnp.asarray(open_to, jnp.float32))
+        room = self._sweep(placed, es.ee_pos, es.ee_quat, es.jaw_deg, want)
+        return want, (want > es.jaw_deg) & (room < self.clearance)
 
     # ---- reward terms and observation ---------------------------------------------------------
     def _goal_error(self, es: EpisodeState) -> tuple[jax.Array, jax.Array]:

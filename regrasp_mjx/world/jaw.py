@@ -26,18 +26,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from regrasp_mjx.core.config import JAW_MAX_DEG
 from regrasp_mjx.core.geometry import rotation_matrix, segment_distance
-from regrasp_mjx.world.scene import REGRASP_JAWS, Scene
+from regrasp_mjx.world.distances import turn_jaws
+from regrasp_mjx.world.scene import Scene
 
-JAW_MAX_DEG = 80.0  # the LND's widest opening
 JAW_RATE_DEG_S = math.degrees(2.0 * math.pi)  # how fast the dVRK moves a jaw
 SAMPLE_DEG = 1.0  # the sweep's check points, in degrees of opening
 
 
 def jaw_rows(scene: Scene) -> np.ndarray:
     """The jaw capsules' rows in ``scene.capsule_frames.tool_ends``."""
-    ids = [scene.model.geom(name).id for name in REGRASP_JAWS]
-    return np.array([scene.capsule_frames.tool_ids.index(i) for i in ids])
+    return np.flatnonzero(scene.capsule_frames.jaw_sides)
 
 
 def jaw_reach(scene: Scene) -> float:
@@ -49,14 +49,9 @@ def jaw_reach(scene: Scene) -> float:
 def opened_ends(scene: Scene, deg: float) -> np.ndarray:
     """``scene.capsule_frames.tool_ends`` ``[T, 2, 3]`` with the jaws opened to ``deg`` (each turned by
     half the change about the hinge, away from the other; a smaller angle closes them)."""
-    ends = np.array(scene.capsule_frames.tool_ends, np.float64)
+    f = scene.capsule_frames
     half = math.radians(deg - scene.config.jaw_angle_deg) / 2.0
-    for row in jaw_rows(scene):
-        side = np.sign(ends[row, :, 1].sum())  # the jaw on +y opens towards +y
-        c, s = math.cos(side * half), math.sin(side * half)
-        y, z = ends[row, :, 1].copy(), ends[row, :, 2].copy()
-        ends[row, :, 1], ends[row, :, 2] = c * y + s * z, -s * y + c * z
-    return ends
+    return turn_jaws(np.asarray(f.tool_ends, np.float64), f.jaw_sides[:, None], half, np)
 
 
 def sample_angles(base_deg: float, widest_deg: float, step_deg: float = SAMPLE_DEG) -> np.ndarray:
@@ -107,3 +102,27 @@ def widest_clear(angles: np.ndarray, clearance: np.ndarray, rungs: np.ndarray, m
     ok = kept[:, index]
     ok[:, 0] = True  # the scene's own opening: the start as given
     return np.asarray(rungs, np.float64)[ok.sum(axis=1) - 1]  # ok is True up to a rung, then False
+
+
+SWEEP_STEPS = 10  # an opening sweep's intervals within a step of the environment
+
+
+def sweep_fn(scene: Scene, steps: int = SWEEP_STEPS) -> Callable:
+    """``fn(placed, ee_pos, ee_quat, from_deg, to_deg) -> clearance`` [m], traced: the least signed
+    distance between a jaw and the counted capsules (``placed``, the first of
+    :meth:`~regrasp_mjx.world.scene.Scene.motion_distance_fn`'s functions) at ``steps + 1`` openings
+    evenly from ``from_deg`` to ``to_deg``, the tool holding still, less how far a jaw point moves
+    between two of them (``reach * delta / 4``, as :func:`opening_fn`): a value >= m proves every
+    opening between them keeps m. The environment's opening inside a step (issue 67)."""
+    _, gaps, _ = scene.motion_distance_fn()
+    rows, tools = jnp.asarray(jaw_rows(scene)), len(scene.capsule_frames.tool_ends)
+    reach, fractions = jaw_reach(scene), jnp.linspace(0.0, 1.0, steps + 1)
+
+    def fn(placed, ee_pos, ee_quat, from_deg, to_deg):
+        def at(deg):
+            return jnp.min(gaps(placed, ee_pos, ee_quat, jaw_deg=deg).reshape(tools, -1)[rows])
+
+        least = jnp.min(jax.vmap(at)(from_deg + (to_deg - from_deg) * fractions))
+        return least - reach * jnp.radians(jnp.abs(to_deg - from_deg) / steps) / 4.0
+
+    return fn

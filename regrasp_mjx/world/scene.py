@@ -144,6 +144,7 @@ class Scene:
         needle_ids = [c.geom_id for c in self.needle_capsules]  # in the file's order: along the arc
         on_needle = np.isin(others, needle_ids)
         wire = self.config.wire_radius_mm * 1e-3
+        jaws = {int(self.model.geom(name).id) for name in REGRASP_JAWS}
         return CapsuleFrames(
             tool_ids=tuple(tools),
             other_ids=tuple(others),
@@ -154,6 +155,7 @@ class Scene:
             other_radii=self.model.geom_size[others, 0].copy(),
             inflation=np.where(on_needle, self.model.geom_size[others, 0] - wire, 0.0),
             chords=np.searchsorted(others, needle_ids),
+            jaw_sides=np.array([_jaw_side(ends(g)) if g in jaws else 0.0 for g in tools]),
         )
 
     def distance_fn(self) -> distances.DistanceFn:
@@ -176,7 +178,9 @@ class CapsuleFrames:
     as :attr:`Scene.pairs` pairs them (every tool capsule with every counted one); their radii [m];
     ``on_needle`` ``[O]``; ``inflation`` ``[O]``, how much a needle chord's radius exceeds the wire's;
     ``chords``, the needle chords' indices into ``other_ends`` along the arc; ``tool_ids`` and
-    ``other_ids``, their geom ids."""
+    ``other_ids``, their geom ids; ``jaw_sides`` ``[T]``, which way each tool capsule turns about
+    the hinge (the end-effector's x axis) as the jaws open: +1 or -1 for the two jaws (the one on +y
+    towards +y), 0 for the rest."""
 
     tool_ids: tuple[int, ...]
     other_ids: tuple[int, ...]
@@ -187,6 +191,12 @@ class CapsuleFrames:
     other_radii: np.ndarray
     inflation: np.ndarray
     chords: np.ndarray
+    jaw_sides: np.ndarray
+
+
+def _jaw_side(ends: np.ndarray) -> float:
+    """The way a jaw capsule (``[2, 3]`` in e_r, the hinge its x axis) turns as the jaws open."""
+    return float(np.sign(ends[:, 1].sum()))
 
 
 def chord_placement(radius: float, half_angle: float, conservative: bool = True) -> tuple[float, float]:

@@ -22,7 +22,8 @@ pending: a lane's values down a column) and ``others [B, 8, W]`` (each counted c
 points and radius, per lane, as the needle's chords move with the lane's needle; W the count rounded
 up to a power of two, Triton's tiles, the spare columns far away). The regrasping tool's capsules
 (end points in its frame, radii, levers) and the margin are constants of the scene, compiled into
-the kernel.
+the kernel; where the jaws open on the way (issue 67) a lane's last row says how far its jaws are
+turned from the scene's opening, and the kernel turns those two capsules per lane.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def use_kernel() -> bool:
     return jax.default_backend() == "gpu" if KERNEL is None else KERNEL
 
 
-_LANE_ROWS = 16  # pos 3, quat 4, dp 3, rotvec 3, fastest, pending, unused (a power of two, Triton's blocks)
+_LANE_ROWS = 16  # pos 3, quat 4, dp 3, rotvec 3, fastest, pending, jaw turn (a power of two, Triton's blocks)
 _OTHER_ROWS = 8  # end 0 (3), end 1 (3), radius, unused
 
 
@@ -123,9 +124,11 @@ def _segment_gap(a0, a1, b0, b1):
     return _sub(_add(a0, _scale(d1, s)), _add(b0, _scale(d2, t)))
 
 
-def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarray, margin: float):
+def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarray, margin: float, jaw_sides=None):
     """The kernel ``(lanes_ref, others_ref, out_ref)`` for the scene's regrasping tool (``tool_ends
-    [T, 2, 3]`` in its frame, ``tool_radii [T]``, ``levers [T]``) and the clearance ``margin`` [m]:
+    [T, 2, 3]`` in its frame, ``tool_radii [T]``, ``levers [T]``) and the clearance ``margin`` [m];
+    with ``jaw_sides [T]`` (the scene's ``CapsuleFrames.jaw_sides``) each lane's jaws turned by its
+    own angle (:func:`walk_tests`' ``jaw_half``; :func:`regrasp_mjx.world.distances.turn_jaws`):
     ``out [2, B]``, where a lane is pending, 1 if its motion collides (else 0) and the interval tests
     it took (the root's included; 0 where not pending). A program holds :data:`BLOCK` lanes'
     counted capsules as a tile ``[BLOCK, OTHERS]`` (a lane's pairs side by side across threads, so
@@ -135,12 +138,21 @@ def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarra
     radii = [float(r) for r in np.asarray(tool_radii, np.float32)]
     lever = [float(v) for v in np.asarray(levers, np.float32)]
     margin = float(np.float32(margin))
+    sides = [0.0] * len(ends) if jaw_sides is None else [float(v) for v in jaw_sides]
 
     def kernel(lanes_ref, others_ref, out_ref):
         row = lambda r: lanes_ref[r, :]  # noqa: E731  [L]
         pos0, quat0 = (row(0), row(1), row(2)), (row(3), row(4), row(5), row(6))
         dp, w = (row(7), row(8), row(9)), (row(10), row(11), row(12))
         fastest, pending = row(13), row(14) > 0.5
+        # each jaw's capsule as this lane has it: turned about the hinge (x) by its side times the lane's angle
+        turned = []
+        for (end0, end1), side in zip(ends, sides):
+            if side == 0.0:
+                turned.append((end0, end1))
+                continue
+            c, s = jnp.cos(side * row(15)), jnp.sin(side * row(15))
+            turned.append(tuple((e[0], c * e[1] + s * e[2], -s * e[1] + c * e[2]) for e in (end0, end1)))
         b = [others_ref[:, c, :] for c in range(_OTHER_ROWS - 1)]  # [L, OTHERS] each
         b0, b1, radius = (b[0], b[1], b[2]), (b[3], b[4], b[5]), b[6]
         # per motion, not per interval: the motion bound's speed and the rotation's axis
@@ -159,7 +171,7 @@ def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarra
             rows = _matrix(q)
             phi = h * turn
             least_d = least_low = None
-            for t, (end0, end1) in enumerate(ends):
+            for t, (end0, end1) in enumerate(turned):
                 e0, e1 = _place(rows, origin, end0), _place(rows, origin, end1)
                 r0, r1 = _sub(e0, origin), _sub(e1, origin)
                 off0 = _sub(r0, _scale(axis, _dot(r0, axis)))
@@ -195,18 +207,31 @@ def make_kernel(tool_ends: np.ndarray, tool_radii: np.ndarray, levers: np.ndarra
     return kernel
 
 
-def walk_tests(kernel, others_ends, others_radii, pos, quat, dp, rotvec, fastest, pending, interpret=False):
+def walk_tests(
+    kernel, others_ends, others_radii, pos, quat, dp, rotvec, fastest, pending, jaw_half=None, interpret=False
+):
     """Whether each pending lane's motion collides (False where not pending) and how many interval tests
     its walk took (0 where not pending), batched: ``others_ends
     [B, O, 2, 3]``, ``others_radii [B, O]``, ``pos [B, 3]``, ``quat [B, 4]``, ``dp``, ``rotvec [B, 3]``,
-    ``fastest [B]``, ``pending [B]``; ``kernel`` from :func:`make_kernel`. ``interpret``: Pallas's
-    interpreter (on a CPU, for tests)."""
+    ``fastest [B]``, ``pending [B]``, ``jaw_half [B]`` (how far each jaw is turned from the scene's
+    opening [rad], half the change of opening; a kernel made with ``jaw_sides``; None: 0); ``kernel``
+    from :func:`make_kernel`. ``interpret``: Pallas's interpreter (on a CPU, for tests)."""
     size, count = others_ends.shape[0], others_ends.shape[1]
     width = 1 << max(0, (count - 1).bit_length())  # Triton's tiles: a power of two
     padded = -(-size // BLOCK) * BLOCK
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    jaw_half = jnp.zeros(size) if jaw_half is None else jaw_half
     lanes = jnp.concatenate(
-        [f32(pos), f32(quat), f32(dp), f32(rotvec), f32(fastest)[:, None], f32(pending)[:, None]], axis=1
+        [
+            f32(pos),
+            f32(quat),
+            f32(dp),
+            f32(rotvec),
+            f32(fastest)[:, None],
+            f32(pending)[:, None],
+            f32(jaw_half)[:, None],
+        ],
+        axis=1,
     )
     lanes = jnp.pad(lanes, ((0, padded - size), (0, _LANE_ROWS - lanes.shape[1]))).T  # [16, B']
     others = jnp.concatenate([f32(others_ends).reshape(size, count, 6), f32(others_radii)[..., None]], axis=2)
@@ -231,7 +256,8 @@ def walk_tests(kernel, others_ends, others_radii, pos, quat, dp, rotvec, fastest
 
 def lane_fn(kernel, interpret: bool = False):
     """:func:`walk_tests`' verdicts as one lane's function ``(others_ends [O, 2, 3], others_radii [O], pos,
-    quat, dp, rotvec, fastest, pending) -> bool``, jit/vmap-able: vmapped, one kernel call on the batch."""
+    quat, dp, rotvec, fastest, pending[, jaw_half]) -> bool``, jit/vmap-able: vmapped, one kernel call on
+    the batch."""
 
     def one(*args):
         return walk_tests(kernel, *(jnp.asarray(a)[None] for a in args), interpret=interpret)[0][0]
