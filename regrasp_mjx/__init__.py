@@ -4,7 +4,7 @@ Public entry points: :func:`regrasp_mjx.load_policy` (the shipped policy with no
 ``plan``, ``plan_from_camera``, ``closed_loop_step``, ``camera_loop`` and ``execute``),
 :class:`regrasp_mjx.envs.env.RegraspEnv`, :func:`regrasp_mjx.core.geometry.grasp_pose`,
 :func:`regrasp_mjx.world.scene.load_scene`, :func:`regrasp_mjx.world.sampling.load_testset`, and the CLIs
-``python -m regrasp_mjx.{train,evaluate,compare,distill,sweep,demos,testset,grasps,export_onnx}``
+``python -m regrasp_mjx.{train,evaluate,compare,distill,sweep,demos,testset,grasps,export_onnx,export_minari}``
 (the README's command table).
 """
 

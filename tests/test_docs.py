@@ -17,7 +17,19 @@ from regrasp_mjx.core import xla_flags
 from regrasp_mjx.world import walk_kernel
 from tests.conftest import ROOT
 
-CLIS = ("train", "evaluate", "compare", "distill", "demos", "recipe", "sweep", "testset", "export_onnx", "grasps")
+CLIS = (
+    "train",
+    "evaluate",
+    "compare",
+    "distill",
+    "demos",
+    "recipe",
+    "sweep",
+    "testset",
+    "export_onnx",
+    "export_minari",
+    "grasps",
+)
 
 
 def _options(module: str) -> set[str]:
