@@ -178,6 +178,13 @@ def test_bad_arguments_and_a_closed_renderer(renderer, batch):
         r.render(needle[0], start[0], 0)
 
 
+def test_the_docs_snippet_runs(renderer, capsys):
+    text = (ROOT / "docs" / "rendering.md").read_text()
+    (snippet,) = re.findall(r"```python\n(.*?)```", text, re.S)
+    exec(compile(snippet, "docs/rendering.md", "exec"), {"__name__": "__docs__"})
+    assert "stereo pairs" in capsys.readouterr().out
+
+
 def test_the_batched_renderer_says_what_it_needs():
     if frames_mjx.mjxw.WARP_INSTALLED:
         pytest.skip("Warp is installed here: the batched renderer is benchmarked by experiments/bench_render.py")
