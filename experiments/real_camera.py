@@ -53,20 +53,32 @@ def measure(policy, episodes, setting: dict, seed: int, log=print) -> list[dict]
 
 
 def settings_grid(args, policy) -> list[dict]:
-    """Every setting to choose from; the jaw's margin only where the jaws may open."""
+    """Every setting to choose from; the jaw's margin only where the jaws may open (before the first move,
+    or on the way for a policy trained to: its jaws at the scene's opening to start with)."""
     base = policy.env_config.scene.jaw_angle_deg
+    on_the_way = policy.env_config.jaw_open_deg is not None
     values = [[float(x) for x in v.split(",")] for v in (args.looks, args.stops, args.jaws, args.jaw_sigmas)]
     grid = []
     for look, stop, jaw, sigmas in itertools.product(*values):
-        g = {"look_frames": int(look), "stop_tolerance": stop, "jaw_deg": jaw, "jaw_sigmas": sigmas * (jaw > base)}
+        jaw, sigmas = (base, sigmas) if on_the_way else (jaw, sigmas * (jaw > base))
+        g = {"look_frames": int(look), "stop_tolerance": stop, "jaw_deg": jaw, "jaw_sigmas": sigmas}
         if g not in grid:
             grid.append(g)
     return grid
 
 
-def describe(knobs: dict) -> str:
-    jaw = f"jaws to {knobs['jaw_deg']:g} deg at {knobs['jaw_sigmas']:g} sd" if knobs["jaw_sigmas"] else "jaws kept"
+def describe(knobs: dict, policy) -> str:
+    if policy.env_config.jaw_open_deg is not None:
+        jaw = f"jaws open on the way to {policy.env_config.jaw_open_deg:g} deg at {knobs['jaw_sigmas']:g} sd"
+    elif knobs["jaw_sigmas"]:
+        jaw = f"jaws to {knobs['jaw_deg']:g} deg at {knobs['jaw_sigmas']:g} sd"
+    else:
+        jaw = "jaws kept"
     return f"look {knobs['look_frames']}, stop {knobs['stop_tolerance']:g}, {jaw}"
+
+
+def _frames(g: dict) -> str:
+    return "-" if g["frames"] is None else f"{g['frames']:.0f}"  # None: not logged by a merged grid
 
 
 def chosen_score(rows: list[dict]) -> float:
@@ -143,7 +155,7 @@ def main() -> None:
         "| ---: | ---: | ---: | ---: | ---: | ---: |",
         *(
             f"| {g['look_frames']} | {g['stop_tolerance']:g} | {g['jaw_deg']:g} | {g['jaw_sigmas']:g} | "
-            f"{'**' if g is best else ''}{g['score']:.3f}{'**' if g is best else ''} | {g['frames']:.0f} |"
+            f"{'**' if g is best else ''}{g['score']:.3f}{'**' if g is best else ''} | {_frames(g)} |"
             for g in grid
         ),
     ]
@@ -154,7 +166,7 @@ def main() -> None:
             f"{set_name}, noise seeds {seeds}: success mean (min-max over seeds); collisions / stopped short of the "
             "true goal (means; the opening sweep's collisions, a part of them, after the slash); jaws opened "
             "(mean share); time holding still, median / p95 (s, the worse seed). Own: "
-            f"{describe(settings['own'])}; chosen: {describe(settings['chosen'])}.",
+            f"{describe(settings['own'], policy)}; chosen: {describe(settings['chosen'], policy)}.",
             "",
             "| the camera's errors | own: success | own: coll. / wrong stop | own: still (s) | chosen: success "
             "| chosen: coll. (opening) / wrong stop | chosen: opened | chosen: still (s) |",

@@ -175,3 +175,67 @@ def test_bad_jaw_openings_are_refused():
     with pytest.raises(ConfigError, match="jaw_open_margin_mm"):
         EnvConfig(jaw_open_deg=60.0, jaw_open_margin_mm=0.1, clearance_mm=0.2)
     assert dataclasses.replace(EnvConfig(), jaw_open_deg=80.0).jaw_open_deg == 80.0
+
+
+def test_view_sd_by_hand():
+    from regrasp_mjx.envs.camera_errors import CameraErrors, Tracking
+    from regrasp_mjx.inference.closed_loop import view_sd_mm
+
+    # tools: white 0.5 mm, 5 deg per mm, one frame; depth 2: each tool 0.25 mm^2 per axis, times
+    # (4 + (rad(5) * lever_mm)^2) at its lever (the jaws' 9.6 mm, the grasping tool's 12 mm)
+    camera = CameraErrors(Tracking(), Tracking(white_mm=0.5, deg_per_mm=5.0), depth_factor=2.0)
+    n = np.asarray(camera.numbers(), np.float32)
+    turn = math.radians(5.0)
+    want = math.sqrt(0.25 * (4.0 + (turn * 9.6) ** 2) + 0.25 * (4.0 + (turn * 12.0) ** 2))
+    got = view_sd_mm(jnp.float32(1.0), n[:5], n[5:10], n[10], 9.6e-3, 5.4e-3, jnp.array([[0.012, 0.0, 0.0]]))
+    assert float(got[0]) == pytest.approx(want, rel=1e-5)
+    # a needle bias of 1 mm: its spread over three axes, at the needle's radius, whatever the frames
+    camera = CameraErrors(Tracking(bias_mm=1.0, deg_per_mm=2.0), Tracking(), depth_factor=1.0)
+    n = np.asarray(camera.numbers(), np.float32)
+    want = math.sqrt((1.0 + (math.radians(2.0) * 5.4) ** 2) / 3.0)
+    got = view_sd_mm(jnp.float32(60.0), n[:5], n[5:10], n[10], 9.6e-3, 5.4e-3, jnp.array([[0.012, 0.0, 0.0]]))
+    assert float(got[0]) == pytest.approx(want, rel=1e-5)
+
+
+@pytest.fixture(scope="module")
+def opening_policy():
+    from regrasp_mjx.inference.policy import load_policy
+
+    return load_policy().with_env(jaw_open_deg=40.0)
+
+
+def test_the_loop_opens_on_the_way_where_its_view_leaves_room(opening_policy, paper_testset):
+    """Exact views: the loop's decisions are the truth's, with the environment's margin: every opening
+    sweep keeps it on the true poses at the step it was made before, none collides, and a row's jaws
+    are wide exactly where it opened."""
+    from regrasp_mjx.world.sampling import episode_poses
+
+    policy = opening_policy
+    needle, start, goal = (x[:24] for x in episode_poses(paper_testset[0]))
+    r = policy.execute(needle, start, goal, seed=0, jaw_sigmas=0.0)
+    opened = r["opened_at"] >= 0
+    assert 0.5 < opened.mean() and not r["opening_collision"].any()
+    np.testing.assert_array_equal(r["jaw_deg"], np.where(opened, 40.0, 20.0))
+    env = RegraspEnv(policy.env_config)
+    rows = np.flatnonzero(opened)
+    at = r["poses"][rows, r["opened_at"][rows]]
+    from regrasp_mjx.world.sampling import Episode
+
+    episode = Episode.from_poses(*(jnp.asarray(x[rows], jnp.float32) for x in (needle, at, goal)))
+    es = jax.vmap(env.reset_from)(episode).pipeline_state
+    room = np.asarray(jax.vmap(env.opening_room, in_axes=(0, None))(es, 40.0))
+    assert (room >= env.jaw_margin - 1e-6).all()
+    assert r["success"].mean() > 0.8
+    # the widest opening before the first move is the other design: refused for such a policy
+    with pytest.raises(ConfigError, match="on the way"):
+        policy.execute(needle, start, goal, jaw_deg=30.0)
+
+
+def test_a_view_that_misjudges_the_room_is_judged_on_the_truth(opening_policy, paper_testset):
+    """Large view errors and no margin in them: sweeps the truth does not prove clear are collisions."""
+    from regrasp_mjx.world.sampling import episode_poses
+
+    needle, start, goal = (x[:48] for x in episode_poses(paper_testset[0]))
+    r = opening_policy.execute(needle, start, goal, seed=2, camera="lab-typical", jaw_sigmas=0.0)
+    assert r["opening_collision"].any()
+    assert (r["collision"] | ~r["opening_collision"]).all() and not (r["success"] & r["opening_collision"]).any()

@@ -316,6 +316,14 @@ class RegraspEnv(Env):
         at = geometry.quat_mul(geometry.quat_from_rotvec(s * rotvec), quat)
         return self._interval(placed, pos + s * dp, at, dp, rotvec, h, *held)
 
+    def opening_room(self, es: EpisodeState, to_deg) -> jax.Array:
+        """How much room [m] opening the jaws from where ``es`` has them to ``to_deg`` leaves at its pose,
+        the tool holding still (:func:`regrasp_mjx.world.jaw.sweep_fn`: proved between check points);
+        one row, vmap-able."""
+        needle = (es.needle_radius, es.wire_radius) if self.varies_needle else ()
+        placed = self._place_others(es.needle_pos, es.needle_quat, *needle)
+        return self._sweep(placed, es.ee_pos, es.ee_quat, es.jaw_deg, jnp.asarray(to_deg, jnp.float32))
+
     def _opening(self, placed, es: EpisodeState, open_to) -> tuple[jax.Array | None, jax.Array]:
         """The jaws' opening a step moves with (None: the scene's, never opened) and whether opening
         to it collided (:meth:`move`)."""

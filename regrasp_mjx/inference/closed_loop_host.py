@@ -33,19 +33,33 @@ def _estimate_inputs(policy: Any, needle: Any, ee_name: str, ee: Any, goal: Any,
 
 
 def _program(
-    policy, kind, shield, frames="fused", clearance_mm=0.0, stop=1.0, warmup=1, observe="camera", joints=False, look=0
+    policy,
+    kind,
+    shield,
+    frames="fused",
+    clearance_mm=0.0,
+    stop=1.0,
+    warmup=1,
+    observe="camera",
+    joints=False,
+    look=0,
+    jaw_sigmas=1.0,
 ):
     """The jitted executor (``kind="execute"``) or stepper of a setting, built once per network shape."""
 
     def build():
         env = RegraspEnv(policy.env_config)
-        guard = RegraspEnv(dataclasses.replace(policy.env_config, clearance_mm=clearance_mm)) if clearance_mm else env
+        config = policy.env_config
+        margin = max(config.jaw_open_margin_mm, clearance_mm)  # the jaws' room keeps the shield's clearance
+        guard = RegraspEnv(dataclasses.replace(config, clearance_mm=clearance_mm, jaw_open_margin_mm=margin))
+        guard = guard if clearance_mm else env
         apply = members_apply(policy.hidden)
         if kind == "execute":
-            return make_executor(env, apply, shield, frames, guard, warmup, observe, joints, look)
+            return make_executor(env, apply, shield, frames, guard, warmup, observe, joints, look, jaw_sigmas)
         return make_stepper(guard, apply, shield, stop)
 
-    return policy.program((kind, shield, frames, clearance_mm, stop, warmup, observe, joints, look), build)
+    key = (kind, shield, frames, clearance_mm, stop, warmup, observe, joints, look)
+    return policy.program(key + ((jaw_sigmas,) if policy.env_config.jaw_open_deg else ()), build)
 
 
 def closed_loop_step(
@@ -185,6 +199,12 @@ def execute(
     if not (math.isfinite(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
         raise ConfigError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
     jaw_deg, jaw_sigmas = jaw_opening.check(policy, jaw_deg, jaw_sigmas)
+    on_the_way = policy.env_config.jaw_open_deg is not None
+    if on_the_way and jaw_deg > policy.env_config.scene.jaw_angle_deg:
+        raise ConfigError(
+            f"jaw_deg={jaw_deg!r} is not accepted for a policy whose jaws open on the way (to "
+            f"{policy.env_config.jaw_open_deg} deg): None, or its scene's {policy.env_config.scene.jaw_angle_deg}"
+        )
     needle, start, goal, radii, _ = _estimate_inputs(policy, needle, "start", start, goal, TaskSpec.of(task))
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     warmup = int(warmup_frames) if frames == "fused" else 1
@@ -195,9 +215,12 @@ def execute(
 
     def one_pass(p) -> dict[str, np.ndarray]:
         # the stop tolerance is an argument (1.0 in the key)
-        run = _program(p, "execute", shield, frames, float(clearance_mm), 1.0, warmup, observe, joints, look_frames)
+        setting = (frames, float(clearance_mm), 1.0, warmup, observe, joints, look_frames, jaw_sigmas)
+        run = _program(p, "execute", shield, *setting)
         out = run(f32(needle), f32(start), f32(goal), key, f32(camera.numbers()), f32(radii), errors, stop)
         return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
 
+    if on_the_way:  # the loop opens the jaws on the way itself (make_executor)
+        return one_pass(policy)
     margin_mm = jaw_sigmas * camera.relative_sd_mm(warmup)
     return jaw_opening.execute_opened(one_pass, policy, needle, start, radii, jaw_deg, margin_mm)
