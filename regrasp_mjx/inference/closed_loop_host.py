@@ -91,9 +91,15 @@ def closed_loop_step(
         raise ConfigError(f"t={t!r} is not accepted: the step index, an integer >= 0")
     if not (is_number(clearance_mm) and 0.0 <= clearance_mm <= 1.0):
         raise ConfigError(f"clearance_mm={clearance_mm!r} is not accepted: a finite number of mm in [0, 1]")
+    if policy.env_config.jaw_open_deg is not None:
+        raise ConfigError(
+            "closed_loop_step does not take a policy whose jaws open on the way (jaw_open_deg="
+            f"{policy.env_config.jaw_open_deg}): the jaws' opening is state it does not carry; accepted: "
+            "Policy.execute, Policy.plan, or a policy with jaw_open_deg None"
+        )
     spec = TaskSpec.of(task)
     (needle, ee), single = batch_poses(needle=needle, ee=ee)
-    if single and not clearance_mm and 0 <= t < policy.env_config.horizon and auto_engine(1) == "lean":
+    if single and not clearance_mm and 0 <= t < policy.env_config.horizon and auto_engine(1, policy) == "lean":
         # one query on the CPU: the lean numba step, its default goal made by the compiled code (the
         # JAX program below stays the reference)
         lean = policy.lean(shield)

@@ -44,10 +44,12 @@ NO_LIBRARY = (
 )  # the lean query's grasp library when not checked
 
 
-def auto_engine(queries: int) -> str:
+def auto_engine(queries: int, policy: Any = None) -> str:
     """What ``Policy.plan(engine="auto")`` runs ``queries`` queries with: the lean numba rollout for
-    one query when JAX runs on the CPU, the jitted JAX program otherwise."""
-    return "lean" if queries == 1 and jax.default_backend() == "cpu" else "jax"
+    one query when JAX runs on the CPU, the jitted JAX program otherwise (always for a ``policy`` whose
+    jaws open on the way, which the lean planner does not model)."""
+    opens = policy is not None and policy.env_config.jaw_open_deg is not None
+    return "lean" if queries == 1 and jax.default_backend() == "cpu" and not opens else "jax"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,7 +166,7 @@ def plan(
     (needle, start), single = batch_poses(needle=needle, start=start)
     grasp, radii = policy.task_ranges.resolve(len(needle), spec)
     if engine == "auto":
-        engine = auto_engine(len(needle))
+        engine = auto_engine(len(needle), policy)
     if engine == "lean" and len(needle) != 1:
         raise ValueError(f"engine='lean' plans one query at a time; got {len(needle)}: use engine='jax'")
     goal = checked_goals(needle, goal, grasp, radii)
@@ -192,7 +194,7 @@ def _lean_one(policy: Any, needle: Any, start: Any, goal: Any, task: dict, check
         poses = [x if type(x) is np.ndarray or x is None else np.asarray(x) for x in (needle, start, goal)]
     except ValueError:  # ragged: the caller's checks name it
         return None
-    if any(x is not None and x.shape != (7,) for x in poses) or auto_engine(1) != "lean":
+    if any(x is not None and x.shape != (7,) for x in poses) or auto_engine(1, policy) != "lean":
         return None
     vector = policy.task_ranges.keywords_vector(task)
     if vector is None:
