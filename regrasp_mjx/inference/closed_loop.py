@@ -27,6 +27,7 @@ from regrasp_mjx.envs import camera_errors, estimates
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.rollout import rollout
 from regrasp_mjx.envs.shield import shield_rows
+from regrasp_mjx.inference import jaw_opening
 from regrasp_mjx.inference.planner import mean_action
 from regrasp_mjx.robot.robot_errors import (
     average,
@@ -129,7 +130,7 @@ def make_executor(
     one with a clearance margin keeps that much away from the estimate. Where the policy's jaws open
     on the way (``EnvConfig.jaw_open_deg``), the loop opens them before the first step whose view
     leaves the opening sweep the environment's margin plus ``jaw_sigmas`` standard deviations of the
-    view's known error at the jaws (:func:`view_sd_mm`); the truth judges the sweep (a collision
+    view's known error at the jaws (:func:`regrasp_mjx.inference.jaw_opening.view_sd_mm`); the truth judges the sweep (a collision
     where it is not proved clear). Returns per row:
     ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on the true
     needle), ``time_out`` (no stop within the horizon), ``stopped`` (the view said the goal was
@@ -309,7 +310,7 @@ def make_executor(
             # the jaws: open where the view leaves the sweep its margin (the loop knows their opening)
             want = jnp.float32(env.config.jaw_open_deg)
             needle_radius = seen.pipeline_state.needle_radius
-            sd = view_sd_mm(info["frames"], pn, pt, depth[0], reach, needle_radius, info["ee_seen"][:, :3])
+            sd = jaw_opening.view_sd_mm(info["frames"], pn, pt, depth[0], reach, needle_radius, info["ee_seen"][:, :3])
             room = jax.vmap(env.opening_room, in_axes=(0, None))(seen.pipeline_state, want)
             opening = info["acting"] & (es.jaw_deg < want) & (room >= env.jaw_margin + jaw_sigmas * sd * 1e-3)
             return jnp.concatenate([a, jnp.where(opening, want, es.jaw_deg)[:, None]], -1)
@@ -324,7 +325,7 @@ def make_executor(
         held = jnp.minimum(jnp.arange(horizon + 1)[:, None], out.steps[None, :])
         poses = jnp.take_along_axis(trace, held[..., None], axis=0).transpose(1, 0, 2)
         info = out.state.info
-        jaws = _jaws(env, state, poses, out.trace[1], out.steps)
+        jaws = jaw_opening.outputs(env, state, poses, out.trace[1], out.steps)
         return {
             **jaws,
             "start_valid": out.start_valid,
@@ -340,45 +341,6 @@ def make_executor(
         }
 
     return jax.jit(run)
-
-
-def view_sd_mm(n, pn, pt, depth_factor, reach, needle_radius, ee_seen_pos) -> jax.Array:
-    """``[B]`` the standard deviation [mm] of where the view puts a jaw point relative to the needle and
-    the grasping tool after ``n`` fused frames (``pn``, ``pt``: the needle's and the tools'
-    :meth:`~regrasp_mjx.envs.camera_errors.Tracking.numbers`): each tracked object's position error
-    (its bias's per-axis spread, unknown though fixed, and the fused rest) stretched by the depth
-    factor, and its rotation error (``deg_per_mm`` per mm of it) at its lever: the regrasping tool's
-    at the jaws' ``reach`` [m], the needle's at its radius [m] (about its centre), the grasping tool's
-    at the regrasping tool's distance from it [m] (the frame the view is in)."""
-
-    def part(p, lever_m):
-        var = p[0] ** 2 / 3.0 + camera_errors.fused_variance(n, p)
-        return (depth_factor**2 + (jnp.radians(p[4]) * lever_m * 1e3) ** 2) * var
-
-    lever_g = jnp.linalg.norm(ee_seen_pos, axis=-1)
-    return jnp.sqrt(part(pn, needle_radius) + part(pt, reach) + part(pt, lever_g))
-
-
-def _jaws(env: RegraspEnv, state, poses: jax.Array, traced: jax.Array, steps: jax.Array) -> dict:
-    """The executor's jaw outputs from the opening traced after each step ``[horizon + 1, B]``: the
-    last, the step they opened before (-1: never) and whether that sweep is not proved clear on the
-    true poses (the environment's own check, at the pose the step started from)."""
-    base = env.config.scene.jaw_angle_deg
-    b = poses.shape[0]
-    if not env.opens:
-        return {
-            "jaw_deg": jnp.full(b, base, jnp.float32),
-            "opened_at": jnp.full(b, -1, jnp.int32),
-            "opening_collision": jnp.zeros(b, bool),
-        }
-    live = jnp.arange(traced.shape[0])[:, None] < steps[None, :]
-    wide = live & (traced > base)
-    opened_at = jnp.where(jnp.any(wide, 0), jnp.argmax(wide, 0), -1).astype(jnp.int32)
-    last = jnp.where(opened_at >= 0, jnp.float32(env.config.jaw_open_deg), jnp.float32(base))
-    at = jnp.take_along_axis(poses, jnp.maximum(opened_at, 0)[:, None, None], axis=1)[:, 0]
-    es = state.pipeline_state.replace(ee_pos=at[:, :3], ee_quat=at[:, 3:], jaw_deg=jnp.full(b, base, jnp.float32))
-    room = jax.vmap(env.opening_room, in_axes=(0, None))(es, env.config.jaw_open_deg)
-    return {"jaw_deg": last, "opened_at": opened_at, "opening_collision": (opened_at >= 0) & (room < env.clearance)}
 
 
 def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: float = 1.0):
