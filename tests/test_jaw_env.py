@@ -231,6 +231,7 @@ def test_the_loop_opens_on_the_way_where_its_view_leaves_room(opening_policy, pa
         policy.execute(needle, start, goal, jaw_deg=30.0)
 
 
+@pytest.mark.slow  # an executor and a planner compiled on the CPU: the long tier
 def test_a_view_that_misjudges_the_room_is_judged_on_the_truth(opening_policy, paper_testset):
     """Large view errors and no margin in them: sweeps the truth does not prove clear are collisions."""
     from regrasp_mjx.world.sampling import episode_poses
@@ -256,3 +257,24 @@ def test_paths_that_do_not_carry_the_jaws_refuse_or_step_aside(opening_policy, p
     assert auto_engine(1, opening_policy) == "jax"
     plan = opening_policy.plan(needle, start, goal)
     assert bool(plan.success)
+
+
+@pytest.mark.slow  # an executor and a planner compiled on the CPU: the long tier
+def test_a_plans_opening_step_is_the_one_its_rollout_took(opening_policy, paper_testset):
+    """``jaw_opening.opening_steps`` on ``Policy.plan``'s poses names the step the environment opened
+    the jaws before: the executor reproducing the plans (one exact frame, stop at the task's
+    tolerance) records the same steps."""
+    from regrasp_mjx.inference import jaw_opening
+    from regrasp_mjx.world.sampling import episode_poses
+
+    needle, start, goal = (x[:16] for x in episode_poses(paper_testset[0]))
+    plan = opening_policy.plan(needle, start, goal)
+    steps = jaw_opening.opening_steps(opening_policy, needle, plan.poses, plan.steps)
+    r = opening_policy.execute(needle, start, goal, frames="one", stop_tolerance=1.0, jaw_sigmas=0.0)
+    np.testing.assert_array_equal(r["success"], plan.success)
+    np.testing.assert_array_equal(steps, r["opened_at"])
+    assert (steps >= 0).mean() > 0.5
+    with pytest.raises(ConfigError, match="on the way"):
+        from regrasp_mjx.inference.policy import load_policy
+
+        jaw_opening.opening_steps(load_policy(), needle, plan.poses, plan.steps)

@@ -29,6 +29,7 @@ from regrasp_mjx.core.config import ConfigError, is_number
 from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.world import jaw
+from regrasp_mjx.world.sampling import Episode
 from regrasp_mjx.world.scene import load_scene
 
 RUNG_DEG = 10.0  # the ladder's step: each rung a rung's scene (one more executor pass where chosen)
@@ -169,3 +170,33 @@ def outputs(env: RegraspEnv, state, poses: jax.Array, traced: jax.Array, steps: 
     es = state.pipeline_state.replace(ee_pos=at[:, :3], ee_quat=at[:, 3:], jaw_deg=jnp.full(b, base, jnp.float32))
     room = jax.vmap(env.opening_room, in_axes=(0, None))(es, env.config.jaw_open_deg)
     return {"jaw_deg": last, "opened_at": opened_at, "opening_collision": (opened_at >= 0) & (room < env.clearance)}
+
+
+def opening_steps(policy: Any, needle: np.ndarray, poses: np.ndarray, steps: np.ndarray, radii=None) -> np.ndarray:
+    """For plans of a policy whose jaws open on the way (``Policy.plan``'s exact rollouts: ``needle``
+    ``[B, 7]``, ``poses`` ``[B, T + 1, 7]``, ``steps`` ``[B]``; ``radii`` ``[B, 2]`` for a task that
+    draws needles): the step each plan's jaws open before (-1: never), found as the environment finds
+    it: the first pose of the plan whose opening sweep keeps ``jaw_open_margin_mm``
+    (:meth:`~regrasp_mjx.envs.env.RegraspEnv.opening_room`). What a robot commands: open the jaws to
+    ``jaw_open_deg`` at that pose, then go on."""
+    config = policy.env_config
+    if config.jaw_open_deg is None:
+        raise ConfigError("opening_steps takes a policy whose jaws open on the way (EnvConfig.jaw_open_deg set)")
+    env = RegraspEnv(config)
+    room_of = policy.program(("opening_room",), lambda: _room_program(env))
+    b, n = poses.shape[:2]
+    flat = np.asarray(poses, np.float32).reshape(b * n, 7)
+    f32 = lambda x: jnp.asarray(np.repeat(np.asarray(x, np.float32), n, axis=0))  # noqa: E731
+    episode = Episode.from_poses(
+        f32(needle), jnp.asarray(flat), jnp.asarray(flat), None if radii is None else f32(radii)
+    )
+    es = jax.vmap(env.reset_from)(episode).pipeline_state
+    room = np.asarray(room_of(es)).reshape(b, n)
+    ok = (room >= env.jaw_margin) & (np.arange(n)[None, :] < np.asarray(steps)[:, None])
+    return np.where(ok.any(axis=1), ok.argmax(axis=1), -1)
+
+
+def _room_program(env: RegraspEnv) -> Callable:
+    """Each row's room to open the jaws to the policy's opening, jitted (the weights bound by
+    ``Policy.program``, unused)."""
+    return jax.jit(lambda _weights, es: jax.vmap(env.opening_room, in_axes=(0, None))(es, env.config.jaw_open_deg))
