@@ -37,7 +37,8 @@ from typing import Any
 import numpy as np
 
 from regrasp_mjx.core.atomic import dumps, machine, output_folder_problem, write_results
-from regrasp_mjx.core.config import ConfigError, parse_overrides
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.config_text import parse_overrides
 from regrasp_mjx.core.host_loop import release_programs, run_command
 from regrasp_mjx.envs.rollout import summarize
 from regrasp_mjx.inference import robustness, robustness_report

@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 from regrasp_mjx.core.atomic import output_folder_problem
-from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, SceneConfig, parse_overrides, replace
+from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, SceneConfig
+from regrasp_mjx.core.config_text import parse_overrides, replace
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.planning.demonstrations import build, build_settings
 from regrasp_mjx.planning.episodes import DemosError

@@ -15,7 +15,8 @@ from pathlib import Path
 
 from regrasp_mjx.agents.dagger import DistillConfig
 from regrasp_mjx.core.atomic import dumps, output_folder_problem
-from regrasp_mjx.core.config import ConfigError, parse_overrides, replace
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.config_text import parse_overrides, replace
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.inference.policy import PolicyError, load_policy
 from regrasp_mjx.workflows.distillation import DISTILL_OUTPUTS, distill

@@ -35,7 +35,8 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.core.atomic import output_folder_problem, write_figure, write_json, write_text
-from regrasp_mjx.core.config import ConfigError, parse_overrides
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.config_text import parse_overrides
 from regrasp_mjx.core.host_loop import run_command
 from regrasp_mjx.core.jobs import Job, gpu_slots, run_jobs
 from regrasp_mjx.workflows import analysis

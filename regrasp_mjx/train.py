@@ -30,7 +30,8 @@ from regrasp_mjx.agents.ddpg_bc.config import EXPLORATION, LEARNERS, PRESETS, gr
 from regrasp_mjx.agents.ddpg_bc.placement import Placement
 from regrasp_mjx.core import distributed, gpu_memory
 from regrasp_mjx.core.atomic import dumps, output_folder_problem
-from regrasp_mjx.core.config import TASKS, ConfigError, parse_overrides
+from regrasp_mjx.core.config import TASKS, ConfigError
+from regrasp_mjx.core.config_text import parse_overrides
 from regrasp_mjx.core.host_loop import FolderInUse, folder_in_use, folder_lock, run_command
 from regrasp_mjx.planning.episodes import DemosError
 from regrasp_mjx.workflows.preflight import before_the_work, run_outputs

@@ -26,7 +26,7 @@ def test_margin_is_checked_and_old_substep_settings_are_refused():
         EnvConfig(clearance_mm=-0.1)
     with pytest.raises(TypeError):
         EnvConfig(collision_substeps=4)  # gone: every step is tested along its whole motion
-    from regrasp_mjx.core.config import env_config_from_dict
+    from regrasp_mjx.core.config_text import env_config_from_dict
 
     d = dataclasses.asdict(EnvConfig())
     assert env_config_from_dict({**d, "collision_substeps": None}) == EnvConfig()  # policy files before issue 44

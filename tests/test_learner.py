@@ -162,7 +162,7 @@ def test_decay_preset_is_fast_with_both_regularisers_decayed_over_a_third_of_tra
 
 
 def test_set_overrides_parse_as_literals():
-    from regrasp_mjx.core.config import parse_overrides
+    from regrasp_mjx.core.config_text import parse_overrides
 
     got = parse_overrides(["env.horizon=80", "distill.hidden=(256, 256)", "critics = 1", "name=abc"])
     assert got == {"env.horizon": 80, "distill.hidden": (256, 256), "critics": 1, "name": "abc"}

@@ -247,7 +247,7 @@ def _raise_interrupt(*args, **kwargs):
     "module, argv, target",
     [
         ("train", ["--out", "{t}/r"], "regrasp_mjx.agents.ddpg_bc.config.make_config"),
-        ("demos", ["--n", "2", "--out", "{t}/d"], "regrasp_mjx.core.config.parse_overrides"),
+        ("demos", ["--n", "2", "--out", "{t}/d"], "regrasp_mjx.core.config_text.parse_overrides"),
         ("distill", ["--teacher", "default", "--out", "{t}/s"], "regrasp_mjx.inference.policy.load_policy"),
         ("compare", ["--no-testset", "--heldout", "2:0"], "regrasp_mjx.inference.policy.load_policy"),
         ("recipe", ["smoke", "--out", "{t}/rc"], "regrasp_mjx.core.jobs.gpu_slots"),

@@ -22,8 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx.core.config import env_config_from_dict
-from regrasp_mjx.core.config import replace as config_replace
+from regrasp_mjx.core.config_text import env_config_from_dict
+from regrasp_mjx.core.config_text import replace as config_replace
 from regrasp_mjx.inference import camera_loop, closed_loop_host, planner, plans
 from regrasp_mjx.inference.planner import mean_action, members_apply
 from regrasp_mjx.inference.plans import Plan
@@ -133,7 +133,7 @@ class Policy:
     def with_env(self, **changes: Any) -> Policy:
         """The same network planning in a changed environment, e.g. ``with_env(clearance_mm=0.1)``
         (a pose then collides closer than 0.1 mm to the needle or the other tool, and the shield
-        keeps that margin); names as :func:`regrasp_mjx.core.config.replace` takes them (dotted for
+        keeps that margin); names as :func:`regrasp_mjx.core.config_text.replace` takes them (dotted for
         nested fields). Raises :class:`~regrasp_mjx.core.config.ConfigError` for a bad field or value."""
         env = config_replace(env_config_from_dict(self.contract["env"]), **changes)
         return dataclasses.replace(self, contract={**copy.deepcopy(self.contract), "env": dataclasses.asdict(env)})

@@ -25,7 +25,7 @@ from flax import traverse_util
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
 from regrasp_mjx.core.atomic import atomic_write, write_json
-from regrasp_mjx.core.config import env_config_from_dict
+from regrasp_mjx.core.config_text import env_config_from_dict
 from regrasp_mjx.core.geometry import OBS_SIZE, OBS_SIZE_GENERAL
 from regrasp_mjx.world.testsets import versions
 

@@ -42,7 +42,8 @@ import numpy as np
 from tqdm import tqdm
 
 from regrasp_mjx.core.atomic import dumps
-from regrasp_mjx.core.config import EnvConfig, env_config_from_dict
+from regrasp_mjx.core.config import EnvConfig
+from regrasp_mjx.core.config_text import env_config_from_dict
 from regrasp_mjx.interfaces import registry
 from regrasp_mjx.interfaces.gym_envs import gym_id
 from regrasp_mjx.planning.demonstrations import problem_sampler

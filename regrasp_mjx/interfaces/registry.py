@@ -33,7 +33,8 @@ from brax.envs.base import State as BraxState
 from flax import struct
 from ml_collections import config_dict
 
-from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, env_config_from_dict, is_number, require
+from regrasp_mjx.core.config import TASKS, ConfigError, EnvConfig, is_number, require
+from regrasp_mjx.core.config_text import env_config_from_dict
 from regrasp_mjx.envs import estimates
 from regrasp_mjx.envs.env import EpisodeState, RegraspEnv
 from regrasp_mjx.robot import robot_errors

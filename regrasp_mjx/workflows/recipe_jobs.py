@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
-from regrasp_mjx.core.config import TASKS, parse_overrides
+from regrasp_mjx.core.config import TASKS
+from regrasp_mjx.core.config_text import parse_overrides
 from regrasp_mjx.core.jobs import Job
 from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy_file import DEFAULT_WARMUP, untrained_policy

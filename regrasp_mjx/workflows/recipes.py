@@ -22,7 +22,8 @@ from typing import Any
 
 from regrasp_mjx.agents.dagger import DistillConfig
 from regrasp_mjx.agents.ddpg_bc.config import TrainConfig, make_config
-from regrasp_mjx.core.config import ConfigError, replace
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.config_text import replace
 
 Settings = tuple[tuple[str, Any], ...]  # ordered (KEY, VALUE) pairs, as --set gives them
 

@@ -11,12 +11,12 @@ from regrasp_mjx.core.config import (
     ConfigError,
     EnvConfig,
     is_integer,
-    replace,
     require,
     require_flags,
     require_integers,
     require_numbers,
 )
+from regrasp_mjx.core.config_text import replace
 
 
 @dataclasses.dataclass(frozen=True)
