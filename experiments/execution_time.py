@@ -28,23 +28,6 @@ from regrasp_mjx.world.sampling import episode_poses, load_testset
 from regrasp_mjx.world.scene import load_scene
 
 
-def _timed_ms(waypoints: np.ndarray, size: int | str | None, engine: str = "compiled") -> tuple[float, float]:
-    """Milliseconds of one ``time_joints`` and the motion's length (NaN where TOPP-RA found none);
-    ``size``: even grid points, ``"200+40W"`` the grid before 2026-11-27 (max(200, 40 W) even points),
-    None the default (:func:`psm_timing.knot_grid`); ``engine``: ``time_joints``'."""
-    if size == EARLIER:
-        size = max(200, 40 * len(waypoints))
-    t0 = time.perf_counter()
-    try:
-        duration = time_joints(waypoints, gridpoints=size, engine=engine).duration_s
-    except ValueError:  # too coarse a grid can leave no feasible parameterisation
-        duration = float("nan")
-    return 1e3 * (time.perf_counter() - t0), duration
-
-
-EARLIER = "200+40W"  # the default grid until 2026-11-27: max(200, 40 W) evenly spaced points
-
-
 def _off_path(points: np.ndarray, path: np.ndarray) -> float:
     """The farthest any of ``points`` [N, 3] lies from the polyline ``path`` [K, 3] (m)."""
     if len(path) == 1:
@@ -110,12 +93,6 @@ def main() -> None:
     p.add_argument("--testset", default="paper300")
     p.add_argument("--out", default=None)
     p.add_argument(
-        "--grids",
-        default=f"{EARLIER},50,100,200",
-        help=f"TOPP-RA grids to time against the default, comma-separated: even point counts, or {EARLIER} "
-        "(max(200, 40 W) even points, the default until 2026-11-27)",
-    )
-    p.add_argument(
         "--closed-loop-noise-mm",
         type=float,
         default=0.25,
@@ -134,7 +111,7 @@ def main() -> None:
     plan = policy.plan_from_camera(identity, start, needle, goal_depth_mm=depth, check_grasp=False, psm=psm)
     checker = HostChecker(load_scene(policy.env_config.scene))  # MuJoCo's distances: an independent measure
     base = dvrk.as_matrix(psm["regrasping_base"])
-    durations, inserted, refused, seconds, timing_ms, deviation, clearance, waypoints = [], [], {}, [], [], [], [], []
+    durations, inserted, refused, seconds, timing_ms, deviation, clearance = [], [], {}, [], [], [], []
     for i in range(len(start)):
         t0 = time.perf_counter()
         try:
@@ -149,28 +126,10 @@ def main() -> None:
         timing_ms.append(1e3 * (time.perf_counter() - t0))
         durations.append(r.trajectory.duration_s)
         inserted.append(r.inserted)
-        waypoints.append(r.trajectory.waypoints)
         poses = tool_poses(base, r.trajectory.q)
         deviation.append(_off_path(poses[:, :3], plan.trajectory("eg", i)[:, :3]))
         clearance.append(min(checker.clearance(needle[i, :3], needle[i, 3:], p[:3], p[3:]) for p in poses))
     d = np.array(durations)
-    # TOPP-RA's grid: time against motion length, on the same waypoints (each timed 3 times, the fastest kept)
-    # and the default grid timed by the toppra library itself (engine="toppra"), the compiled passes' reference
-    grids = {}
-    sizes = [(None, "compiled"), (None, "toppra")]
-    sizes += [(g if g == EARLIER else int(g), "compiled") for g in args.grids.split(",") if g]
-    for size, engine in sizes:
-        ms, dur = [], []
-        for w in waypoints:
-            best = min(_timed_ms(w, size, engine) for _ in range(3))
-            ms.append(best[0])
-            dur.append(best[1])
-        dur = np.array(dur)
-        grids[str(size or "default") + ("" if engine == "compiled" else f", {engine}")] = {
-            "ms_median": float(np.median(ms)),
-            "duration_median_s": float(np.nanmedian(dur)),
-            "failed": int(np.isnan(dur).sum()),
-        }
     row = {
         "policy": args.policy or "default",
         "testset": args.testset,
@@ -186,7 +145,6 @@ def main() -> None:
         "deviation_mm": {"median": 1e3 * float(np.median(deviation)), "max": 1e3 * float(np.max(deviation))},
         "clearance_um_min": 1e6 * float(np.min(clearance)),
         "penetrations": int(np.sum(np.array(clearance) < 0.0)),
-        "toppra_grid": grids,
     }  # fmt: skip
     lines = [
         f"Policy `{row['policy']}` on {args.testset} ({row['problems']} problems), one fixed port; timed at the dVRK "
@@ -201,22 +159,6 @@ def main() -> None:
         + f" | {row['deviation_mm']['median']:.3f} / {row['deviation_mm']['max']:.3f} | {row['clearance_um_min']:.1f} | "
         f"{row['penetrations']} | {row['time_joints_ms']['median']:.2f} / {row['time_joints_ms']['max']:.2f} | "
         f"{row['timing_call_ms']['median']:.1f} / {row['timing_call_ms']['max']:.1f} |",
-    ]
-    base_d = grids["default"]["duration_median_s"]
-    lines += [
-        "",
-        "TOPP-RA's grid on the same waypoints, the fastest of 3: the default (the waypoints and 8 Chebyshev-spaced "
-        f"points inside each segment, `psm_timing.knot_grid`), {EARLIER} (max(200, 40 W) even points, the default "
-        "until 2026-11-27) and even grids (`time_joints(gridpoints=...)`); compiled TOPP-RA "
-        '(`regrasp_mjx.robot.topp`) except the row naming the toppra library (`time_joints(engine="toppra")`):',
-        "",
-        "| grid points | time_joints, median (ms) | motion, median (s) | against the default grid | no trajectory found |",
-        "| --- | ---: | ---: | ---: | ---: |",
-        *(
-            f"| {k} | {v['ms_median']:.2f} | {v['duration_median_s']:.3f} | {v['duration_median_s'] / base_d - 1:+.1%} | "
-            f"{v['failed']} |"
-            for k, v in grids.items()
-        ),
     ]
     if args.closed_loop_noise_mm >= 0:
         options = {k: v for k, v in (("camera", args.camera), ("look_frames", args.look_frames)) if v is not None}
