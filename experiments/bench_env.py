@@ -35,10 +35,9 @@ POSE_FIELDS = ("needle_pos", "needle_quat", "start_pos", "start_quat")
 RAW_CALLS = 2
 
 
-def make_rollout(env: RegraspEnv, batch: int, steps: int, record=None):
+def make_rollout(env: RegraspEnv, batch: int, steps: int):
     """The rollout (module docstring) as one jitted function of a key: the sums of rewards, episode
-    ends and successes; with ``record(states, actions)`` (the batch's pipeline states and actions
-    before each step) also its value at every step, stacked."""
+    ends and successes."""
     wrapped = AutoResetWrapper(VmapWrapper(env))
 
     @jax.jit
@@ -48,12 +47,11 @@ def make_rollout(env: RegraspEnv, batch: int, steps: int, record=None):
 
         def body(state, k):
             action = jax.random.uniform(k, (batch, env.action_size), minval=-1.0, maxval=1.0)
-            seen = () if record is None else (record(state.pipeline_state, action),)
             state = wrapped.step(state, action)
-            return state, (jnp.sum(state.reward), jnp.sum(state.done), jnp.sum(state.metrics["success"]), *seen)
+            return state, (jnp.sum(state.reward), jnp.sum(state.done), jnp.sum(state.metrics["success"]))
 
-        _, (reward, done, success, *seen) = jax.lax.scan(body, state, jax.random.split(k_act, steps))
-        return (jnp.sum(reward), jnp.sum(done), jnp.sum(success), *seen)
+        _, (reward, done, success) = jax.lax.scan(body, state, jax.random.split(k_act, steps))
+        return jnp.sum(reward), jnp.sum(done), jnp.sum(success)
 
     return rollout
 
