@@ -175,6 +175,7 @@ def test_bad_jaw_openings_are_refused():
     with pytest.raises(ConfigError, match="jaw_open_margin_mm"):
         EnvConfig(jaw_open_deg=60.0, jaw_open_margin_mm=0.1, clearance_mm=0.2)
     assert dataclasses.replace(EnvConfig(), jaw_open_deg=80.0).jaw_open_deg == 80.0
+    assert EnvConfig(clearance_mm=1.0).clearance_mm == 1.0  # jaws that stay: any clearance as before
 
 
 def test_view_sd_by_hand():

@@ -257,7 +257,7 @@ class EnvConfig:
       jaw_open_deg: the opening the regrasping jaws open to on the way (ours, issue 67; None: they
         stay at the scene's): at the first step whose start leaves room for the whole opening sweep
         (``jaw_open_margin_mm`` at every opening, the tool holding still), before its motion.
-      jaw_open_margin_mm: that room [mm], at least ``clearance_mm``.
+      jaw_open_margin_mm: that room [mm], at least ``clearance_mm`` where the jaws open.
     """
 
     scene: SceneConfig = SceneConfig()
@@ -331,11 +331,13 @@ class EnvConfig:
             f"None or degrees wider than the scene's jaw_angle_deg ({self.scene.jaw_angle_deg}) up to the "
             f"Large Needle Driver's {JAW_MAX_DEG:g}",
         )
+        # the room the jaws open with keeps the pose's own margin (only where they open)
+        least = self.clearance_mm if self.jaw_open_deg is not None else 0.0
         require(
-            is_number(self.jaw_open_margin_mm) and self.clearance_mm <= self.jaw_open_margin_mm <= 5.0,
+            is_number(self.jaw_open_margin_mm) and least <= self.jaw_open_margin_mm <= 5.0,
             "jaw_open_margin_mm",
             self.jaw_open_margin_mm,
-            f"a room in [clearance_mm ({self.clearance_mm}), 5] mm",
+            f"a room in [{least}, 5] mm" + (" (at least clearance_mm where the jaws open)" if least else ""),
         )
         for field, value, rng in (
             ("needle_radius_mm", self.scene.needle_radius_mm, self.task.needle_radius_range_mm),
