@@ -86,11 +86,9 @@ def tables(data: dict) -> tuple[list[dict], list[str]]:
         if r2 is None:
             continue
         speedup, epoch = r1["wall_s"] / r2["wall_s"], r1["epoch_s_median"] / r2["epoch_s_median"]
-        pairs.append(
-            {"gpus": 2, "seeds": r1["seeds"], "set": r1["set"], "label": r1.get("label", ""),
-             "time_1gpu_s": r1["wall_s"], "time_2gpu_s": r2["wall_s"], "speedup": speedup,
-             "epoch_speedup": epoch, "machine": r2["machine"], "date": r2["date"]}
-        )  # fmt: skip
+        same = {"seeds": r1["seeds"], "set": r1["set"], "label": r1.get("label", "")}
+        times = {"time_1gpu_s": r1["wall_s"], "time_2gpu_s": r2["wall_s"], "speedup": speedup, "epoch_speedup": epoch}
+        pairs.append({"gpus": 2, **same, **times, "machine": r2["machine"], "date": r2["date"]})
         lines.append(
             f"| {r1.get('label') or '-'} | {r1['seeds']} | {' '.join(r1['set']) or 'none'} | {r1['wall_s']:.0f} | "
             f"{r2['wall_s']:.0f} | **{speedup:.2f}x** | {r1['epoch_s_median']:.2f} / {r2['epoch_s_median']:.2f} | "
