@@ -94,7 +94,7 @@ def test_one_query_on_the_lean_path_has_the_same_shape_where_jax_runs_on_a_gpu(m
     policy = load_policy("default")
     needle, start, goal = (x[3] for x in episode_poses(load_testset("paper300")[0]))
     cpu = policy.plan(needle, start, goal, engine="lean")
-    monkeypatch.setattr(plans, "auto_engine", lambda queries: "jax")  # what a GPU backend answers
+    monkeypatch.setattr(plans, "auto_engine", lambda queries, policy=None: "jax")  # what a GPU backend answers
     gpu = policy.plan(needle, start, goal, engine="lean")
     assert np.ndim(gpu.success) == 0 and np.ndim(gpu.steps) == 0 and gpu.poses.shape == (int(cpu.steps) + 1, 7)
     assert gpu.success == cpu.success and gpu.steps == cpu.steps
