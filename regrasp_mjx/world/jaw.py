@@ -83,12 +83,7 @@ def opening_fn(scene: Scene, widest_deg: float, step_deg: float = SAMPLE_DEG) ->
     others = scene.motion_distance_fn()[0]
 
     def one(needle_pos, needle_quat, ee_pos, ee_quat, radius, wire):
-        ends, other_radii = others(needle_pos, needle_quat, radius, wire)  # [1, O, 2, 3], [O]
-        placed = ee_pos + jnp.sum(rotation_matrix(ee_quat) * jaws[..., None, :], axis=-1)  # [A, J, 2, 3]
-        a, b = placed[:, :, None], ends[None]  # [A, J, 1, 2, 3] against [1, 1, O, 2, 3]
-        gap = segment_distance(a[..., 0, :], a[..., 1, :], b[..., 0, :], b[..., 1, :])
-        clearance = gap - radii[None, :, None] - other_radii[None, None, :]
-        return jnp.min(clearance, axis=(1, 2)) - slack
+        return _jaw_clearance(jaws, radii, others(needle_pos, needle_quat, radius, wire), ee_pos, ee_quat) - slack
 
     return angles, jax.jit(jax.vmap(one))
 
@@ -107,22 +102,35 @@ def widest_clear(angles: np.ndarray, clearance: np.ndarray, rungs: np.ndarray, m
 SWEEP_STEPS = 10  # an opening sweep's intervals within a step of the environment
 
 
+def _jaw_clearance(jaws, radii, placed, ee_pos, ee_quat) -> jax.Array:
+    """``[A]`` each opening's least clearance [m] between the jaws ``jaws`` ``[A, J, 2, 3]`` (e_r;
+    capsule radii ``radii`` ``[J]``) on the tool at ``(ee_pos, ee_quat)`` and the counted capsules
+    ``placed`` (``(ends [1, O, 2, 3], radii [O])``, the first of
+    :meth:`~regrasp_mjx.world.scene.Scene.motion_distance_fn`'s functions)."""
+    ends, other_radii = placed
+    at = ee_pos + jnp.sum(rotation_matrix(ee_quat) * jaws[..., None, :], axis=-1)  # [A, J, 2, 3]
+    a, b = at[:, :, None], ends[None]  # [A, J, 1, 2, 3] against [1, 1, O, 2, 3]
+    gap = segment_distance(a[..., 0, :], a[..., 1, :], b[..., 0, :], b[..., 1, :])
+    return jnp.min(gap - radii[None, :, None] - other_radii[None, None, :], axis=(1, 2))
+
+
 def sweep_fn(scene: Scene, steps: int = SWEEP_STEPS) -> Callable:
     """``fn(placed, ee_pos, ee_quat, from_deg, to_deg) -> clearance`` [m], traced: the least signed
     distance between a jaw and the counted capsules (``placed``, the first of
     :meth:`~regrasp_mjx.world.scene.Scene.motion_distance_fn`'s functions) at ``steps + 1`` openings
     evenly from ``from_deg`` to ``to_deg``, the tool holding still, less how far a jaw point moves
     between two of them (``reach * delta / 4``, as :func:`opening_fn`): a value >= m proves every
-    opening between them keeps m. The environment's opening inside a step (issue 67)."""
-    _, gaps, _ = scene.motion_distance_fn()
-    rows, tools = jnp.asarray(jaw_rows(scene)), len(scene.capsule_frames.tool_ends)
-    reach, fractions = jaw_reach(scene), jnp.linspace(0.0, 1.0, steps + 1)
+    opening between them keeps m. The environment's opening inside a step (issue 67): the jaws alone,
+    turned by :func:`~regrasp_mjx.world.distances.turn_jaws`, as :func:`opening_fn` checks them."""
+    f, rows = scene.capsule_frames, jaw_rows(scene)
+    base, sides = jnp.asarray(f.tool_ends[rows], jnp.float32), jnp.asarray(f.jaw_sides[rows], jnp.float32)[:, None]
+    radii = jnp.asarray(f.tool_radii[rows], jnp.float32)
+    reach, fractions, base_deg = jaw_reach(scene), jnp.linspace(0.0, 1.0, steps + 1), scene.config.jaw_angle_deg
 
     def fn(placed, ee_pos, ee_quat, from_deg, to_deg):
-        def at(deg):
-            return jnp.min(gaps(placed, ee_pos, ee_quat, jaw_deg=deg).reshape(tools, -1)[rows])
-
-        least = jnp.min(jax.vmap(at)(from_deg + (to_deg - from_deg) * fractions))
+        halves = jnp.radians(from_deg + (to_deg - from_deg) * fractions - base_deg) / 2.0  # [A]
+        jaws = jax.vmap(lambda half: turn_jaws(base, sides, half))(halves)  # [A, J, 2, 3]
+        least = jnp.min(_jaw_clearance(jaws, radii, placed, ee_pos, ee_quat))
         return least - reach * jnp.radians(jnp.abs(to_deg - from_deg) / steps) / 4.0
 
     return fn
