@@ -182,21 +182,24 @@ def opening_steps(policy: Any, needle: np.ndarray, poses: np.ndarray, steps: np.
     config = policy.env_config
     if config.jaw_open_deg is None:
         raise ConfigError("opening_steps takes a policy whose jaws open on the way (EnvConfig.jaw_open_deg set)")
-    env = RegraspEnv(config)
-    room_of = policy.program(("opening_room",), lambda: _room_program(env))
-    b, n = poses.shape[:2]
-    flat = np.asarray(poses, np.float32).reshape(b * n, 7)
-    f32 = lambda x: jnp.asarray(np.repeat(np.asarray(x, np.float32), n, axis=0))  # noqa: E731
-    episode = Episode.from_poses(
-        f32(needle), jnp.asarray(flat), jnp.asarray(flat), None if radii is None else f32(radii)
-    )
-    es = jax.vmap(env.reset_from)(episode).pipeline_state
-    room = np.asarray(room_of(es)).reshape(b, n)
-    ok = (room >= env.jaw_margin) & (np.arange(n)[None, :] < np.asarray(steps)[:, None])
+    room_of = policy.program(("opening_room",), lambda: _room_program(RegraspEnv(config)))
+    f32 = lambda x: None if x is None else np.asarray(x, np.float32)  # noqa: E731
+    room = np.asarray(room_of(f32(needle), f32(poses), f32(radii)))
+    n = room.shape[1]
+    ok = (room >= config.jaw_open_margin_mm * 1e-3) & (np.arange(n)[None, :] < np.asarray(steps)[:, None])
     return np.where(ok.any(axis=1), ok.argmax(axis=1), -1)
 
 
 def _room_program(env: RegraspEnv) -> Callable:
-    """Each row's room to open the jaws to the policy's opening, jitted (the weights bound by
-    ``Policy.program``, unused)."""
-    return jax.jit(lambda _weights, es: jax.vmap(env.opening_room, in_axes=(0, None))(es, env.config.jaw_open_deg))
+    """``room(weights, needle [B, 7], poses [B, N, 7], radii) -> [B, N]``, jitted: the room to open the
+    jaws to the policy's opening at every pose of every plan (the weights bound by ``Policy.program``,
+    unused)."""
+
+    def room(_weights, needle, poses, radii):
+        b, n = poses.shape[:2]
+        tile = lambda x: None if x is None else jnp.repeat(x, n, axis=0)  # noqa: E731
+        flat = poses.reshape(b * n, 7)
+        es = jax.vmap(env.reset_from)(Episode.from_poses(tile(needle), flat, flat, tile(radii))).pipeline_state
+        return jax.vmap(env.opening_room, in_axes=(0, None))(es, env.config.jaw_open_deg).reshape(b, n)
+
+    return jax.jit(room)
