@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 
 from regrasp_mjx.core.config import SceneConfig
-from regrasp_mjx.workflows.render import _gl_context  # the package's one way to make a headless GL context
+from regrasp_mjx.workflows.render import Offscreen, _gl_context  # the package's one way to make a headless GL context
 from regrasp_mjx.world import domain_randomisation as dr
 from regrasp_mjx.world import endoscope
 from regrasp_mjx.world.endoscope_scene import CLASSES, OBJECT_CLASS, RENDER_GROUPS, EndoscopeModel, endoscope_model
@@ -97,7 +97,38 @@ def label(
     return world, pixels, z, seen
 
 
-class FrameRenderer:
+def labelled(
+    endo: EndoscopeModel,
+    kp: endoscope.Keypoints,
+    needle: np.ndarray,
+    ee: np.ndarray,
+    extrinsics: np.ndarray,
+    pictures: tuple[np.ndarray, np.ndarray, np.ndarray],
+    seeds: Any,
+    draws: Any,
+) -> LabelledFrames:
+    """:class:`LabelledFrames` of rendered ``pictures`` (RGB, depth, segmentation) with their labels
+    (:func:`label`), whichever renderer made them."""
+    rgb, depth, seg = pictures
+    world, pixels, z, seen = label(endo, kp, needle, ee, extrinsics, depth, seg)
+    return LabelledFrames(
+        rgb=rgb,
+        depth=depth,
+        segmentation=seg,
+        intrinsics=endo.rig.intrinsics(),
+        extrinsics=extrinsics,
+        poses=endoscope.object_poses(needle, ee),
+        keypoints=world,
+        pixels=pixels,
+        keypoint_depth=z,
+        visible=seen,
+        names=kp.names,
+        seeds=np.asarray(seeds).copy(),
+        draws=jax.tree.map(np.asarray, draws),
+    )
+
+
+class FrameRenderer(Offscreen):
     """Labelled stereo frames of one scene through MuJoCo's OpenGL renderer; a context manager (or
     call :meth:`close`).
 
@@ -128,19 +159,6 @@ class FrameRenderer:
             cam = mujoco.MjvCamera()
             cam.type, cam.fixedcamid = mujoco.mjtCamera.mjCAMERA_FIXED, cam_id
             self._cams.append(cam)
-
-    def __enter__(self) -> FrameRenderer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        if self._ctx is not None:
-            self._ctx.make_current()
-            self._con.free()
-            self._ctx.free()
-            self._ctx = None
 
     def _shoot(self, cam: mujoco.MjvCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One camera's RGB ``[H, W, 3]``, depth ``[H, W]`` (m) and classes ``[H, W]``, rows top down."""
@@ -204,22 +222,7 @@ class FrameRenderer:
         if degrade:
             d = draws
             rgb = np.asarray(dr.degrade(rgb, d.blur_px, d.noise, d.gain, dr.noise_keys(seeds, frame)))
-        world, pixels, z, seen = label(self.endo, self.keypoints, needle, ee, extrinsics, depth, seg)
-        return LabelledFrames(
-            rgb=rgb,
-            depth=depth,
-            segmentation=seg,
-            intrinsics=self.rig.intrinsics(),
-            extrinsics=extrinsics,
-            poses=endoscope.object_poses(needle, ee),
-            keypoints=world,
-            pixels=pixels,
-            keypoint_depth=z,
-            visible=seen,
-            names=self.keypoints.names,
-            seeds=np.asarray(seeds).copy(),
-            draws=jax.tree.map(np.asarray, draws),
-        )
+        return labelled(self.endo, self.keypoints, needle, ee, extrinsics, (rgb, depth, seg), seeds, draws)
 
 
 def _linear_depth(buf: np.ndarray, model: mujoco.MjModel) -> np.ndarray:

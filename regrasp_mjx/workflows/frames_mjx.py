@@ -27,7 +27,7 @@ import numpy as np
 from mujoco import mjx
 
 from regrasp_mjx.core.config import SceneConfig
-from regrasp_mjx.workflows.frames import LabelledFrames, _poses, label
+from regrasp_mjx.workflows.frames import LabelledFrames, _poses, labelled
 from regrasp_mjx.workflows.render import RenderUnavailable
 from regrasp_mjx.world import domain_randomisation as dr
 from regrasp_mjx.world import endoscope
@@ -118,19 +118,5 @@ class MjxFrameRenderer:
         rgb, depth, seg = (np.asarray(x) for x in out)
         scene_draws = dr.draws(np.full(self.nworld, self.seed))  # the lights', materials' and cameras' one draw
         extrinsics = np.broadcast_to(self._extrinsics, (self.nworld, 2, 4, 4)).copy()
-        world, pixels, z, seen = label(self.endo, self.keypoints, needle, ee, extrinsics, depth, seg)
-        return LabelledFrames(
-            rgb=rgb,
-            depth=depth,
-            segmentation=seg,
-            intrinsics=self.rig.intrinsics(),
-            extrinsics=extrinsics,
-            poses=endoscope.object_poses(needle, ee),
-            keypoints=world,
-            pixels=pixels,
-            keypoint_depth=z,
-            visible=seen,
-            names=self.keypoints.names,
-            seeds=np.asarray(seeds).copy(),
-            draws=jax.tree.map(np.asarray, scene_draws.replace(blur_px=d.blur_px, noise=d.noise, gain=d.gain)),
-        )
+        draws = scene_draws.replace(blur_px=d.blur_px, noise=d.noise, gain=d.gain)
+        return labelled(self.endo, self.keypoints, needle, ee, extrinsics, (rgb, depth, seg), seeds, draws)

@@ -106,7 +106,28 @@ def interpolate(poses: Any, substeps: int) -> np.ndarray:
     return np.stack(out)
 
 
-class SceneRenderer:
+class Offscreen:
+    """What holds a headless GL context and its MuJoCo render context (``_ctx``, ``_con``, from
+    :func:`_gl_context`): a context manager that frees them, or call :meth:`close` (twice is fine)."""
+
+    _ctx: Any = None
+    _con: Any = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._ctx is not None:
+            self._ctx.make_current()
+            self._con.free()
+            self._ctx.free()
+            self._ctx = None
+
+
+class SceneRenderer(Offscreen):
     """Offscreen images of one scene; use as a context manager (or call :meth:`close`).
 
     Args:
@@ -149,19 +170,6 @@ class SceneRenderer:
         self._regrasp_body = self.model.body("regrasp_tool").id
         self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
         self._pert = mujoco.MjvPerturb()
-
-    def __enter__(self) -> SceneRenderer:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        if self._ctx is not None:
-            self._ctx.make_current()
-            self._con.free()
-            self._ctx.free()
-            self._ctx = None
 
     def _camera(self, needle: np.ndarray, ee: np.ndarray) -> mujoco.MjvCamera:
         cam = mujoco.MjvCamera()
