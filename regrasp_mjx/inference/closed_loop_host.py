@@ -51,8 +51,9 @@ def _program(
         env = RegraspEnv(policy.env_config)
         config = policy.env_config
         margin = max(config.jaw_open_margin_mm, clearance_mm)  # the jaws' room keeps the shield's clearance
-        guard = RegraspEnv(dataclasses.replace(config, clearance_mm=clearance_mm, jaw_open_margin_mm=margin))
-        guard = guard if clearance_mm else env
+        guard = env
+        if clearance_mm:  # the shield's own environment, keeping the clearance
+            guard = RegraspEnv(dataclasses.replace(config, clearance_mm=clearance_mm, jaw_open_margin_mm=margin))
         apply = members_apply(policy.hidden)
         if kind == "execute":
             return make_executor(env, apply, shield, frames, guard, warmup, observe, joints, look, jaw_sigmas)
