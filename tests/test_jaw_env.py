@@ -179,8 +179,7 @@ def test_bad_jaw_openings_are_refused():
 
 
 def test_view_sd_by_hand():
-    from regrasp_mjx.envs.camera_errors import CameraErrors, Tracking
-    from regrasp_mjx.inference.jaw_opening import view_sd_mm
+    from regrasp_mjx.envs.camera_errors import CameraErrors, Tracking, view_sd_mm
 
     # tools: white 0.5 mm, 5 deg per mm, one frame; depth 2: each tool 0.25 mm^2 per axis, times
     # (4 + (rad(5) * lever_mm)^2) at its lever (the jaws' 9.6 mm, the grasping tool's 12 mm)

@@ -104,9 +104,10 @@ class CameraErrors:
         """The standard deviation (mm) along the camera axis of the needle's position relative to the
         regrasping tool in a view of ``frames`` fused frames: the needle's and both tools' errors (the
         needle is placed relative to the grasping tool), each bias's per-axis spread ``b / sqrt(3)``
-        included (fixed per episode, but unknown), stretched by the depth factor."""
-        var = sum(t.bias_mm**2 / 3.0 + t.fused_sd_mm(frames) ** 2 for t in (self.needle, self.tools, self.tools))
-        return self.depth_factor * math.sqrt(var)
+        included (fixed per episode, but unknown), stretched by the depth factor: :func:`view_sd_mm`
+        without the rotations (levers of 0)."""
+        n, p = jnp.float32(max(int(frames), 1)), np.asarray(self.numbers(), np.float32)
+        return float(view_sd_mm(n, p[:5], p[5:10], p[10], 0.0, 0.0, jnp.zeros((1, 3)))[0])
 
     def numbers(self) -> tuple[float, ...]:
         """The jitted programs' argument: the needle's, then the tools' numbers, then the depth factor."""
@@ -282,3 +283,20 @@ def camera_frame(keys, needle: jax.Array, ee: jax.Array, drifts: jax.Array, p: j
     seen_needle, seen_ee = in_grasping_frame(grasping, needle, regrasping)
     exact = no_errors(p)
     return jnp.where(exact, needle, seen_needle), jnp.where(exact, ee, seen_ee)
+
+
+def view_sd_mm(n, pn, pt, depth_factor, reach, needle_radius, ee_seen_pos) -> jax.Array:
+    """``[B]`` the standard deviation [mm] of where the view puts a jaw point relative to the needle and
+    the grasping tool after ``n`` fused frames (``pn``, ``pt``: the needle's and the tools'
+    :meth:`~regrasp_mjx.envs.camera_errors.Tracking.numbers`): each tracked object's position error
+    (its bias's per-axis spread, unknown though fixed, and the fused rest) stretched by the depth
+    factor, and its rotation error (``deg_per_mm`` per mm of it) at its lever: the regrasping tool's
+    at the jaws' ``reach`` [m], the needle's at its radius [m] (about its centre), the grasping tool's
+    at the regrasping tool's distance from it [m] (the frame the view is in)."""
+
+    def part(p, lever_m):
+        var = p[0] ** 2 / 3.0 + fused_variance(n, p)
+        return (depth_factor**2 + (jnp.radians(p[4]) * lever_m * 1e3) ** 2) * var
+
+    lever_g = jnp.linalg.norm(ee_seen_pos, axis=-1)
+    return jnp.sqrt(part(pn, needle_radius) + part(pt, reach) + part(pt, lever_g))

@@ -130,7 +130,7 @@ def make_executor(
     one with a clearance margin keeps that much away from the estimate. Where the policy's jaws open
     on the way (``EnvConfig.jaw_open_deg``), the loop opens them before the first step whose view
     leaves the opening sweep the environment's margin plus ``jaw_sigmas`` standard deviations of the
-    view's known error at the jaws (:func:`regrasp_mjx.inference.jaw_opening.view_sd_mm`); the truth judges the sweep (a collision
+    view's known error at the jaws (:func:`regrasp_mjx.envs.camera_errors.view_sd_mm`); the truth judges the sweep (a collision
     where it is not proved clear). Returns per row:
     ``success`` (stopped at the goal of the true needle, no collision), ``collision`` (on the true
     needle), ``time_out`` (no stop within the horizon), ``stopped`` (the view said the goal was
@@ -310,7 +310,9 @@ def make_executor(
             # the jaws: open where the view leaves the sweep its margin (the loop knows their opening)
             want = jnp.float32(env.config.jaw_open_deg)
             needle_radius = seen.pipeline_state.needle_radius
-            sd = jaw_opening.view_sd_mm(info["frames"], pn, pt, depth[0], reach, needle_radius, info["ee_seen"][:, :3])
+            sd = camera_errors.view_sd_mm(
+                info["frames"], pn, pt, depth[0], reach, needle_radius, info["ee_seen"][:, :3]
+            )
             room = jax.vmap(env.opening_room, in_axes=(0, None))(seen.pipeline_state, want)
             opening = info["acting"] & (es.jaw_deg < want) & (room >= env.jaw_margin + jaw_sigmas * sd * 1e-3)
             return jnp.concatenate([a, jnp.where(opening, want, es.jaw_deg)[:, None]], -1)

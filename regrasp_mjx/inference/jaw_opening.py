@@ -1,6 +1,6 @@
 """The regrasping jaw opened by the loop (issue 67): before the first move, as wide as the view says
 it may (below), or on the way for a policy trained to (``EnvConfig.jaw_open_deg``: the executor's
-margin :func:`view_sd_mm` and its outputs :func:`outputs`, at the end).
+margin :func:`regrasp_mjx.envs.camera_errors.view_sd_mm` and its outputs :func:`outputs`, at the end).
 
 At the 20 degree opening the policies are trained with, the goal grasp leaves the wire 0.27-0.54 mm
 of room: a camera's millimetre errors bring the jaws onto it. Wider jaws leave more, but a start
@@ -26,7 +26,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.config import ConfigError, is_number
-from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.world import jaw
 from regrasp_mjx.world.sampling import Episode
@@ -133,23 +132,6 @@ def execute_opened(
 
 
 # ---- jaws that open on the way (EnvConfig.jaw_open_deg): the executor's margin and outputs
-def view_sd_mm(n, pn, pt, depth_factor, reach, needle_radius, ee_seen_pos) -> jax.Array:
-    """``[B]`` the standard deviation [mm] of where the view puts a jaw point relative to the needle and
-    the grasping tool after ``n`` fused frames (``pn``, ``pt``: the needle's and the tools'
-    :meth:`~regrasp_mjx.envs.camera_errors.Tracking.numbers`): each tracked object's position error
-    (its bias's per-axis spread, unknown though fixed, and the fused rest) stretched by the depth
-    factor, and its rotation error (``deg_per_mm`` per mm of it) at its lever: the regrasping tool's
-    at the jaws' ``reach`` [m], the needle's at its radius [m] (about its centre), the grasping tool's
-    at the regrasping tool's distance from it [m] (the frame the view is in)."""
-
-    def part(p, lever_m):
-        var = p[0] ** 2 / 3.0 + camera_errors.fused_variance(n, p)
-        return (depth_factor**2 + (jnp.radians(p[4]) * lever_m * 1e3) ** 2) * var
-
-    lever_g = jnp.linalg.norm(ee_seen_pos, axis=-1)
-    return jnp.sqrt(part(pn, needle_radius) + part(pt, reach) + part(pt, lever_g))
-
-
 def outputs(env: RegraspEnv, state, poses: jax.Array, traced: jax.Array, steps: jax.Array) -> dict:
     """The executor's jaw outputs from the opening traced after each step ``[horizon + 1, B]``: the
     last, the step they opened before (-1: never) and whether that sweep is not proved clear on the
