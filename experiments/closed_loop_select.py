@@ -36,6 +36,7 @@ def main() -> None:
     p.add_argument("--name", default="select")
     p.add_argument("--warmups", default="1,5,10")
     p.add_argument("--stops", default="1,0.7,0.5")
+    p.add_argument("--looks", default="0", help="frames held still to look before the last moves, comma-separated")
     p.add_argument("--out", default=None)
     args = p.parse_args()
     policy = load_policy(args.policy)
@@ -50,6 +51,7 @@ def main() -> None:
         frames=args.frames,
         observe=args.observe,
         log=lambda row: print(dumps(row), flush=True),
+        looks=[int(x) for x in args.looks.split(",")],
     )
     lines = [
         f"Closed loop ({args.frames} frames, tools seen: {args.observe}), policy {args.policy or 'shipped'}, "

@@ -67,7 +67,13 @@ def choose(plan: Plan, log) -> None:
     noises = parse_noises(sel.loop_noises)
     episodes = make_testset(sel.loop_n, sel.loop_seed, policy.env_config)
     rows, best = closed_loop_settings(
-        policy, episodes, noises, sel.loop_warmups, sel.loop_stops, log=lambda row: log(dumps(row))
+        policy,
+        episodes,
+        noises,
+        sel.loop_warmups,
+        sel.loop_stops,
+        log=lambda row: log(dumps(row)),
+        looks=sel.loop_looks,
     )
     chosen_on = (
         f"fused closed loop at noise {sel.loop_noises} on {sel.loop_n} validation problems (seed {sel.loop_seed}), "
@@ -106,6 +112,7 @@ def export(source: Path, dest: Path, loop: dict[str, Any], chosen_on: str, prove
     contract["closed_loop"] = {
         "stop_tolerance": loop["stop_tolerance"],
         "warmup_frames": loop["warmup_frames"],
+        "look_frames": loop.get("look_frames", 0),
         "chosen_on": chosen_on,
     }
     contract.setdefault("training", {})["recipe"] = provenance

@@ -21,7 +21,7 @@ from regrasp_mjx.core.jobs import REFERENCE_MIB, Job, run_jobs
 from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.policy_file import resolve
-from regrasp_mjx.inference.selection import score
+from regrasp_mjx.inference.selection import parse_noises, score
 from regrasp_mjx.planning.episodes import DemosError, check_made_for
 from regrasp_mjx.workflows import recipes
 from regrasp_mjx.workflows.recipes import RECIPES
@@ -48,8 +48,8 @@ def test_a_set_reaches_every_stage_that_has_its_key_and_a_prefixed_one_only_its_
         recipes.check(r, {"epochs": -1})
 
 
-def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
-    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["env.scene.needle_radius_mm=4.0", "iterations=5"], 3)
+def test_a_recipe_makes_the_documented_jobs(tmp_path):
+    plan = recipe_cli.Plan(RECIPES["student_v3"], tmp_path, ["env.scene.needle_radius_mm=4.0", "iterations=5"], 3)
     jobs = {j.name: j for j in plan.jobs()}
     students = [n for n in jobs if n.startswith("students/")]
     assert students == [f"students/{v}/s{s}" for v in ("t07", "t07n075") for s in range(3)]
@@ -75,7 +75,7 @@ def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
     # without a GPU the report is one job; on GPUs it is parts side by side, one compiled program
     # each, that hold exactly the whole table's rows (in its order once joined), and a job joining them
     assert jobs["report"].needs == ("choose",) and not any(n.startswith("report/") for n in jobs)
-    on_gpus = {j.name: j for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3, gpus=True).jobs()}
+    on_gpus = {j.name: j for j in recipe_cli.Plan(RECIPES["student_v3"], tmp_path, [], 3, gpus=True).jobs()}
     parts = [n for n in on_gpus if n.startswith("report/")]
     assert len(parts) == 15 and on_gpus["report"].needs == tuple(parts)
     rows = []
@@ -104,7 +104,7 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
     same shape (so the same compiled programs; tests/test_recipe.py's slow check shows they are),
     shares their programs key; the distillations start beside the teachers, the rest beside the
     students (a generalist's, without students, beside the teachers); without a GPU there are none."""
-    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["iterations=5"], 3, gpus=True)
+    plan = recipe_cli.Plan(RECIPES["student_v3"], tmp_path, ["iterations=5"], 3, gpus=True)
     jobs = {j.name: j for j in plan.jobs()}
     pre = [n for n in jobs if n.startswith("precompile/")]
     assert pre[:3] == ["precompile/students/t07", "precompile/students/t07n075", "precompile/select"]
@@ -142,6 +142,28 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
     assert g.needs == ("demos",) and f"untrained={tmp_path / 'g/precompile/teacher'}" in g.argv()
     assert not any(n.startswith("precompile/students") for n in general)
     assert not any(j.stage == "precompile" for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3).jobs())
+
+
+def test_the_default_recipe_trains_jaws_that_open_and_chooses_under_a_camera_s_errors(tmp_path):
+    """The default since issue 67: teachers whose jaws open on the way, three student variants (one
+    aiming inside half the tolerances), candidates scored on the camera rows too, the closed loop's
+    looking chosen with its stop; the report's programs are not precompiled (they run the chosen loop)."""
+    r = RECIPES["default"]
+    assert r.teacher_config().env.jaw_open_deg == 40
+    assert r.student_config("t05").goal_tolerance == 0.5 and r.student_config("t07").goal_tolerance == 0.7
+    plan = recipe_cli.Plan(r, tmp_path, [], 3, gpus=True)
+    jobs = {j.name: j for j in plan.jobs()}
+    assert [n for n in jobs if n.startswith("students/")] == [
+        f"students/{v}/s{s}" for v in ("t07", "t05", "t07n075") for s in range(3)
+    ]
+    assert sum(jobs[f"students/{v}/s0"].share for v in ("t07", "t05", "t07n075")) * 3 <= 0.9 + 1e-9
+    sel = jobs["select/t05_s1"].argv()
+    wanted = sel[sel.index("--conditions") + 1].split(",")
+    assert "camera: lab-good" in wanted and set(wanted) == {c for _, c in r.selection.rule}
+    names = {c.name for c in robustness.ALL_CONDITIONS}
+    assert set(wanted) <= names  # every row the score needs is one the table has
+    assert not any(n.startswith("precompile/report") for n in jobs) and "precompile/select" in jobs
+    assert r.selection.loop_looks == (0, 60) and len(parse_noises(r.selection.loop_noises)) == 4
 
 
 def test_a_helper_job_fails_nothing_and_is_not_run_once_what_it_helps_has_finished(tmp_path):
@@ -288,14 +310,13 @@ def test_the_score_is_the_mean_success_over_the_rule_rows_and_the_best_candidate
 def test_export_writes_the_closed_loop_and_the_recipe_into_a_loadable_policy(tmp_path):
     source = resolve("default")
     provenance = {"name": "smoke", "overrides": ["iterations=3"], "commit": recipe_cli.commit()}
-    recipe_cli.export(
-        source, tmp_path / "policy", {"stop_tolerance": 0.9, "warmup_frames": 5}, "validation", provenance
-    )
+    loop = {"stop_tolerance": 0.9, "warmup_frames": 5, "look_frames": 60}
+    recipe_cli.export(source, tmp_path / "policy", loop, "validation", provenance)
     policy = load_policy(tmp_path / "policy")
     assert policy.closed_loop_defaults == {
         "stop_tolerance": 0.9,
         "warmup_frames": 5,
-        "look_frames": 0,
+        "look_frames": 60,
         "jaw_deg": None,  # the jaws kept at the scene's opening
         "jaw_sigmas": 2.0,
     }

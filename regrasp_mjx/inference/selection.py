@@ -54,14 +54,17 @@ def closed_loop_settings(
     frames: str = "fused",
     observe: str = "camera",
     log: Callable[[dict[str, Any]], None] | None = None,
+    looks: Sequence[int] = (0,),
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """Every (warm-up frames, stop tolerance) of the closed loop on ``episodes`` under each of
-    ``noises`` (shielded, seed 1); returns the rows and the best by mean success (the first of
-    equals). ``frames="each"`` has no warm-up: only 1 is tried."""
+    """Every (warm-up frames, stop tolerance, look frames) of the closed loop on ``episodes`` under
+    each of ``noises`` (shielded, seed 1); returns the rows and the best by mean success (the first
+    of equals, so list the cheaper settings first). ``frames="each"`` has no warm-up and does not
+    look: only 1 and 0 are tried."""
     needle, start, goal = episode_poses(episodes)
     needles = episode_needles(episodes) if policy.general else {}
+    fused = frames == "fused"
     rows = []
-    for warmup, stop in itertools.product(warmups if frames == "fused" else (1,), stops):
+    for warmup, stop, look in itertools.product(warmups if fused else (1,), stops, looks if fused else (0,)):
         success = [
             float(
                 policy.execute(
@@ -72,6 +75,7 @@ def closed_loop_settings(
                     frames=frames,
                     warmup_frames=warmup,
                     stop_tolerance=stop,
+                    look_frames=look,
                     seed=1,
                     robot=robot,
                     observe=observe,
@@ -81,7 +85,13 @@ def closed_loop_settings(
             for noise, robot in noises
         ]
         rows.append(
-            {"warmup_frames": warmup, "stop_tolerance": stop, "success": success, "mean": float(np.mean(success))}
+            {
+                "warmup_frames": warmup,
+                "stop_tolerance": stop,
+                "look_frames": look,
+                "success": success,
+                "mean": float(np.mean(success)),
+            }
         )
         if log is not None:
             log(rows[-1])
@@ -91,17 +101,17 @@ def closed_loop_settings(
 def closed_loop_markdown(rows: list[dict[str, Any]], best: dict[str, Any], noises) -> list[str]:
     """:func:`closed_loop_settings`'s rows as a table, the best mean in bold."""
     lines = [
-        "| warm-up frames | stop tolerance | "
+        "| warm-up frames | stop tolerance | look frames | "
         + " | ".join(
             f"sigma {n.sigma_mm:g} bias {n.bias_mm:g}" + (f" {r}" if r != RobotErrors() else "") for n, r in noises
         )
         + " | mean |",
-        "| ---: | ---: |" + " ---: |" * (len(noises) + 1),
+        "| ---: | ---: | ---: |" + " ---: |" * (len(noises) + 1),
     ]
     for r in rows:
         mark = "**" if r is best else ""
         lines.append(
-            f"| {r['warmup_frames']} | {r['stop_tolerance']:g} | "
+            f"| {r['warmup_frames']} | {r['stop_tolerance']:g} | {r.get('look_frames', 0)} | "
             + " | ".join(f"{v:.3f}" for v in r["success"])
             + f" | {mark}{r['mean']:.3f}{mark} |"
         )

@@ -270,8 +270,8 @@ class Plan:
                 helps=tuple(n for n in names if n.startswith("select/")),
             )
         )
-        if r.selection.loop_warmups != (DEFAULT_WARMUP,):
-            return out
+        if r.selection.loop_warmups != (DEFAULT_WARMUP,) or r.selection.loop_looks != (0,):
+            return out  # the report runs the chosen loop, which an untrained candidate's programs may not be
         groups = self.report_groups()
         for i, (modes, conditions) in enumerate(groups):
             real = "report" if len(groups) == 1 else f"report/part{i:02d}"
