@@ -20,6 +20,7 @@ import numpy as np
 
 from regrasp_mjx.core import geometry
 from regrasp_mjx.envs import host
+from regrasp_mjx.inference import jaw_opening
 from regrasp_mjx.inference.grasps import GraspLibrary
 from regrasp_mjx.inference.planner import PlanArrays, goal_pose_in_needle
 from regrasp_mjx.inference.queries import (
@@ -331,19 +332,27 @@ def plan_from_camera(
             base_inv = f32([base @ dvrk.pose_matrix(e) for e in c_eg])
     out = policy.program((True, shield))(f32(c_eg), f32(c_er), f32(c_n), f32(grasp), f32(radii), base_inv)
     result = _finish(out, single, nearest)
-    return result if psm is None else _with_joints(result, psm, c_eg, single, (policy, c_n) if timed else None)
+    return result if psm is None else _with_joints(result, psm, c_eg, c_n, radii, single, policy, timed)
 
 
-def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool, timed: tuple | None = None) -> Plan:
+def _with_joints(plan: Plan, psm: dict, c_eg, c_n, radii, single: bool, policy: Any, timed: bool) -> Plan:
+    """``plan`` with the regrasping PSM's joints (and, for a policy whose jaws open on the way, the
+    jaw's track: the pose each plan opens them at, as its environment found it), the grasping PSM's,
+    and with ``timed`` the timed, re-checked motion."""
     steps = np.atleast_1d(plan.steps)
     cam = plan.poses_camera[None] if single else plan.poses_camera
     joints = [psm_joints.joint_trajectory(psm["regrasping_base"], cam[i][: steps[i] + 1]) for i in range(len(cam))]
+    if policy.env_config.jaw_open_deg is not None:
+        opens = _opening_poses(policy, plan, c_eg, c_n, radii, single)
+        joints = [
+            dataclasses.replace(j, jaw=psm_joints.JawTrack.of(policy.env_config, opens[i], steps[i] + 1))
+            for i, j in enumerate(joints)
+        ]
     motion = None
-    if timed is not None:
+    if timed:
         # here: toppra (and the matplotlib it imports) load in ~0.7 s, only where a timed motion is asked
         from regrasp_mjx.robot.executed_motion import motion_or_reason
 
-        policy, c_n = timed
         ok = np.atleast_1d(plan.success)
         motion = [motion_or_reason(policy, j, bool(ok[i]), c_eg[i], c_n[i], psm) for i, j in enumerate(joints)]
     grasping = None
@@ -354,3 +363,12 @@ def _with_joints(plan: Plan, psm: dict, c_eg: np.ndarray, single: bool, timed: t
         joints, grasping = joints[0], None if grasping is None else grasping[0]
         motion = None if motion is None else motion[0]
     return dataclasses.replace(plan, joints=joints, grasping_joints=grasping, motion=motion)
+
+
+def _opening_poses(policy: Any, plan: Plan, c_eg, c_n, radii, single: bool) -> np.ndarray:
+    """Each plan's pose where the jaws open (-1: never), :func:`~regrasp_mjx.inference.jaw_opening.opening_steps`
+    on its e_g poses around the needle seen from the grasping tool."""
+    rel = [host.relative(e[:3], e[3:], n[:3], n[3:]) for e, n in zip(c_eg, c_n)]
+    needle = np.stack([np.r_[p, q] for p, q in rel])
+    poses = plan.poses[None] if single else plan.poses
+    return jaw_opening.opening_steps(policy, needle, poses, np.atleast_1d(plan.steps), radii)

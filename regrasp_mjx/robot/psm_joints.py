@@ -1,5 +1,7 @@
 """A plan's poses as dVRK PSM joints: continuous joint trajectories and how well an arm follows a
-batch of plans (:func:`reachability`), through :mod:`regrasp_mjx.robot.dvrk`'s kinematics."""
+batch of plans (:func:`reachability`), through :mod:`regrasp_mjx.robot.dvrk`'s kinematics; the
+regrasping tool's jaw, the PSM's seventh joint, as a plan's :class:`JawTrack` (issue 67: where the
+jaws open on the way; their limits and timing in :mod:`regrasp_mjx.robot.psm_timing`)."""
 
 from __future__ import annotations
 
@@ -8,20 +10,26 @@ import math
 
 import numpy as np
 
+from regrasp_mjx.core.config import JAW_MAX_DEG, is_number
 from regrasp_mjx.robot.dvrk import Q_MAX, Q_MIN, as_matrix, inverse_kinematics, pose_matrix
+
+JAW_MIN_DEG = 0.0  # the jaw joint closed (the Large Needle Driver's opening: 0 to JAW_MAX_DEG, 80)
 
 
 @dataclasses.dataclass(frozen=True)
 class JointTrajectory:
     """A plan's poses as PSM joints: ``q`` ``[T, 6]``, ``reachable`` ``[T]`` (every joint within its
     limits and the pose realised, :class:`IKResult`), ``violations`` (per pose, the joints outside),
-    the residuals ``position_error`` and ``rotation_error`` ``[T]`` (m, rad), and ``all_reachable``."""
+    the residuals ``position_error`` and ``rotation_error`` ``[T]`` (m, rad), and ``all_reachable``;
+    ``jaw``, the jaw joint's track where the policy's jaws open on the way (:class:`JawTrack`: where
+    it opens; ``jaw.waypoints(q)`` the seven joints), else None (the scene's fixed opening throughout)."""
 
     q: np.ndarray
     reachable: np.ndarray
     violations: tuple[tuple[str, ...], ...]
     position_error: np.ndarray
     rotation_error: np.ndarray
+    jaw: JawTrack | None = None
 
     @property
     def all_reachable(self) -> bool:
@@ -31,6 +39,74 @@ class JointTrajectory:
     def joint_path_length(self) -> np.ndarray:
         """Sum of ``|dq|`` per joint over the trajectory (rad, m for the insertion)."""
         return np.abs(np.diff(self.q, axis=0)).sum(0)
+
+
+@dataclasses.dataclass(frozen=True)
+class JawTrack:
+    """The jaw along a plan of ``poses`` poses: at ``from_deg`` (the scene's opening) up to the pose
+    ``opens_at``, where it opens to ``to_deg`` with the arm holding still, then kept to the goal
+    (``opens_at`` -1: never opened, ``to_deg`` then the opening it would have had)."""
+
+    from_deg: float
+    to_deg: float
+    opens_at: int
+    poses: int
+
+    def __post_init__(self):
+        for name in ("from_deg", "to_deg"):
+            value = getattr(self, name)
+            if not (is_number(value) and JAW_MIN_DEG <= value <= JAW_MAX_DEG):
+                raise ValueError(
+                    f"{name}={value!r} is not accepted: the jaw's opening in degrees, from {JAW_MIN_DEG:g} "
+                    f"(closed) to the Large Needle Driver's {JAW_MAX_DEG:g}"
+                )
+        if not (isinstance(self.poses, (int, np.integer)) and self.poses >= 1):
+            raise ValueError(f"poses={self.poses!r} is not accepted: the plan's number of poses, at least 1")
+        k = self.opens_at
+        if not (isinstance(k, (int, np.integer)) and -1 <= k <= self.poses - 2):
+            raise ValueError(
+                f"opens_at={k!r} is not accepted: -1 (never) or the pose a step leaves, 0 to {self.poses - 2} "
+                f"for {self.poses} poses"
+            )
+        if k >= 0 and not self.to_deg > self.from_deg:
+            raise ValueError(
+                f"to_deg={self.to_deg!r} is not accepted where the jaws open (opens_at={k}): wider than "
+                f"from_deg={self.from_deg!r}"
+            )
+
+    @classmethod
+    def of(cls, env_config, opens_at: int, poses: int) -> JawTrack:
+        """The track of a plan of ``poses`` poses of a policy whose environment is ``env_config``
+        (from its scene's opening to its ``jaw_open_deg``), opening at the pose ``opens_at``."""
+        base = float(env_config.scene.jaw_angle_deg)
+        wide = base if env_config.jaw_open_deg is None else float(env_config.jaw_open_deg)
+        return cls(base, wide, int(opens_at), int(poses))
+
+    @property
+    def opens(self) -> bool:
+        return self.opens_at >= 0
+
+    @property
+    def deg(self) -> np.ndarray:
+        """``[poses]``: the opening each pose is left with (the step from it moves at it; the last
+        pose's, the one the tool arrives with)."""
+        wide = self.opens & (np.arange(self.poses) >= self.opens_at)
+        return np.where(wide, self.to_deg, self.from_deg).astype(np.float64)
+
+    def waypoints(self, q) -> np.ndarray:
+        """The arm's joint waypoints ``q`` ``[poses, 6]`` with the jaw as a seventh joint (rad):
+        ``[poses + 1, 7]`` where it opens, the pose ``opens_at`` twice (arrived at ``from_deg``, left
+        at ``to_deg``: only the jaw moves between them), else ``[poses, 7]``."""
+        q = np.asarray(q, np.float64)
+        if q.shape != (self.poses, 6):
+            raise ValueError(f"q of shape {q.shape} is not accepted: [{self.poses}, 6], one row a pose of the track")
+        wide = self.opens & (np.arange(self.poses) > self.opens_at)  # arrived at with the jaws open
+        arrive = np.radians(np.where(wide, self.to_deg, self.from_deg))
+        out = np.concatenate([q, arrive[:, None]], axis=1)
+        if self.opens:
+            k = self.opens_at
+            out = np.insert(out, k + 1, np.r_[q[k], math.radians(self.to_deg)], axis=0)
+        return out
 
 
 def joint_trajectory(base, poses, q_ref=None) -> JointTrajectory:

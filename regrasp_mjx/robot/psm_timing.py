@@ -15,6 +15,19 @@ Limits (:data:`V_MAX`, :data:`A_MAX`): the dVRK's own for the PSM's joint trajec
 ``jhu-dvrk/sawIntuitiveResearchKit`` ``core/components/code/mtsIntuitiveResearchKitPSM.cpp``
 (commit 9e535e6, 2026-04-17, lines 726-731): 90 deg/s and 90 deg/s^2 for the outer yaw and pitch,
 0.2 m/s and 0.2 m/s^2 for the insertion, 1080 deg/s and 720 deg/s^2 for the roll and the wrist.
+
+The jaw (issue 67), the PSM's seventh joint, the angle between the two jaws: a policy whose jaws open on
+the way (:class:`~regrasp_mjx.robot.psm_joints.JawTrack`) has the arm come to rest at the pose where they
+open, the jaw open there alone, and the arm go on (:func:`join`: TOPP-RA times the arm's two parts, the
+jaw's move is the time-optimal rest-to-rest one, :func:`sample_move`). Its limits are the same source's
+for joints 4 to 7, the jaw the last of them: 1080 deg/s and 720 deg/s^2 (:data:`JAW_V_MAX`,
+:data:`JAW_A_MAX`: ``v_max.Ref(4, 3)``, ``a_max.Ref(4, 3)`` of the PSM's 7 joints, which ``jaw_move_jp``
+moves index 6 with, line 1380), so 20 degrees of opening take 1/3 s (never at the speed limit:
+``2 sqrt(d / a)``). Teleoperation follows the surgeon's gripper at up to 720 deg/s
+(``TeleOperationPSM::JawRate``, ``mtsIntuitiveResearchKit.h``), a rate for following a hand with no
+acceleration limit, not a trajectory's. The closing on the wire is not timed: the environment declares
+the goal reached with the jaws as they arrive and never closes them (for any policy, at 20 degrees
+too); :func:`move_time_s` says what it would add (20 degrees to 0: 0.333 s, 40 to 0: 0.471 s).
 """
 
 from __future__ import annotations
@@ -45,13 +58,18 @@ MAX_RESCALES = 4  # uniform slow-downs of a timing whose samples pass a limit (o
 # the share of each limit TOPP-RA is given: all of it, since the motion between its grid points is
 # slowed to the limits afterwards (path_ratio); below 1 it leaves room and motion time
 HEADROOM = 1.0
+# the jaw joint's (rad/s, rad/s^2): 1080 deg/s and 720 deg/s^2, as the roll and the wrist (the docstring)
+JAW_V_MAX = 6.0 * math.pi
+JAW_A_MAX = 4.0 * math.pi
 ENGINES = ("compiled", "toppra")  # time_joints' TOPP-RA: regrasp_mjx.robot.topp, or the toppra library
 
 
 @dataclasses.dataclass(frozen=True)
 class TimedTrajectory:
     """Joint positions ``q``, velocities ``qd`` and accelerations ``qdd`` ``[N, 6]`` at times ``t``
-    ``[N]`` (s, from 0, at ``rate_hz``; the last sample is the end), through ``waypoints`` ``[W, 6]``."""
+    ``[N]`` (s, from 0, at ``rate_hz``; the last sample is the end), through ``waypoints`` ``[W, 6]``;
+    for a policy whose jaws open on the way, the jaw joint's ``jaw``, ``jaw_d``, ``jaw_dd`` ``[N]``
+    (rad, rad/s, rad/s^2: :mod:`regrasp_mjx.robot.psm_jaw`), else None (the scene's fixed opening)."""
 
     t: np.ndarray
     q: np.ndarray
@@ -59,6 +77,9 @@ class TimedTrajectory:
     qdd: np.ndarray
     waypoints: np.ndarray
     rate_hz: float
+    jaw: np.ndarray | None = None
+    jaw_d: np.ndarray | None = None
+    jaw_dd: np.ndarray | None = None
 
     @property
     def duration_s(self) -> float:
@@ -216,3 +237,90 @@ def sample_const_accel(path, gridpoints: np.ndarray, sd: np.ndarray, rate_hz: fl
     toppra's own loop over samples took two thirds of a plan's timing, experiments/RESULTS.md)."""
     ss, sd = np.asarray(gridpoints, np.float64), np.asarray(sd, np.float64)
     return topp.sample(path.knots, path.coef, ss, sd, float(rate_hz))
+
+
+# ---- the jaw joint (issue 67): its own limits, its opening with the arm at rest, and the three parts joined
+def move_time_s(delta_rad: float, v_max: float = JAW_V_MAX, a_max: float = JAW_A_MAX) -> float:
+    """The shortest time a joint takes from rest to rest over ``|delta_rad|`` at ``v_max`` and ``a_max``:
+    ``2 sqrt(d / a)`` where it never reaches ``v_max`` (``d <= v^2 / a``, any jaw move at the dVRK's limits),
+    else ``d / v + v / a``."""
+    d = abs(float(delta_rad))
+    if d <= v_max * v_max / a_max:
+        return 2.0 * math.sqrt(d / a_max)
+    return d / v_max + v_max / a_max
+
+
+def sample_move(from_rad: float, to_rad: float, rate_hz: float, v_max: float = JAW_V_MAX, a_max: float = JAW_A_MAX):
+    """``(t, position, velocity, acceleration)`` of the time-optimal move from rest at ``from_rad`` to
+    rest at ``to_rad`` (:func:`move_time_s`: full acceleration, then cruise at ``v_max`` where reached,
+    then full braking), sampled at ``rate_hz`` from 0; the last sample is the end."""
+    d, sign = abs(to_rad - from_rad), math.copysign(1.0, to_rad - from_rad)
+    total = move_time_s(d, v_max, a_max)
+    t = np.arange(0.0, total, 1.0 / rate_hz) if total > 0.0 else np.zeros(1)
+    t = np.r_[t, total] if total - t[-1] > 1e-12 else t
+    ramp = min(v_max / a_max, total / 2.0)  # time spent accelerating (and braking)
+    peak = a_max * ramp
+    early, late = t <= ramp, t >= total - ramp
+    back = total - t
+    s = np.where(
+        early, 0.5 * a_max * t * t, np.where(late, d - 0.5 * a_max * back * back, 0.5 * peak * ramp + peak * (t - ramp))
+    )
+    v = np.where(early, a_max * t, np.where(late, a_max * back, peak))
+    a = np.where(early, a_max, np.where(late, -a_max, 0.0))
+    position = from_rad + sign * s
+    position[-1], v[-1] = to_rad, 0.0  # the end exactly (the opening kept after it compares equal)
+    return t, position, sign * v, sign * a
+
+
+def hold(timed: TimedTrajectory, deg: float) -> TimedTrajectory:
+    """``timed`` with the jaw held at ``deg`` the whole time."""
+    n = len(timed.t)
+    return dataclasses.replace(timed, jaw=np.full(n, math.radians(deg)), jaw_d=np.zeros(n), jaw_dd=np.zeros(n))
+
+
+def join(before: TimedTrajectory, after: TimedTrajectory, track) -> TimedTrajectory:
+    """One trajectory of the arm's motion ``before`` (to the opening pose, at rest there), the jaw's
+    opening (:func:`sample_move`, the arm held at ``before``'s last sample) and the arm's motion
+    ``after`` (from the opening pose); the jaw at ``track.from_deg``, moving, then at ``track.to_deg``
+    (``track`` a :class:`~regrasp_mjx.robot.psm_joints.JawTrack` that opens).
+    ``waypoints``: both parts', the opening pose in each."""
+    if not track.opens:
+        raise ValueError("join is for a track whose jaws open (opens_at >= 0); hold() keeps them")
+    if before.rate_hz != after.rate_hz:
+        raise ValueError(f"the parts' rates differ ({before.rate_hz} and {after.rate_hz} Hz): time both at one rate")
+    lo, hi = math.radians(track.from_deg), math.radians(track.to_deg)
+    t, s, sd, sdd = sample_move(lo, hi, before.rate_hz)
+    n_move = len(t) - 1  # its first sample is before's last
+    opening_end = before.t[-1] + t[-1]
+    q_still = np.tile(before.q[-1], (n_move, 1))
+    zeros = np.zeros((n_move, 6))
+    n_after = len(after.t) - 1  # its first sample is the opening's last pose
+
+    def cat(*parts):
+        return np.concatenate(parts, axis=0)
+
+    return TimedTrajectory(
+        t=cat(before.t, before.t[-1] + t[1:], opening_end + after.t[1:]),
+        q=cat(before.q, q_still, after.q[1:]),
+        qd=cat(before.qd, zeros, after.qd[1:]),
+        qdd=cat(before.qdd, zeros, after.qdd[1:]),
+        waypoints=cat(before.waypoints, after.waypoints),
+        rate_hz=before.rate_hz,
+        jaw=cat(np.full(len(before.t), lo), s[1:], np.full(n_after, hi)),
+        jaw_d=cat(np.zeros(len(before.t)), sd[1:], np.zeros(n_after)),
+        jaw_dd=cat(np.zeros(len(before.t)), sdd[1:], np.zeros(n_after)),
+    )
+
+
+def time_with_jaw(waypoints, track, rate_hz: float = RATE_HZ, **options) -> TimedTrajectory:
+    """:func:`time_joints` of the arm's ``waypoints`` ``[poses, 6]`` with the jaw's ``track`` (a
+    :class:`~regrasp_mjx.robot.psm_joints.JawTrack`): where it opens, the arm timed to the opening pose
+    and from it, at rest there, and the jaw's opening between (:func:`join`); else the jaw held at its
+    opening (:func:`hold`). ``options``: :func:`time_joints`'s."""
+    q = np.asarray(waypoints, np.float64)
+    if q.ndim != 2 or len(q) != track.poses:
+        raise ValueError(f"waypoints of shape {q.shape} are not accepted: one a pose of the jaw's track, {track.poses}")
+    if not track.opens:
+        return hold(time_joints(q, rate_hz, **options), track.from_deg)
+    k = track.opens_at
+    return join(time_joints(q[: k + 1], rate_hz, **options), time_joints(q[k:], rate_hz, **options), track)
