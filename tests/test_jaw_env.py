@@ -1,6 +1,7 @@
 """The jaws opening on the way (issue 67): every collision path of the environment takes each row's own
 opening (the distances, the XLA walk, the Pallas kernel), the opening sweep inside a step is proved
-clear or counted a collision, and the environment's own rule opens once there is room."""
+clear or counted a collision, and the environment's own rule opens once there is room. The lean CPU
+path's jaws: tests/test_lean_jaw.py."""
 
 from __future__ import annotations
 
@@ -240,23 +241,6 @@ def test_a_view_that_misjudges_the_room_is_judged_on_the_truth(opening_policy, p
     r = opening_policy.execute(needle, start, goal, seed=2, camera="lab-typical", jaw_sigmas=0.0)
     assert r["opening_collision"].any()
     assert (r["collision"] | ~r["opening_collision"]).all() and not (r["success"] & r["opening_collision"]).any()
-
-
-def test_paths_that_do_not_carry_the_jaws_refuse_or_step_aside(opening_policy, paper_testset):
-    """The lean planner and the stateless closed-loop step do not model jaws opening on the way: the
-    first refuses such a policy, the second too, and ``Policy.plan``'s automatic engine takes the JAX
-    program (whose environment opens them) for one query on the CPU."""
-    from regrasp_mjx.inference.plans import auto_engine
-    from regrasp_mjx.world.sampling import episode_poses
-
-    with pytest.raises(ConfigError, match="lean planner"):
-        opening_policy.lean(True)
-    needle, start, goal = (x[0] for x in episode_poses(paper_testset[0]))
-    with pytest.raises(ConfigError, match="on the way"):
-        opening_policy.closed_loop_step(needle, start, goal)
-    assert auto_engine(1, opening_policy) == "jax"
-    plan = opening_policy.plan(needle, start, goal)
-    assert bool(plan.success)
 
 
 @pytest.mark.slow  # an executor and a planner compiled on the CPU: the long tier

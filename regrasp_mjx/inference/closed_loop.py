@@ -346,19 +346,24 @@ def make_executor(
 
 
 def make_stepper(env: RegraspEnv, apply: Callable, shield: bool, stop_scale: float = 1.0):
-    """``step(weights, needle, ee, goal, t, radii=None) -> (action, next_ee, at_goal)`` (jitted,
-    ``[B, 7]`` poses in e_g; ``radii`` as :func:`make_executor`'s): one closed-loop step from the
-    current estimates. ``at_goal`` (within
+    """``step(weights, needle, ee, goal, t, radii=None, jaw_deg=None) -> (action, next_ee, at_goal,
+    jaw_deg)`` (jitted, ``[B, 7]`` poses in e_g; ``radii`` as :func:`make_executor`'s): one
+    closed-loop step from the current estimates. ``at_goal`` (within
     ``stop_scale`` of the success tolerances on the estimate) rows should stop (their action is zero
-    and ``next_ee`` is ``ee``)."""
+    and ``next_ee`` is ``ee``). ``jaw_deg`` ``[B]``: the jaws' opening now (None: the scene's); the
+    one returned is the opening the step moves with (where the policy opens them on the way, the
+    environment's rule on the estimate; a row at its goal keeps its own)."""
 
-    def one(weights, needle, ee, goal, t, radii=None):
+    def one(weights, needle, ee, goal, t, radii=None, jaw_deg=None):
         episode = Episode.from_poses(needle, ee, goal, radii)
         state = jax.vmap(env.reset_from)(episode)
+        if jaw_deg is not None:  # the jaws where the loop has them (issue 67)
+            state = state.replace(pipeline_state=state.pipeline_state.replace(jaw_deg=jaw_deg))
         done = _at_goal(env, state, needle, tolerances(env.config, stop_scale))
         a = jnp.where(done[:, None], 0.0, choose_action(env, apply, weights, state, t, shield, ~done))
         es = jax.vmap(env.step)(state, a).pipeline_state
         nxt = jnp.where(done[:, None], ee, jnp.concatenate([es.ee_pos, es.ee_quat], axis=1))
-        return jnp.clip(a, -1.0, 1.0), nxt, done
+        jaws = jnp.where(done, state.pipeline_state.jaw_deg, es.jaw_deg)
+        return jnp.clip(a, -1.0, 1.0), nxt, done, jaws
 
     return jax.jit(one)

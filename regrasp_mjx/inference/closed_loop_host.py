@@ -72,8 +72,9 @@ def closed_loop_step(
     shield: bool = True,
     clearance_mm: float = 0.0,
     stop_tolerance: float | None = None,
+    jaw_deg: Any = None,
     **task: Any,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple:
     """One closed-loop step from the current estimates (e_g frame, 7-vectors or ``[B, 7]``): the
     latest (or fused) needle estimate and the regrasping end-effector's current pose. Returns
     ``(action, next_ee, at_goal)``: the action, the pose to command next, and whether the
@@ -84,7 +85,21 @@ def closed_loop_step(
     tolerances (None: the policy's own, ``Policy.closed_loop_defaults``), as in :func:`execute`.
     ``task``: the goal grasp and needle keywords (:class:`~regrasp_mjx.inference.queries.TaskSpec`). One
     query on the CPU (no ``clearance_mm``, ``t`` within the horizon) takes the lean numba step
-    (:meth:`regrasp_mjx.inference.lean_planner.LeanPlanner.step`), anything else the jitted JAX program."""
+    (:meth:`regrasp_mjx.inference.lean_planner.LeanPlanner.step`), anything else the jitted JAX program.
+
+    Jaws that open on the way (a policy with ``EnvConfig.jaw_open_deg``, issue 67): the step is
+    stateless but for the jaws' opening, which a step may change and the robot carries out, so the
+    opening goes in and comes out. ``jaw_deg`` (one value, or one per row) is where the jaws are
+    now: the scene's opening at the start, then what the last step returned. The step opens them as
+    the environment does, on the estimate: before this step's motion where they are at the scene's
+    opening and the sweep to ``jaw_open_deg`` keeps ``jaw_open_margin_mm`` (or ``clearance_mm``,
+    if larger) from the estimated needle and grasping tool; the action, the shield and the motion's
+    collision test take the jaws there. Such a policy's step returns a fourth value, ``jaw_deg``:
+    the opening to command before moving to ``next_ee`` (a row at its goal keeps its own). Both ends
+    are explicit on purpose: a loop that dropped the opening would have the next motion tested with
+    the jaws at the scene's opening while the robot holds them open, so ``jaw_deg`` is required for
+    such a policy and the three-value unpacking of its result fails loudly. A policy whose jaws stay
+    is called as before (``jaw_deg`` None or its scene's opening; three values out)."""
     stop_tolerance = policy.closed_loop_defaults["stop_tolerance"] if stop_tolerance is None else stop_tolerance
     if not (is_number(stop_tolerance) and 0.0 < stop_tolerance <= 1.0):
         raise ConfigError(f"stop_tolerance={stop_tolerance!r} is not accepted: a fraction in (0, 1]")
@@ -92,14 +107,10 @@ def closed_loop_step(
         raise ConfigError(f"t={t!r} is not accepted: the step index, an integer >= 0")
     if not (is_number(clearance_mm) and 0.0 <= clearance_mm <= 1.0):
         raise ConfigError(f"clearance_mm={clearance_mm!r} is not accepted: a finite number of mm in [0, 1]")
-    if policy.env_config.jaw_open_deg is not None:
-        raise ConfigError(
-            "closed_loop_step does not take a policy whose jaws open on the way (jaw_open_deg="
-            f"{policy.env_config.jaw_open_deg}): the jaws' opening is state it does not carry; accepted: "
-            "Policy.execute, Policy.plan, or a policy with jaw_open_deg None"
-        )
     spec = TaskSpec.of(task)
     (needle, ee), single = batch_poses(needle=needle, ee=ee)
+    jaws = _jaws_now(policy, jaw_deg, len(needle))
+    opens = policy.env_config.jaw_open_deg is not None
     if single and not clearance_mm and 0 <= t < policy.env_config.horizon and auto_engine(1, policy) == "lean":
         # one query on the CPU: the lean numba step, its default goal made by the compiled code (the
         # JAX program below stays the reference)
@@ -108,14 +119,41 @@ def closed_loop_step(
         goal = lean.goal(needle[0], grasp[0], radii[0, 0]) if goal is None else check_poses("goal", goal)
         if goal.shape != (7,):
             raise PoseError(f"goal {goal.shape} and needle (7,) poses differ in batch size")
-        at_goal, nxt, a = lean.step(needle[0], ee[0], goal, radii[0], int(t), float(stop_tolerance))
-        return a, nxt, np.bool_(at_goal)
+        opened = bool(jaws[0] > policy.env_config.scene.jaw_angle_deg)
+        at_goal, nxt, a, jaw = lean.step(needle[0], ee[0], goal, radii[0], int(t), float(stop_tolerance), opened)
+        return (a, nxt, np.bool_(at_goal)) + ((np.float64(jaw),) if opens else ())
     needle, ee, goal, radii, single = _estimate_inputs(policy, needle, "ee", ee, goal, spec)
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     step = _program(policy, "step", shield, clearance_mm=float(clearance_mm), stop=float(stop_tolerance))
-    a, nxt, done = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii)))
-    a, nxt, done = np.asarray(a, np.float64), np.asarray(nxt, np.float64), np.asarray(done)
-    return (a[0], nxt[0], done[0]) if single else (a, nxt, done)
+    out = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii), f32(jaws)))
+    a, nxt, done, jaw = (np.asarray(x, np.float64) for x in out)
+    out = (a, nxt, done.astype(bool)) + ((jaw,) if opens else ())
+    return tuple(x[0] for x in out) if single else out
+
+
+def _jaws_now(policy: Any, jaw_deg: Any, rows: int) -> np.ndarray:
+    """Each row's jaw opening now [deg], ``[rows]``, as :func:`closed_loop_step` takes it: one of the
+    two openings a row of the environment has (the scene's; ``jaw_open_deg`` once opened)."""
+    config = policy.env_config
+    base, wide = float(config.scene.jaw_angle_deg), config.jaw_open_deg
+    if wide is None:
+        if jaw_deg is None or (is_number(jaw_deg) and jaw_deg == base):
+            return np.full(rows, base, np.float64)
+        raise ConfigError(
+            f"jaw_deg={jaw_deg!r} is not accepted: this policy's jaws stay at its scene's {base} deg (None or {base})"
+        )
+    wide = float(wide)
+    accepted = f"the jaws' opening now, {base} (the scene's, at the start) or {wide} (opened), one value or one per row"
+    if jaw_deg is None:
+        raise ConfigError(
+            f"jaw_deg is required for a policy whose jaws open on the way (to {wide} deg): {accepted}; "
+            "pass back the jaw_deg each step returns"
+        )
+    values = np.asarray(jaw_deg)
+    ok = values.dtype.kind in "iuf" and values.shape in ((), (rows,))
+    if not (ok and np.isin(values, (base, wide)).all()):
+        raise ConfigError(f"jaw_deg={jaw_deg!r} is not accepted: {accepted} ({rows} rows)")
+    return np.broadcast_to(values.astype(np.float64), (rows,))
 
 
 def execute(

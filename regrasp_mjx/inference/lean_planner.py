@@ -3,21 +3,18 @@
 ``Policy.plan`` of one query on the CPU spends most of its time around the XLA program, not in it:
 dispatch, argument handling, and a while loop whose every small op is a runtime thunk. The compute
 is tiny (a few matrix-vector products and a few dozen capsule distances per step, about seven
-steps), so this module runs the same rollout as :func:`regrasp_mjx.inference.planner.make_planner`
-for one query, as plain loops compiled once by numba: the network (members averaged), the
-ego-centric observation (:mod:`regrasp_mjx.inference.lean_network`), the step with its continuous
-collision test (:mod:`regrasp_mjx.envs.lean_collision`; poses:
-:mod:`regrasp_mjx.envs.lean_geometry`), the shield's alternatives in the same order with the same
-random draws (:func:`regrasp_mjx.envs.shield.shield_candidates`, drawn once here for every step of
-the horizon), the success test, the trajectory. Nothing is allocated per step: the network's layers,
-the observation and the member actions use buffers made once per query, poses are tuples. What every
-query passes is held in one native object (:class:`~regrasp_mjx.envs.lean_collision.Held`), so a
-call unboxes one pointer.
+steps), so the same rollout as :func:`regrasp_mjx.inference.planner.make_planner` runs for one
+query as plain loops compiled once by numba (:mod:`regrasp_mjx.inference.lean_rollout`: the network,
+the step with its continuous collision test, the jaws that open on the way, the shield). This module
+holds what a policy keeps of it (:class:`LeanPlanner`: the weights, the capsules, the shield's draws,
+made once) and the query's entry: the poses checked, the default goal and the grasp-library distance
+in the same compiled call. What every query passes is held in one native object
+(:class:`~regrasp_mjx.envs.lean_collision.Held`), so a call unboxes one pointer.
 
 It mirrors the JAX path, the reference (batches, the GPU, camera-frame queries and PSM joint checks
 go there): geometry in float64 here, float32 there, the network in float32 in both. ``python -m
 regrasp_mjx.evaluate --agreement`` finds the same verdicts on paper300, held-out 3000 and
-general1000 (tests/test_lean_planner.py on samples).
+general1000 (tests/test_lean_planner.py on samples; a policy that opens its jaws on the way there too).
 """
 
 from __future__ import annotations
@@ -32,212 +29,15 @@ from numba import njit
 from regrasp_mjx.core.geometry import QUAT_NORM_TOLERANCE
 from regrasp_mjx.envs import lean_collision
 from regrasp_mjx.envs.env import RegraspEnv
-from regrasp_mjx.envs.lean_collision import Capsules, capsules, collides, fixed_ends, make_scratch, motion_collides
-from regrasp_mjx.envs.lean_geometry import angle, canonical, goal_pose, nearest_grasp, qexp, qmul, relative, unit
+from regrasp_mjx.envs.lean_collision import capsules
+from regrasp_mjx.envs.lean_geometry import goal_pose, nearest_grasp
+from regrasp_mjx.envs.lean_jaw import jaws
 from regrasp_mjx.envs.shield import candidate_noise, step_key
-from regrasp_mjx.inference.lean_network import buffers, member_actions, observe
-
-# ---- the step and the rollout (regrasp_mjx.envs.env.RegraspEnv.step, regrasp_mjx.envs.rollout.rollout) -----
-
-
-class _Setup(NamedTuple):
-    """What every step of one query reads and nothing in it changes, made once per query by
-    :func:`_setup` in compiled code (numba builds and passes a named tuple there natively; only one
-    passed in from Python is typed field by field, hence the plain-tuple state)."""
-
-    net: tuple  # (kernels, biases, layers, mean, std) of the members
-    geo: lean_collision.Capsules
-    consts: np.ndarray  # max_dp, max_drot, clearance, success tolerances [m, rad]
-    fixed: lean_collision.Fixed  # the query's needle and grasping tool placed
-    scratch: tuple  # make_scratch's arrays
-    general: bool
-    shield: bool
-    needle: tuple  # (p, q): position and unit quaternion, tuples of float32 values
-    goal: tuple
-    goal_in_needle: tuple  # the goal in the needle's frame
-    radii: tuple  # the needle's radius and wire radius [m]
-    buffers: tuple  # lean_network.buffers': what a step of the network and the shield write into
-
-
-@njit(cache=True)
-def _setup(state, needle, goal, radii):
-    """:class:`_Setup` of one query: the state (:attr:`LeanPlanner.state`), the needle's and the
-    goal's poses ``[7]`` and the radii ``[2]`` [m], each rounded to float32 as the JAX path takes them."""
-    net, geo, consts, _, varies, general, _, shield = state
-    geo = Capsules(*geo)
-    radii = (_f32(radii[0]), _f32(radii[1]))
-    needle, goal = _pose(needle), _pose(goal)
-    fixed = fixed_ends(geo, varies, *needle, *radii)
-    goal_in_needle = relative(*goal, *needle)
-    scratch, work = make_scratch(geo.tool_local), buffers(net[3], net[1])
-    return _Setup(net, geo, consts, fixed, scratch, general, shield, needle, goal, goal_in_needle, radii, work)
-
-
-@njit(cache=True)
-def _step(s, ee_p, ee_q, action):
-    """One step of the float32 ``action`` from the pose ``ee`` (``s``: the query's :class:`_Setup`):
-    the new pose, whether the swept motion collides, whether it reached the goal, and its
-    translation [m]."""
-    consts, scratch, (gn_p, gn_q) = s.consts, s.scratch, s.goal_in_needle
-    max_dp, max_drot, clearance, tol_pos, tol_rot = consts[0], consts[1], consts[2], consts[3], consts[4]
-    # the action clipped; the JAX path steps it in float32
-    lo, hi = np.float32(-1.0), np.float32(1.0)
-    dx = np.float64(min(max(action[0], lo), hi)) * max_dp
-    dy = np.float64(min(max(action[1], lo), hi)) * max_dp
-    dz = np.float64(min(max(action[2], lo), hi)) * max_dp
-    wx = np.float64(min(max(action[3], lo), hi)) * max_drot
-    wy = np.float64(min(max(action[4], lo), hi)) * max_drot
-    wz = np.float64(min(max(action[5], lo), hi)) * max_drot
-    pos = (ee_p[0] + dx, ee_p[1] + dy, ee_p[2] + dz)
-    quat = qmul(qexp(wx, wy, wz), ee_q)
-    # the whole motion proved clear, not sampled poses (regrasp_mjx.world.continuous)
-    collision = motion_collides(
-        s.geo, s.fixed, ee_p, ee_q, (dx, dy, dz), (wx, wy, wz), clearance, scratch[0], scratch[1], scratch[2]
-    )
-    quat = canonical(quat)
-    p, q = relative(pos, quat, *s.needle)
-    ex, ey, ez = gn_p[0] - p[0], gn_p[1] - p[1], gn_p[2] - p[2]
-    distance = math.sqrt(ex * ex + ey * ey + ez * ez)
-    success = (not collision) and distance <= tol_pos and angle(gn_q, q) <= tol_rot
-    return pos, quat, collision, success, math.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-@njit(cache=True)
-def _f32(x):
-    """A float64 rounded to float32 and back (the JAX path holds its state in float32)."""
-    return np.float64(np.float32(x))
-
-
-@njit(cache=True)
-def _pose(v):
-    """``(p, q)`` of a 7-vector, each number rounded to float32 first, ``q`` normalised."""
-    p = (_f32(v[0]), _f32(v[1]), _f32(v[2]))
-    return p, unit((_f32(v[3]), _f32(v[4]), _f32(v[5]), _f32(v[6])))
-
-
-@njit(cache=True)
-def _decide(s, noise_t, ee_p, ee_q):
-    """One step of the policy from the pose ``ee`` (``s``: the query's :class:`_Setup`): the members'
-    mean action (into ``s.buffers[4]``) and, with ``s.shield``, where it collides, the first free
-    alternative (``noise_t``: this step's perturbations); returns :func:`_step`'s outcome of the
-    action taken."""
-    kernels, biases, layers, mean, std = s.net
-    obs, work, rows, own, act, cand = s.buffers
-    members = mean.shape[0]
-    observe(obs, s.general, *s.needle, ee_p, ee_q, *s.goal, *s.radii)
-    member_actions(kernels, biases, layers, mean, std, obs, work, rows, own)
-    for j in range(6):  # the members' mean, summed in their order as the JAX path does
-        act[j] = own[0, j]
-        for m in range(1, members):
-            act[j] += own[m, j]
-        if members > 1:
-            act[j] /= np.float32(members)
-    pos, quat, collision, success, dl = _step(s, ee_p, ee_q, act)
-    if collision and s.shield:
-        # the alternatives in shield_candidates' order: each member's own (an ensemble), half
-        # the action, then the action plus the step's fixed noise, clipped; the first free one
-        extra = members if members > 1 else 0
-        for c in range(extra + 1 + noise_t.shape[0]):
-            for j in range(6):
-                if c < extra:
-                    cand[j] = own[c, j]
-                elif c == extra:
-                    cand[j] = np.float32(0.5) * act[j]
-                else:
-                    cand[j] = min(max(act[j] + noise_t[c - extra - 1, j], np.float32(-1.0)), np.float32(1.0))
-            p2, q2, col2, suc2, dl2 = _step(s, ee_p, ee_q, cand)
-            if not col2:
-                act[:] = cand
-                return p2, q2, col2, suc2, dl2
-    return pos, quat, collision, success, dl
-
-
-@njit(cache=True)
-def _closed_loop_step(state, needle, ee, goal, radii, t, stop_scale, out):
-    """One closed-loop step (:func:`regrasp_mjx.inference.closed_loop.make_stepper` for one query) from the
-    estimates ``needle``, ``ee``, ``goal`` ``[7]`` (rounded to float32 as the JAX path takes them):
-    ``out[:7]`` the pose to command next and ``out[7:]`` the action (zero, and ``ee`` kept, where
-    the estimate is within ``stop_scale`` of the success tolerances of the goal). Returns that."""
-    s = _setup(state, needle, goal, radii)
-    consts, noise = state[2], state[6]
-    ee_p, ee_q = _pose(ee)
-    p, q = relative(ee_p, ee_q, *s.needle)
-    gn_p, gn_q = s.goal_in_needle
-    ex, ey, ez = gn_p[0] - p[0], gn_p[1] - p[1], gn_p[2] - p[2]
-    if math.sqrt(ex * ex + ey * ey + ez * ez) <= stop_scale * consts[3] and angle(gn_q, q) <= stop_scale * consts[4]:
-        out[:3] = ee_p
-        out[3:7] = ee_q
-        out[7:] = 0.0
-        return True
-    pos, quat, _, _, _ = _decide(s, noise[t], ee_p, ee_q)
-    for r in range(3):
-        out[r] = _f32(pos[r])
-    for r in range(4):
-        out[3 + r] = _f32(quat[r])
-    for j in range(6):
-        out[7 + j] = min(max(s.buffers[4][j], np.float32(-1.0)), np.float32(1.0))
-    return False
-
-
-@njit(cache=True)
-def _rollout(state, needle, start, goal, radii, outcome):
-    """The rollout of one query (poses and radii rounded to float32 first, as the JAX path takes
-    them) into ``outcome[:7]``: ``start_valid, success, collision, time_out, steps, path_length
-    [m], discounted return`` (``rewards``: a step's, a collision's, a success's reward and gamma).
-    ``state``: :attr:`LeanPlanner.state`. Returns ``(poses[steps + 1, 7], actions[steps, 6])``
-    (float32, as the JAX planner returns them: every number of the state is float32 already)."""
-    rewards, noise = state[3], state[6]
-    s = _setup(state, needle, goal, radii)
-    horizon = noise.shape[0]
-    poses = np.empty((horizon + 1, 7), np.float32)
-    actions = np.empty((horizon, 6), np.float32)
-    for r in range(7):
-        poses[0, r] = _f32(start[r])
-    ee_p, ee_q = _pose(start)
-    valid = not collides(s.geo, s.fixed, ee_p, ee_q, s.scratch[0], s.scratch[1], s.consts[2])
-    outcome[0] = 1.0 if valid else 0.0
-    if not valid:
-        outcome[2] = 1.0
-        return poses[:1], actions[:0]
-    length = 0.0
-    steps = 0
-    for t in range(horizon):
-        pos, quat, collision, success, dl = _decide(s, noise[t], ee_p, ee_q)
-        act = s.buffers[4]
-        # the state as the JAX path keeps it, in float32 (the two paths' rounding drifts apart less)
-        ee_p = (_f32(pos[0]), _f32(pos[1]), _f32(pos[2]))
-        ee_q = (_f32(quat[0]), _f32(quat[1]), _f32(quat[2]), _f32(quat[3]))
-        length += dl
-        steps = t + 1
-        for r in range(3):
-            poses[steps, r] = ee_p[r]
-        for r in range(4):
-            poses[steps, 3 + r] = ee_q[r]
-        for j in range(6):
-            actions[t, j] = min(max(act[j], np.float32(-1.0)), np.float32(1.0))
-        if collision or success:
-            outcome[1] = 1.0 if success else 0.0
-            outcome[2] = 1.0 if collision else 0.0
-            break
-        if steps >= horizon:
-            outcome[3] = 1.0
-    outcome[4] = steps
-    outcome[5] = length
-    ret = 0.0
-    for t in range(steps):  # the rewards of the steps taken, the last one's by how it ended
-        r = rewards[0]
-        if t == steps - 1 and outcome[2] > 0:
-            r = rewards[1]
-        elif t == steps - 1 and outcome[1] > 0:
-            r = rewards[2]
-        ret += r * rewards[3] ** t
-    outcome[6] = ret
-    return poses[: steps + 1], actions[:steps]
-
+from regrasp_mjx.inference.lean_rollout import closed_loop_step, rollout
 
 # the status _query reports in outcome[STATUS]: the pose that failed its check, or none
 POSE_OK, BAD_NEEDLE, BAD_START, BAD_GOAL = 0, 1, 2, 3
-STATUS, START_MM, NEAREST = 7, 8, 9  # outcome's entries after the rollout's seven
+STATUS, START_MM, NEAREST, OPENED_AT = 7, 8, 9, 10  # outcome's entries after the rollout's seven
 NO_GOAL = np.zeros(0)  # _query's goal for the goal grasp on the needle
 
 
@@ -267,8 +67,9 @@ def _query(held, needle, start, goal, task, library_p, library_q, columns, toler
     :class:`LeanResult` (its ``status`` names a pose that failed its check, and nothing was planned
     then)."""
     state = held.state
-    outcome = np.zeros(10)
+    outcome = np.zeros(11)
     outcome[NEAREST] = np.nan
+    outcome[OPENED_AT] = -1
     checked = np.empty((3, 7))
     for k, pose, status in ((0, needle, BAD_NEEDLE), (1, start, BAD_START), (2, goal, BAD_GOAL)):
         if k == 2 and goal.shape[0] == 0:
@@ -280,7 +81,9 @@ def _query(held, needle, start, goal, task, library_p, library_q, columns, toler
     outcome[START_MM] = math.sqrt(dx * dx + dy * dy + dz * dz) * 1e3
     if library_p.shape[0]:
         outcome[NEAREST] = nearest_grasp(library_p, library_q, columns, checked[0])
-    return _result(outcome, *_rollout(state, checked[0], checked[1], checked[2], task[4:], outcome))
+    poses, actions, opened_at = rollout(state, checked[0], checked[1], checked[2], task[4:], outcome)
+    outcome[OPENED_AT] = opened_at
+    return _result(outcome, poses, actions)
 
 
 @njit(cache=True)
@@ -288,7 +91,8 @@ def _result(outcome, poses, actions):
     """:class:`LeanResult`'s fields of ``_query``'s outcome: plain numbers (Python reads a tuple's
     faster than an array's)."""
     o = outcome
-    return (o[0], o[1], o[2], o[3], o[4], o[5], o[6]), int(o[STATUS]), o[START_MM], o[NEAREST], poses, actions
+    rolled = (o[0], o[1], o[2], o[3], o[4], o[5], o[6])
+    return rolled, int(o[STATUS]), o[START_MM], o[NEAREST], poses, actions, int(o[OPENED_AT])
 
 
 class LeanPlanner:
@@ -318,6 +122,8 @@ class LeanPlanner:
             np.float64,
         )
         self.geo = capsules(env.scene.capsule_frames, env.scene.config.needle_radius_mm * 1e-3)
+        # the jaws that open on the way (EnvConfig.jaw_open_deg), by the environment's margin
+        self.jaws = jaws(env.scene, self.geo, cfg.jaw_open_deg, env.jaw_margin)
         kernels, biases, layers = [], [], None
         for params, _, _ in weights:
             names = sorted(params["params"], key=lambda n: int(n.rsplit("_", 1)[1]))
@@ -348,6 +154,7 @@ class LeanPlanner:
             self.general,
             self.noise,
             self.shield,
+            tuple(self.jaws[:3]) + (tuple(self.jaws.opened),) + tuple(self.jaws[4:]),
         )
         self.held = lean_collision.hold(self.state)  # what a call passes: the state as one native object
 
@@ -372,16 +179,26 @@ class LeanPlanner:
             )
         )
 
-    def step(self, needle: np.ndarray, ee: np.ndarray, goal: np.ndarray, radii: np.ndarray, t: int, stop_scale: float):
+    def step(
+        self,
+        needle: np.ndarray,
+        ee: np.ndarray,
+        goal: np.ndarray,
+        radii: np.ndarray,
+        t: int,
+        stop_scale: float,
+        opened: bool = False,
+    ):
         """One closed-loop step from checked estimates (``[7]`` each, e_g; ``radii`` ``[2]`` m) at
-        step ``t`` (< the horizon: it seeds the shield's alternatives):
-        ``(at_goal, next_ee [7], action [6])`` (:func:`_closed_loop_step`)."""
-        out = np.empty(13)
+        step ``t`` (< the horizon: it seeds the shield's alternatives) with the jaws ``opened`` (at
+        ``jaw_open_deg``) or at the scene's opening: ``(at_goal, next_ee [7], action [6], jaw_deg)``,
+        ``jaw_deg`` the opening to command before the motion
+        (:func:`~regrasp_mjx.inference.lean_rollout.closed_loop_step`)."""
+        out = np.empty(14)
         f64 = np.ascontiguousarray
-        at_goal = _closed_loop_step(
-            self.state, f64(needle, np.float64), f64(ee, np.float64), f64(goal, np.float64), radii, t, stop_scale, out
-        )
-        return at_goal, out[:7], out[7:]
+        needle, ee, goal = f64(needle, np.float64), f64(ee, np.float64), f64(goal, np.float64)
+        at_goal = closed_loop_step(self.state, needle, ee, goal, radii, t, stop_scale, bool(opened), out)
+        return at_goal, out[:7], out[7:13], float(out[13])
 
 
 class LeanResult(NamedTuple):
@@ -393,3 +210,4 @@ class LeanResult(NamedTuple):
     nearest: float  # the needle's distance to the nearest grasp of the library (NaN: not checked)
     poses: np.ndarray  # [steps + 1, 7] float32, as the JAX planner returns them
     actions: np.ndarray  # [steps, 6] float32
+    opened_at: int  # the step the jaws opened before (EnvConfig.jaw_open_deg), -1: never

@@ -25,7 +25,6 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.networks import make_networks
 from regrasp_mjx.core import geometry
-from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.rollout import Rollout, rollout
 from regrasp_mjx.envs.shield import shield_rows
@@ -87,11 +86,6 @@ def _say_lean_prepares() -> None:
 def lean(policy: Any, shield: bool):
     """``policy``'s numba-compiled one-query planner
     (:class:`~regrasp_mjx.inference.lean_planner.LeanPlanner`), built once per policy."""
-    if policy.env_config.jaw_open_deg is not None:
-        raise ConfigError(
-            f"the lean planner does not model jaws that open on the way (jaw_open_deg="
-            f"{policy.env_config.jaw_open_deg}); accepted: engine='jax' (Policy.plan's 'auto' takes it)"
-        )
     if ("lean", shield) not in policy._programs:
         _say_lean_prepares()
         # imported here: numba's import (0.4 s) and first compilation are paid only where it is used

@@ -47,10 +47,10 @@ NO_LIBRARY = (
 
 def auto_engine(queries: int, policy: Any = None) -> str:
     """What ``Policy.plan(engine="auto")`` runs ``queries`` queries with: the lean numba rollout for
-    one query when JAX runs on the CPU, the jitted JAX program otherwise (always for a ``policy`` whose
-    jaws open on the way, which the lean planner does not model)."""
-    opens = policy is not None and policy.env_config.jaw_open_deg is not None
-    return "lean" if queries == 1 and jax.default_backend() == "cpu" and not opens else "jax"
+    one query when JAX runs on the CPU, the jitted JAX program otherwise. Every policy alike: the lean
+    rollout carries jaws that open on the way as the environment opens them (``policy`` is kept for
+    the callers that name it)."""
+    return "lean" if queries == 1 and jax.default_backend() == "cpu" else "jax"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,7 +11,8 @@ import jax
 import numpy as np
 
 from regrasp_mjx.envs.rollout import summarize
-from regrasp_mjx.inference.plans import auto_engine
+from regrasp_mjx.inference.jaw_opening import opening_steps
+from regrasp_mjx.inference.plans import NO_LIBRARY, auto_engine
 from regrasp_mjx.inference.queries import far_starts
 from regrasp_mjx.world.sampling import episode_needles, episode_poses
 
@@ -35,9 +36,10 @@ def outcomes(policy, episodes) -> dict[str, dict]:
 def engine_agreement(policy, episodes, shield: bool = True) -> dict:
     """Each problem planned one at a time on the lean CPU path and all at once on the JAX path
     (``Policy.plan``'s two engines), compared: ``batch`` (the JAX path's ``Plan``), ``differ``
-    (``(row, field)`` where a verdict or a trajectory's length differs), and per problem ``[N]`` the
-    largest difference in an action (``action_diff``) and a pose (``pose_diff``), the path lengths'
-    difference (``path_diff_mm``), ``steps`` and ``time_out``."""
+    (``(row, field)`` where a verdict or a trajectory's length differs, or, for a policy whose jaws
+    open on the way, the step they opened before: ``opened_at``, then also the JAX plans' ``[N]``, -1
+    never), and per problem ``[N]`` the largest difference in an action (``action_diff``) and a pose
+    (``pose_diff``), the path lengths' difference (``path_diff_mm``), ``steps`` and ``time_out``."""
     needle, start, goal = episode_poses(episodes)
     needles = episode_needles(episodes)  # each problem on its own needle, as plan_testset plans them
     batch = policy.plan(needle, start, goal, check_grasp=False, shield=shield, engine="jax", **needles)
@@ -46,10 +48,18 @@ def engine_agreement(policy, episodes, shield: bool = True) -> dict:
         "differ": [],
         **{k: np.zeros(len(needle)) for k in ("action_diff", "pose_diff", "path_diff_mm")},
     }
+    opens = policy.env_config.jaw_open_deg is not None
+    if opens:  # the step each JAX plan's jaws opened before, as the environment found it, and the lean rollout's
+        radii = np.stack([needles["needle_radius_mm"], needles["wire_radius_mm"]], 1) * 1e-3
+        out["opened_at"] = opening_steps(policy, needle, batch.poses, batch.steps, radii)
     for i in range(len(needle)):
         kw = {k: v[i] for k, v in needles.items()}
         one = policy.plan(needle[i], start[i], goal[i], check_grasp=False, shield=shield, engine="lean", **kw)
         out["differ"] += [(i, f) for f in VERDICTS if getattr(one, f) != getattr(batch, f)[i]]
+        if opens:
+            task = policy.task_ranges.keywords_vector(kw)
+            lean = policy.lean(shield)(needle[i], start[i], goal[i], task, NO_LIBRARY)
+            out["differ"] += [(i, "opened_at")] if lean.opened_at != out["opened_at"][i] else []
         n = int(one.steps)  # one query's trajectory is its own; the batch's runs on to its longest plan
         if (i, "steps") in out["differ"] or one.poses.shape != (n + 1, 7) or one.actions.shape != (n, 6):
             out["differ"] += [(i, "trajectory")]
