@@ -29,6 +29,7 @@ CLIS = (
     "export_onnx",
     "export_minari",
     "grasps",
+    "estimator",
 )
 
 

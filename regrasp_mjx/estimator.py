@@ -1,0 +1,156 @@
+"""``python -m regrasp_mjx.estimator``: render labelled stereo frames, train the keypoint estimator, measure it.
+
+Four subcommands (each with ``--help``):
+
+- ``render``: N episodes x F frames of one seed to an npz (MuJoCo's OpenGL renderer; ``MUJOCO_GL=egl``
+  headless), in worker processes, resumable;
+- ``train``: the estimator on rendered frames, validated each epoch on frames of another seed;
+  checkpoints, resume (the same command again), the best epoch exported to ``OUT/estimator``;
+- ``evaluate``: its pose errors on held-out frames, ``OUT/estimator_errors.json`` and ``.md``;
+- ``bench``: its milliseconds per stereo pair on this machine's default device.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from regrasp_mjx.core.atomic import dumps, output_file_problem, output_folder_problem
+from regrasp_mjx.core.config import TASKS
+from regrasp_mjx.core.host_loop import FolderInUse, run_command
+from regrasp_mjx.vision.estimator_file import EstimatorError
+from regrasp_mjx.vision.network import WIDTHS
+from regrasp_mjx.vision.training import CheckpointError
+from regrasp_mjx.workflows import estimator_report
+from regrasp_mjx.workflows.estimator_training import Settings, train
+from regrasp_mjx.workflows.frame_dataset import MAX_PAIRS, DatasetError, render_dataset
+from regrasp_mjx.workflows.render import RenderUnavailable
+from regrasp_mjx.world.endoscope import RESOLUTION, Rig
+
+
+def _widths(text: str) -> tuple[int, ...]:
+    try:
+        widths = tuple(int(w) for w in text.split(","))
+    except ValueError:
+        widths = ()
+    if len(widths) != 4 or min(widths) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: accepted four positive channel counts, such as 24,48,64,96")
+    return widths
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: accepted a positive integer")
+    return value
+
+
+def parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(
+        prog="python -m regrasp_mjx.estimator",
+        description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = top.add_subparsers(dest="command", required=True, metavar="{render,train,evaluate,bench}")
+    r = sub.add_parser("render", help="render labelled stereo frames to an npz")
+    r.add_argument("--out", required=True, help="output .npz (written atomically; chunks in OUT.parts/ until done)")
+    r.add_argument("--episodes", type=_positive, required=True, help="episodes (problems, each its own randomisation)")
+    r.add_argument(
+        "--frames", type=_positive, default=8, help="frames per episode (default 8; the tool moves start to goal)"
+    )
+    r.add_argument("--seed", type=int, default=0, help="the problems' and randomisation's seed (default 0)")
+    r.add_argument("--width", type=int, default=RESOLUTION[0], help=f"image width in pixels (default {RESOLUTION[0]})")
+    r.add_argument(
+        "--height", type=int, default=RESOLUTION[1], help=f"image height in pixels (default {RESOLUTION[1]})"
+    )
+    r.add_argument("--task", choices=sorted(TASKS), default="paper", help="problem distribution (default paper)")
+    r.add_argument(
+        "--workers", type=_positive, default=1, help="rendering processes (default 1; one OpenGL context each)"
+    )
+    t = sub.add_parser("train", help="train the estimator; resumes from OUT's checkpoint")
+    t.add_argument("--data", required=True, help="training frames (an npz from render)")
+    t.add_argument("--val", required=True, help="validation frames of another seed")
+    t.add_argument("--out", required=True, help="run folder: checkpoint.npz, log.jsonl, estimator/")
+    t.add_argument("--epochs", type=_positive, default=Settings.epochs, help=f"epochs (default {Settings.epochs})")
+    t.add_argument(
+        "--batch", type=_positive, default=Settings.batch, help=f"stereo pairs per update (default {Settings.batch})"
+    )
+    t.add_argument(
+        "--lr",
+        type=float,
+        default=Settings.learning_rate,
+        help=f"peak learning rate (default {Settings.learning_rate})",
+    )
+    t.add_argument(
+        "--widths",
+        type=_widths,
+        default=WIDTHS,
+        help=f"channels at strides 2,4,8,16 (default {','.join(map(str, WIDTHS))})",
+    )
+    t.add_argument("--seed", type=int, default=0, help="initial weights and epoch order (default 0)")
+    t.add_argument("--quiet", action="store_true", help="no progress lines")
+    e = sub.add_parser("evaluate", help="pose errors on held-out frames")
+    e.add_argument("--estimator", required=True, help="an estimator folder (train's OUT/estimator)")
+    e.add_argument("--data", required=True, help="held-out frames (an npz from render, another seed)")
+    e.add_argument("--out", help="folder for estimator_errors.json and .md (default: print only)")
+    e.add_argument("--batch", type=_positive, default=64, help="stereo pairs per call (default 64)")
+    b = sub.add_parser("bench", help="milliseconds per stereo pair on the default device")
+    b.add_argument("--estimator", required=True, help="an estimator folder")
+    b.add_argument("--repeats", type=_positive, default=50, help="timed calls (default 50)")
+    b.add_argument("--batch", type=_positive, default=1, help="stereo pairs per call (default 1)")
+    lines = ["options of each subcommand:"]
+    for name, p in sub.choices.items():
+        opts = [a.option_strings[0] for a in p._actions if a.option_strings and a.option_strings[0] != "-h"]
+        lines.append(f"  {name}: {' '.join(opts)}")
+    top.epilog = "\n".join(lines)
+    return top
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = parser()
+    args = p.parse_args(argv)
+    settings = None
+    if args.command == "render":
+        problem = output_file_problem(args.out, ".npz")
+        if problem or args.episodes * args.frames > MAX_PAIRS:
+            p.error(
+                problem or f"--episodes x --frames is {args.episodes * args.frames}: accepted at most {MAX_PAIRS} pairs"
+            )
+        try:
+            Rig(width=args.width, height=args.height)
+        except ValueError as err:
+            p.error(f"--width {args.width} --height {args.height}: {err}")
+    elif args.command in ("train", "evaluate") and args.out is not None:
+        problem = output_folder_problem(args.out)
+        if problem:
+            p.error(problem)
+    if args.command == "train":
+        try:
+            settings = Settings(args.epochs, args.batch, args.lr, widths=args.widths, seed=args.seed)
+        except ValueError as err:
+            p.error(str(err))
+    try:
+        if args.command == "render":
+            path = render_dataset(
+                args.out, args.episodes, args.frames, args.seed, args.width, args.height, args.task, args.workers
+            )
+            print(dumps({"out": str(path), "pairs": args.episodes * args.frames, "seed": args.seed}))
+        elif args.command == "train":
+            log = (lambda *_: None) if args.quiet else (lambda line: print(line, flush=True))
+            print(dumps(train(args.data, args.val, args.out, settings, log=log)))
+        elif args.command == "evaluate":
+            rep = estimator_report.evaluate(args.estimator, args.data, args.out, args.batch)
+            print(dumps(estimator_report.headline(rep)))
+        else:
+            print(dumps(estimator_report.bench(args.estimator, args.repeats, args.batch)))
+    except (DatasetError, EstimatorError, CheckpointError, FolderInUse, RenderUnavailable) as err:
+        print(f"python -m regrasp_mjx.estimator {args.command}: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_command(main, "run the same command again: render and train go on from where they stopped"))

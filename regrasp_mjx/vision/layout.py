@@ -1,0 +1,69 @@
+"""The estimator's keypoints: the labelled frames' own (the needle's arc from tip to tail, each tool's jaw
+pivot and jaw tips; :func:`regrasp_mjx.world.endoscope.keypoints`) and each tool's wrist pitch axis.
+
+Why the wrist: the pivot and the two jaw tips of a tool lie within 10 mm of each other, so the jaw's
+direction rests on points 10 mm apart; the wrist's axis point, 9.1 mm behind the pivot along the
+tool's axis (the end of the wrist capsule, ``{tool}_wrist``), doubles that lever. It lies inside the
+2 mm wrist, like the pivot: the network learns it from the wrist's outline. Nothing on a tool shows
+its roll but the jaws, so the jaw tips stay the only roll cue.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from regrasp_mjx.world import endoscope
+from regrasp_mjx.world.endoscope import OBJECTS, Keypoints
+from regrasp_mjx.world.scene import Scene
+
+TOOLS = (("grasp", 1, "grasp_capsules"), ("regrasp", 2, "regrasp_capsules"))
+
+
+def layout(scene: Scene, n_arc: int = endoscope.N_ARC) -> Keypoints:
+    """The estimator's keypoints of ``scene`` (its needle's radius, its tools' jaws at its opening)."""
+    base = endoscope.keypoints(scene, n_arc)
+    names, obj, local, slack = list(base.names), list(base.obj), list(base.local), list(base.depth_slack)
+    for prefix, o, capsules in TOOLS:
+        wrist = {c.name: c for c in getattr(scene, capsules)}[f"{prefix}_wrist"]
+        far = max((wrist.p0, wrist.p1), key=np.linalg.norm)  # the pitch axis, behind the pivot
+        names.append(f"{prefix}_wrist")
+        obj.append(o)
+        local.append(np.asarray(far, np.float64))
+        slack.append(wrist.radius)
+    return Keypoints(tuple(names), np.array(obj), np.stack(local), np.array(slack))
+
+
+def object_rows(kp: Keypoints) -> tuple[tuple[int, ...], ...]:
+    """The keypoints' indices of each object of :data:`~regrasp_mjx.world.endoscope.OBJECTS`."""
+    return tuple(tuple(int(i) for i in np.nonzero(kp.obj == o)[0]) for o in range(len(OBJECTS)))
+
+
+def to_json(kp: Keypoints) -> dict:
+    """A layout as plain JSON (metres)."""
+    return {
+        "names": list(kp.names),
+        "object": [OBJECTS[int(o)] for o in kp.obj],
+        "local_m": np.asarray(kp.local, np.float64).tolist(),
+        "depth_slack_m": np.asarray(kp.depth_slack, np.float64).tolist(),
+    }
+
+
+def from_json(data: dict) -> Keypoints:
+    """The layout :func:`to_json` wrote; ``ValueError`` says what is wrong with another."""
+    try:
+        names = tuple(str(n) for n in data["names"])
+        obj = np.array([OBJECTS.index(o) for o in data["object"]])
+        local = np.asarray(data["local_m"], np.float64)
+        slack = np.asarray(data["depth_slack_m"], np.float64)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(
+            f"a keypoint layout needs names, object (one of {OBJECTS}), local_m and depth_slack_m: {err}"
+        ) from err
+    k = len(names)
+    if k == 0 or obj.shape != (k,) or local.shape != (k, 3) or slack.shape != (k,) or not np.all(np.isfinite(local)):
+        raise ValueError(
+            f"a keypoint layout of {k} names needs {k} objects, {k} finite local points (3) and {k} slacks"
+        )
+    if any(np.sum(obj == o) < 3 for o in range(len(OBJECTS))):
+        raise ValueError("a keypoint layout needs at least 3 keypoints on each object (a pose from its points)")
+    return Keypoints(names, obj, local, slack)
