@@ -216,27 +216,29 @@ def render_dataset(
         f"{len(chunks) - len(todo)} of {len(chunks)} chunks already rendered; {workers} worker(s)"
     )
     jobs = [(parts / f"chunk_{a:07d}.npz", needle[a:b], ee[a:b], seeds[a:b], a, width, height) for a, b in todo]
-    done, t1 = 0, time.perf_counter()
+    done, pairs, t1 = 0, 0, time.perf_counter()
 
-    def progress(path: Path) -> None:
-        nonlocal done
-        done += 1
-        pairs = sum((b - a) * frames for a, b in todo[:done])
-        rate = pairs / (time.perf_counter() - t1)
+    def progress(job_pairs: int) -> None:
+        nonlocal done, pairs
+        done, pairs = done + 1, pairs + job_pairs
+        seconds = time.perf_counter() - t1
         log(
-            f"  chunk {done}/{len(todo)}: {pairs} pairs, {rate:,.1f} pairs/s, {eta(done, len(todo), time.perf_counter() - t1)}"
+            f"  chunk {done}/{len(todo)}: {pairs} pairs, {pairs / seconds:,.1f} pairs/s, {eta(done, len(todo), seconds)}"
         )
 
     if workers == 1 or len(jobs) <= 1:
         for job in jobs:
-            progress(_render_to_file(*job))
+            _render_to_file(*job)
+            progress(len(job[1]) * frames)
     else:
         with (
             _cpu_children(),
             concurrent.futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool,
         ):
-            for fut in concurrent.futures.as_completed([pool.submit(_render_to_file, *job) for job in jobs]):
-                progress(fut.result())
+            futures = {pool.submit(_render_to_file, *job): len(job[1]) * frames for job in jobs}
+            for fut in concurrent.futures.as_completed(futures):
+                fut.result()
+                progress(futures[fut])
     data: dict[str, list] = {k: [] for k in ARRAYS}
     for a, _ in chunks:
         with np.load(parts / f"chunk_{a:07d}.npz", allow_pickle=False) as f:
