@@ -22,7 +22,7 @@ from regrasp_mjx.vision.estimator_file import EstimatorError
 from regrasp_mjx.vision.network import WIDTHS
 from regrasp_mjx.vision.training import CheckpointError
 from regrasp_mjx.workflows import estimator_report
-from regrasp_mjx.workflows.estimator_training import Settings, train
+from regrasp_mjx.workflows.estimator_training import Settings, deterministic_gpu, train
 from regrasp_mjx.workflows.frame_dataset import MAX_PAIRS, DatasetError, render_dataset
 from regrasp_mjx.workflows.render import RenderUnavailable
 from regrasp_mjx.world.endoscope import RESOLUTION, Rig
@@ -139,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             print(dumps({"out": str(path), "pairs": args.episodes * args.frames, "seed": args.seed}))
         elif args.command == "train":
+            deterministic_gpu()  # before JAX starts its backend: the same seed, the same numbers on a GPU
             log = (lambda *_: None) if args.quiet else (lambda line: print(line, flush=True))
             print(dumps(train(args.data, args.val, args.out, settings, log=log)))
         elif args.command == "evaluate":

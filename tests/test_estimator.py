@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import re
 import shutil
 
@@ -24,7 +25,7 @@ from regrasp_mjx.vision.estimator_file import EstimatorError, load_estimator, pr
 from regrasp_mjx.vision.network import STRIDE, NetConfig, decode, init_params, make_network
 from regrasp_mjx.vision.training import CheckpointError, init_state, make_epoch, make_keypoints, optimizer, targets
 from regrasp_mjx.workflows import estimator_report
-from regrasp_mjx.workflows.estimator_training import Settings, train
+from regrasp_mjx.workflows.estimator_training import Settings, deterministic_gpu, train
 from regrasp_mjx.workflows.frame_dataset import DatasetError, load_dataset, render_dataset
 from regrasp_mjx.workflows.render import RenderUnavailable
 from regrasp_mjx.world import endoscope
@@ -398,7 +399,8 @@ def _cli(argv):
     return code, out.getvalue(), err.getvalue()
 
 
-def test_the_command_line_help_and_bad_arguments(tmp_path):
+def test_the_command_line_help_and_bad_arguments(tmp_path, monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # train adds to it: restored after the test
     code, out, _ = _cli(["--help"])
     assert code == 0 and all(c in out for c in ("render", "train", "evaluate", "bench", "--episodes", "--val"))
     code, out, _ = _cli(["train", "--help"])
@@ -415,5 +417,7 @@ def test_the_command_line_help_and_bad_arguments(tmp_path):
     assert code == 2 and "estimator folder not found" in err
     code, _, err = _cli(["train", "--data", str(tmp_path / "no.npz"), "--val", "b.npz", "--out", str(tmp_path / "r")])
     assert code == 2 and "frame dataset not found" in err
+    assert "--xla_gpu_deterministic_ops=true" in os.environ["XLA_FLAGS"]
+    assert deterministic_gpu({"XLA_FLAGS": "--xla_gpu_deterministic_ops=false"}) == "--xla_gpu_deterministic_ops=false"
     code, _, err = _cli(["fly"])
     assert code == 2 and "invalid choice" in err

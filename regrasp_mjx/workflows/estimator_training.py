@@ -8,7 +8,9 @@ it: the same command again), and the epoch best on validation exported as an est
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
+from collections.abc import MutableMapping
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +39,18 @@ from regrasp_mjx.vision.training import (
 from regrasp_mjx.workflows.frame_dataset import DatasetError, FrameDataset, load_dataset
 
 EVAL_BATCH = 32  # stereo pairs per call when validating
+DETERMINISTIC = "--xla_gpu_deterministic_ops=true"  # a GPU's convolutions' gradients without atomics
+
+
+def deterministic_gpu(environ: MutableMapping[str, str] = os.environ) -> str:
+    """Adds :data:`DETERMINISTIC` to ``XLA_FLAGS`` unless it names that flag already, so that on a GPU a
+    seed gives the same numbers run after run (cuDNN's fastest gradient kernels may add in any order);
+    it applies only where JAX has not started its backend yet (a command line's first work). Returns
+    ``XLA_FLAGS``."""
+    current = environ.get("XLA_FLAGS", "")
+    if DETERMINISTIC.split("=")[0] not in {w.split("=", 1)[0] for w in current.split()}:
+        environ["XLA_FLAGS"] = f"{current} {DETERMINISTIC}".strip()
+    return environ["XLA_FLAGS"]
 
 
 @dataclasses.dataclass(frozen=True)
