@@ -178,6 +178,9 @@ def main() -> None:
     p.add_argument("--camera", default=None, choices=tuple(PRESETS), help="the closed loop under a camera preset")
     p.add_argument("--look-frames", type=int, default=None, help="the closed loop's look budget (default: its own)")
     p.add_argument("--stop-tolerance", type=float, default=None, help="the closed loop's stop (default: its own)")
+    p.add_argument(
+        "--jaw-sigmas", type=float, default=None, help="the closed loop's margin to open the jaws in (default: its own)"
+    )
     p.add_argument("--problems", type=int, default=None, help="the test set's first N problems (default: all)")
     p.add_argument("--name", default="paper300")
     args = p.parse_args()
@@ -265,7 +268,12 @@ def main() -> None:
         f"{row['timing_call_ms']['median']:.1f} / {row['timing_call_ms']['max']:.1f} |",
     ]
     if args.closed_loop_noise_mm >= 0:
-        settings = (("camera", args.camera), ("look_frames", args.look_frames), ("stop_tolerance", args.stop_tolerance))
+        settings = (
+            ("camera", args.camera),
+            ("look_frames", args.look_frames),
+            ("stop_tolerance", args.stop_tolerance),
+            ("jaw_sigmas", args.jaw_sigmas),
+        )
         options = {k: v for k, v in settings if v is not None}
         loop = closed_loop_motion(
             policy, needle, start, None, depth, base, clearances, args.closed_loop_noise_mm, 0, **options
