@@ -73,7 +73,8 @@ class Plan:
       nearest_grasp_distance: distance of the needle pose to the nearest of the valid-grasp library
         (``regrasp_mjx.grasps``; mm + deg / 5), when checked.
       joints: with ``plan_from_camera(..., psm=...)``, the regrasping PSM's
-        :class:`~regrasp_mjx.robot.psm_joints.JointTrajectory` of the valid poses (a list of them for a batch).
+        :class:`~regrasp_mjx.robot.psm_joints.JointTrajectory` of the valid poses (a list of them for a batch);
+        for a policy whose jaws open on the way, with the jaw's track (``joints.jaw``: where they open).
       grasping_joints: likewise the grasping PSM's :class:`~regrasp_mjx.robot.dvrk.IKResult` at its pose.
       motion: with ``plan_from_camera(..., psm=..., timed=True)``, the regrasping PSM's motion
         (:class:`~regrasp_mjx.robot.executed_motion.TimedPlan`: a 1-kHz joint trajectory at the dVRK's limits,
