@@ -48,8 +48,8 @@ def test_a_set_reaches_every_stage_that_has_its_key_and_a_prefixed_one_only_its_
         recipes.check(r, {"epochs": -1})
 
 
-def test_a_recipe_makes_the_documented_jobs(tmp_path):
-    plan = recipe_cli.Plan(RECIPES["student_v3"], tmp_path, ["env.scene.needle_radius_mm=4.0", "iterations=5"], 3)
+def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
+    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["env.scene.needle_radius_mm=4.0", "iterations=5"], 3)
     jobs = {j.name: j for j in plan.jobs()}
     students = [n for n in jobs if n.startswith("students/")]
     assert students == [f"students/{v}/s{s}" for v in ("t07", "t07n075") for s in range(3)]
@@ -75,7 +75,7 @@ def test_a_recipe_makes_the_documented_jobs(tmp_path):
     # without a GPU the report is one job; on GPUs it is parts side by side, one compiled program
     # each, that hold exactly the whole table's rows (in its order once joined), and a job joining them
     assert jobs["report"].needs == ("choose",) and not any(n.startswith("report/") for n in jobs)
-    on_gpus = {j.name: j for j in recipe_cli.Plan(RECIPES["student_v3"], tmp_path, [], 3, gpus=True).jobs()}
+    on_gpus = {j.name: j for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3, gpus=True).jobs()}
     parts = [n for n in on_gpus if n.startswith("report/")]
     assert len(parts) == 15 and on_gpus["report"].needs == tuple(parts)
     rows = []
@@ -104,7 +104,7 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
     same shape (so the same compiled programs; tests/test_recipe.py's slow check shows they are),
     shares their programs key; the distillations start beside the teachers, the rest beside the
     students (a generalist's, without students, beside the teachers); without a GPU there are none."""
-    plan = recipe_cli.Plan(RECIPES["student_v3"], tmp_path, ["iterations=5"], 3, gpus=True)
+    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["iterations=5"], 3, gpus=True)
     jobs = {j.name: j for j in plan.jobs()}
     pre = [n for n in jobs if n.startswith("precompile/")]
     assert pre[:3] == ["precompile/students/t07", "precompile/students/t07n075", "precompile/select"]
@@ -144,11 +144,11 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
     assert not any(j.stage == "precompile" for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3).jobs())
 
 
-def test_the_default_recipe_trains_jaws_that_open_and_chooses_under_a_camera_s_errors(tmp_path):
-    """The default since issue 67: teachers whose jaws open on the way, three student variants (one
+def test_the_jaws40_recipe_trains_jaws_that_open_and_chooses_under_a_camera_s_errors(tmp_path):
+    """A candidate default (issue 67): teachers whose jaws open on the way, three student variants (one
     aiming inside half the tolerances), candidates scored on the camera rows too, the closed loop's
     looking chosen with its stop; the report's programs are not precompiled (they run the chosen loop)."""
-    r = RECIPES["default"]
+    r = RECIPES["jaws40"]
     assert r.teacher_config().env.jaw_open_deg == 40
     assert r.student_config("t05").goal_tolerance == 0.5 and r.student_config("t07").goal_tolerance == 0.7
     plan = recipe_cli.Plan(r, tmp_path, [], 3, gpus=True)
@@ -156,7 +156,8 @@ def test_the_default_recipe_trains_jaws_that_open_and_chooses_under_a_camera_s_e
     assert [n for n in jobs if n.startswith("students/")] == [
         f"students/{v}/s{s}" for v in ("t07", "t05", "t07n075") for s in range(3)
     ]
-    assert sum(jobs[f"students/{v}/s0"].share for v in ("t07", "t05", "t07n075")) * 3 <= 0.9 + 1e-9
+    # a share is of an 80 GB GPU: a distillation whose jaws open held 9.8 GB on an H200 (0.1 ran out)
+    assert all(jobs[f"students/{v}/s0"].share * 80 >= 9.8 for v in ("t07", "t05", "t07n075"))
     sel = jobs["select/t05_s1"].argv()
     wanted = sel[sel.index("--conditions") + 1].split(",")
     assert "camera: lab-good" in wanted and set(wanted) == {c for _, c in r.selection.rule}
@@ -324,6 +325,11 @@ def test_export_writes_the_closed_loop_and_the_recipe_into_a_loadable_policy(tmp
     assert contract["training"]["recipe"]["overrides"] == ["iterations=3"]
     assert set(contract["training"]["recipe"]["commit"]) == {"commit", "dirty"}
     assert not (tmp_path / "policy.partial").exists()
+    # a policy whose jaws open on the way keeps no margin in the view's errors unless its file names one
+    recipe_cli.export(
+        ROOT / "experiments/results/jaw_on_the_way/policy_open40", tmp_path / "p40", loop, "v", provenance
+    )
+    assert load_policy(tmp_path / "p40").closed_loop_defaults["jaw_sigmas"] == 0.0
 
 
 def test_demonstrations_of_another_scene_are_refused(tmp_path):
