@@ -98,12 +98,20 @@ def closed_loop_settings(
     return rows, max(rows, key=lambda r: r["mean"])
 
 
+def _robot_text(r: RobotErrors) -> str:
+    return (
+        f", calibration {r.calibration_mm:g} mm {r.calibration_deg:g} deg, joints {r.joint_offset:g}, "
+        f"tools {r.tool_noise_mm:g} mm"
+    )
+
+
 def closed_loop_markdown(rows: list[dict[str, Any]], best: dict[str, Any], noises) -> list[str]:
     """:func:`closed_loop_settings`'s rows as a table, the best mean in bold."""
     lines = [
         "| warm-up frames | stop tolerance | look frames | "
         + " | ".join(
-            f"sigma {n.sigma_mm:g} bias {n.bias_mm:g}" + (f" {r}" if r != RobotErrors() else "") for n, r in noises
+            f"sigma {n.sigma_mm:g} bias {n.bias_mm:g}" + (_robot_text(r) if r != RobotErrors() else "")
+            for n, r in noises
         )
         + " | mean |",
         "| ---: | ---: | ---: |" + " ---: |" * (len(noises) + 1),
