@@ -158,6 +158,11 @@ def test_the_jaws40_recipe_trains_jaws_that_open_and_chooses_under_a_camera_s_er
     ]
     # a share is of an 80 GB GPU: a distillation whose jaws open held 9.8 GB on an H200 (0.1 ran out)
     assert all(jobs[f"students/{v}/s0"].share * 80 >= 9.8 for v in ("t07", "t05", "t07n075"))
+    # the teacher seeds are candidates after the students (of equal scores the smaller network wins),
+    # their selection a program set of their own (another network's shape)
+    assert list(plan.candidates())[-3:] == ["teacher_s0", "teacher_s1", "teacher_s2"] and len(plan.candidates()) == 12
+    assert jobs["select/teacher_s2"].needs == ("teachers",) and jobs["select/teacher_s2"].programs == "select/teachers"
+    assert jobs["select/t05_s1"].programs == "select" and len(jobs["choose"].needs) == 12
     sel = jobs["select/t05_s1"].argv()
     wanted = sel[sel.index("--conditions") + 1].split(",")
     assert "camera: lab-good" in wanted and set(wanted) == {c for _, c in r.selection.rule}

@@ -43,13 +43,16 @@ class Plan:
     def candidates(self) -> dict[str, tuple[Path, str]]:
         """name -> (policy folder, the job that makes it)."""
         seeds = range(self.recipe.teachers.seeds)
+        teachers = {f"teacher_s{s}": (self.teacher_policy(s), "teachers") for s in seeds}
         if self.recipe.students is None:
-            return {f"teacher_s{s}": (self.teacher_policy(s), "teachers") for s in seeds}
-        return {
+            return teachers
+        students = {
             f"{v}_s{s}": (self.out / "students" / v / f"s{s}" / "policy", f"students/{v}/s{s}")
             for v, _ in self.recipe.students.variants
             for s in seeds
         }
+        # the students first: of equal scores the smaller network wins
+        return students | teachers if self.recipe.students.with_teachers else students
 
     # ---- the jobs --------------------------------------------------------------------------
     def jobs(self) -> list[Job]:
@@ -117,7 +120,8 @@ class Plan:
                     out / "select" / f"{name}.json",
                     sel.share,
                     (maker,),
-                    programs="select",  # the candidates share shapes: one compiles, the rest load it
+                    # the candidates of one shape share programs: one compiles, the rest load it
+                    programs="select/teachers" if maker == "teachers" else "select",
                 )
             )
         choose = ["-m", "regrasp_mjx.recipe", r.name, "--out", str(out), "--step", "choose", *self._user_sets()]
