@@ -6,6 +6,7 @@ says they do."""
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import gymnasium
@@ -18,7 +19,7 @@ from gymnasium.utils.env_checker import check_env
 
 import regrasp_mjx
 from regrasp_mjx.core.config import ConfigError
-from regrasp_mjx.interfaces import gym_envs, registry
+from regrasp_mjx.interfaces import gym_envs, gym_programs, registry
 from regrasp_mjx.robot import robot_errors
 from regrasp_mjx.world.sampling import load_testset
 
@@ -166,7 +167,7 @@ def test_bad_actions_are_refused():
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"action has shape \(5,\); accepted: \(6,\)"):
         env.step(np.zeros(5))
-    with pytest.raises(ValueError, match="NaN, inf"):
+    with pytest.raises(ValueError, match="action has NaN or inf; accepted: finite numbers"):
         env.step(np.array([np.nan, 0, 0, 0, 0, 0]))
     venv = gym_envs.NeedleRegraspVectorEnv(num_envs=2)
     with pytest.raises(RuntimeError, match="reset"):
@@ -253,3 +254,99 @@ def test_ended_episodes_restart_from_new_problems_the_pool_redrawn_when_used_up(
         seen.append(obs["desired_goal"])
     starts = np.concatenate(seen)
     assert len(np.unique(np.round(starts, 6), axis=0)) == len(starts) == 14
+
+
+def _compare(a, b, path: str = "") -> None:
+    """The same structure (keys in order), array kinds, dtypes, shapes and values; ``b`` holds jax arrays."""
+    if isinstance(a, (dict, tuple)):
+        assert type(a) is type(b) and len(a) == len(b), path
+        keys = list(a) if isinstance(a, dict) else range(len(a))
+        assert keys == (list(b) if isinstance(b, dict) else range(len(b))), path
+        for k in keys:
+            _compare(a[k], b[k], f"{path}/{k}")
+        return
+    assert isinstance(a, np.ndarray) and isinstance(b, jax.Array), path
+    assert a.dtype == b.dtype and a.shape == b.shape, (path, a.dtype, b.dtype, a.shape, b.shape)
+    if a.dtype == np.bool_:
+        np.testing.assert_array_equal(a, b, err_msg=path)
+    else:  # two compiled programs (one packs its outputs): equal bit for bit here, compared to float32 rounding
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6, err_msg=path)
+
+
+@functools.cache
+def _pair(mode: str) -> dict:
+    """The vector env with numpy and with jax arrays (3 lanes, horizon 2), made once for the tests below."""
+    return {
+        arrays: gym_envs.NeedleRegraspVectorEnv(
+            num_envs=3, autoreset_mode=mode, config_overrides={"env.horizon": 2}, arrays=arrays
+        )
+        for arrays in ("numpy", "jax")
+    }
+
+
+START = {"episodes": load_testset("paper300")[0].row(slice(0, 3))}
+
+
+@pytest.mark.parametrize(
+    "mode", ["same_step", *(pytest.param(m, marks=pytest.mark.slow) for m in ("next_step", "disabled"))]
+)
+def test_device_arrays_equal_the_numpy_path_step_by_step(mode):
+    """``arrays="jax"`` returns what the numpy path returns (names, dtypes, shapes, values, infos and
+    final observations), as jax arrays, from device actions; through ends, restarts and a redraw of
+    the pool (3 lanes ending every other step use up its 6 problems)."""
+    host, device = _pair(mode)["numpy"], _pair(mode)["jax"]
+    _compare(host.reset(seed=3, options=START), device.reset(seed=3, options=START))
+    rng, ended = np.random.default_rng(3), 0
+    for _ in range(6):
+        actions = rng.uniform(-1, 1, (3, 6)).astype(np.float32)
+        a, b = host.step(actions), device.step(jnp.asarray(actions))
+        _compare(a, b)
+        ended += int(np.sum(a[2] | a[3]))
+        # the numpy path's per-environment arrays are the caller's to change, as they were
+        assert all(x.flags.writeable for x in (a[1], a[2], a[3], a[4]["success"], a[4]["distance_mm"]))
+    assert ended > 2 * 3 if mode != "disabled" else ended > 0
+
+
+def test_device_arrays_refuse_bad_actions_and_start_again():
+    with pytest.raises(ValueError, match="arrays='torch' is not accepted: one of numpy, jax"):
+        gym_envs.NeedleRegraspVectorEnv(num_envs=2, arrays="torch")
+    venv = _pair("same_step")["jax"]
+    venv.reset(seed=0, options=START)
+    with pytest.raises(ValueError, match=r"action has shape \(3, 5\); accepted: \(3, 6\)"):
+        venv.step(jnp.zeros((3, 5)))
+    with pytest.raises(ValueError, match="action has dtype bool"):
+        venv.step(jnp.zeros((3, 6), bool))
+    obs, *_ = venv.step(np.zeros((3, 6), np.float32))  # numpy actions are taken too
+    assert isinstance(obs["observation"], jax.Array)
+    with pytest.raises(Exception, match="action has NaN or inf"):  # refused inside the compiled step
+        jax.block_until_ready(venv.step(jnp.zeros((3, 6)).at[1, 2].set(jnp.nan)))
+    with pytest.raises(RuntimeError, match="call reset"):  # its state was given to the failed step
+        venv.step(jnp.zeros((3, 6)))
+    venv.reset(seed=1, options=START)
+    _, reward, *_ = venv.step(jnp.zeros((3, 6)))
+    assert isinstance(reward, jax.Array) and reward.shape == (3,)
+
+
+def test_the_packed_forms_round_trip():
+    """The pool's rows (every 32-bit dtype and booleans) and the numpy path's one buffer (typed views:
+    vectors read-only as np.asarray of a jax array is, one number per environment a writable copy)."""
+    tree = {
+        "f": jnp.arange(12, dtype=jnp.float32).reshape(3, 2, 2) / 7,
+        "i": jnp.asarray([-1, 0, 5], jnp.int32),
+        "u": jnp.asarray([[1, 2], [3, 4], [2**32 - 1, 0]], jnp.uint32),
+        "b": jnp.asarray([True, False, True]),
+    }
+    rows = gym_programs.Rows(jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), tree))
+    packed = rows.encode(tree)
+    assert packed.shape == (3, 4 + 1 + 2 + 1) and packed.dtype == jnp.uint32
+    assert _leaves_equal(rows.decode(packed), tree) and rows.decode(packed)["b"].dtype == jnp.bool_
+    with pytest.raises(TypeError, match="dtype float16 cannot be a pool row"):
+        gym_programs.Rows({"h": jax.ShapeDtypeStruct((2,), jnp.float16)})
+
+    fields = {"flag": tree["b"], "reward": jnp.asarray([0.5, -1.0, 2.0]), "obs": tree["f"].reshape(3, 4)}
+    layout = gym_programs.Layout(fields)
+    assert [name for name, *_ in layout.fields] == ["obs", "reward", "flag"]  # 32-bit vectors, numbers, flags
+    read = layout.read(jax.jit(layout.pack)(fields))
+    for k, v in fields.items():
+        assert read[k].dtype == v.dtype and np.array_equal(read[k], v)
+    assert read["reward"].flags.writeable and read["flag"].flags.writeable and not read["obs"].flags.writeable

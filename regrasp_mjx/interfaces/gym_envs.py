@@ -15,11 +15,14 @@ the success tolerances (terminated), ``collision_reward`` for one not proved cle
 motion (terminated), ``step_reward`` otherwise; the horizon truncates. :meth:`compute_reward`
 recomputes it from goals (vectorised; a collision from ``info["collision"]``).
 
-The vector environment is one jitted, vmapped program per step (actions in, one packed array out).
-Its autoreset mode is ``same_step`` by default (what Stable-Baselines3 expects: an episode's last
-observation in ``info["final_obs"]``, the returned one already the next episode's first; masks in
-``info["_final_obs"]``), or ``next_step`` (gymnasium 1.x's default) or ``disabled``, as
-``autoreset_mode`` names it (``metadata["autoreset_mode"]`` says which).
+The vector environment is one jitted, vmapped program per step (:mod:`regrasp_mjx.interfaces.gym_programs`:
+the step, the autoreset and the infos in one compiled call). Its autoreset mode is ``same_step`` by
+default (what Stable-Baselines3 expects: an episode's last observation in ``info["final_obs"]``, the
+returned one already the next episode's first; masks in ``info["_final_obs"]``), or ``next_step``
+(gymnasium 1.x's default) or ``disabled``, as ``autoreset_mode`` names it (``metadata["autoreset_mode"]``
+says which). ``arrays="numpy"`` (the default) returns numpy arrays, one transfer per step;
+``arrays="jax"`` keeps everything on the device for learners written in JAX (actions taken as jax
+arrays, observations, rewards, flags and infos returned as jax arrays, nothing waits for the step).
 """
 
 from __future__ import annotations
@@ -29,23 +32,18 @@ from typing import Any
 
 import gymnasium
 import jax
-import jax.numpy as jnp
 import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.envs.env import ACTION_SIZE
 from regrasp_mjx.interfaces import registry
+from regrasp_mjx.interfaces.gym_programs import ARRAYS, GOAL_SIZE, INFO_KEYS, Program, assemble, goals  # noqa: F401
 from regrasp_mjx.workflows.render import SceneRenderer
 from regrasp_mjx.world.sampling import Episode
 
-GOAL_SIZE = 7
-# the per-environment numbers after the observation and both goals, in the packed step output
-SCALARS = ("reward", "terminated", "truncated", "success", "collision", "distance_mm", "angle_deg", "clearance_mm")
-INFO_KEYS = ("success", "collision", "distance_mm", "angle_deg", "clearance_mm")
 AUTORESET = {
     "same_step": AutoresetMode.SAME_STEP,
     "next_step": AutoresetMode.NEXT_STEP,
@@ -55,14 +53,6 @@ AUTORESET = {
 
 def gym_id(name: str) -> str:
     return f"regrasp_mjx/{name}-v0"
-
-
-def goals(es) -> tuple[jax.Array, jax.Array]:
-    """``achieved_goal`` and ``desired_goal`` ``[7]`` of one environment's true poses."""
-    pos, quat = geometry.relative((es.ee_pos, es.ee_quat), (es.needle_pos, es.needle_quat))
-    achieved = jnp.concatenate([pos * 1e3, geometry.canonical_quat(quat)])
-    desired = jnp.concatenate([es.goal_needle_pos * 1e3, geometry.canonical_quat(es.goal_needle_quat)])
-    return achieved, desired
 
 
 def _collisions(info: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -93,107 +83,6 @@ def goal_reward(config, achieved: Any, desired: Any, info: Any = None) -> np.nda
     return np.where(_collisions(info, distance.shape), config.collision_reward, reward).astype(np.float32)
 
 
-class _Program:
-    """``num_envs`` environments stepped by one jitted program: reset, reset from given problems,
-    and a step with the autoreset mode folded in. Each call takes and returns a carry (the states,
-    a pool of fresh problems, the key, the lanes pending a reset) and returns one packed array ``[N, K]``.
-
-    Ended episodes restart from the pool: problems drawn ahead, ``POOL_PER_ENV`` per environment,
-    redrawn all at once when the next ends would use it up (a ``lax.cond``), so that a step does not
-    sample a whole batch of problems to keep the few that ended (sampling rejects colliding draws,
-    and costs about three steps)."""
-
-    POOL_PER_ENV = 2
-
-    def __init__(self, env: registry.RegistryEnv, num_envs: int, autoreset: AutoresetMode):
-        self.env, self.n, self.autoreset = env, num_envs, autoreset
-        self.obs_size = env.observation_size
-        reset, step = jax.vmap(env.reset), jax.vmap(env.step)
-        reset_from = jax.vmap(env.reset_from)
-        n, size = num_envs, self.POOL_PER_ENV * num_envs
-
-        def pack(state) -> jax.Array:
-            achieved, desired = jax.vmap(goals)(state.data)
-            flags = (state.done > 0) & (state.info["truncation"] == 0)
-            cols = [state.reward, flags, state.info["truncation"]] + [state.metrics[k] for k in INFO_KEYS]
-            return jnp.concatenate(
-                [state.obs, achieved, desired, jnp.stack([c.astype(jnp.float32) for c in cols], -1)], -1
-            )
-
-        def select(mask, a, b):
-            return jax.tree.map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
-
-        def carry_of(state, key):
-            key, k = jax.random.split(key)
-            pool = reset(jax.random.split(k, size)) if autoreset != AutoresetMode.DISABLED else None
-            return {"state": state, "pool": pool, "cursor": jnp.int32(0), "key": key, "pending": jnp.zeros(n, bool)}
-
-        def first(key):
-            key, k = jax.random.split(key)
-            state = reset(jax.random.split(k, n))
-            return carry_of(state, key), pack(state)
-
-        def start_from(episodes, key):
-            key, k = jax.random.split(key)
-            state = reset_from(episodes, jax.random.split(k, n))
-            return carry_of(state, key), pack(state)
-
-        def restart(carry, mask):
-            """The lanes of ``mask`` from the pool's next problems (the pool redrawn first if too few remain)."""
-            count = jnp.sum(mask, dtype=jnp.int32)
-
-            def redraw(c):
-                key, k = jax.random.split(c["key"])
-                return {**c, "pool": reset(jax.random.split(k, size)), "cursor": jnp.int32(0), "key": key}
-
-            carry = jax.lax.cond(carry["cursor"] + count > size, redraw, lambda c: c, carry)
-            index = jnp.where(mask, carry["cursor"] + jnp.cumsum(mask) - 1, 0)
-            fresh = jax.tree.map(lambda x: x[index], carry["pool"])
-            return {**carry, "cursor": carry["cursor"] + count}, fresh
-
-        def advance(carry, actions):
-            stepped = step(carry["state"], actions)
-            out = pack(stepped)
-            ended = stepped.done > 0
-            if autoreset == AutoresetMode.DISABLED:
-                return {**carry, "state": stepped}, out
-            if autoreset == AutoresetMode.SAME_STEP:  # the next episode's first observation; the last in final_obs
-                carry, fresh = restart(carry, ended)
-                obs = jnp.where(ended[:, None], pack(fresh), out)
-                width = self.obs_size + 2 * GOAL_SIZE
-                packed = jnp.concatenate([obs[:, :width], out[:, width:], out[:, :width]], -1)
-                return {**carry, "state": select(ended, fresh, stepped)}, packed
-            # next step: a lane that ended last step starts its next episode now, ignoring its action
-            pending = carry["pending"]
-            carry, fresh = restart(carry, pending)
-            out = jnp.where(pending[:, None], pack(fresh).at[:, -len(SCALARS) :].set(0.0), out)
-            return {**carry, "state": select(pending, fresh, stepped), "pending": ended & ~pending}, out
-
-        self.first = jax.jit(first)
-        self.start_from = jax.jit(start_from)
-        self.advance = jax.jit(advance, donate_argnums=(0,))
-
-    def unpack(self, packed: np.ndarray) -> tuple[dict, dict[str, np.ndarray], dict | None]:
-        """The observation dict, the scalars by name and (same-step autoreset) the final observations."""
-        o = self.obs_size
-        obs = {
-            "observation": packed[:, :o],
-            "achieved_goal": packed[:, o : o + GOAL_SIZE],
-            "desired_goal": packed[:, o + GOAL_SIZE : o + 2 * GOAL_SIZE],
-        }
-        k = o + 2 * GOAL_SIZE
-        scalars = {name: packed[:, k + i] for i, name in enumerate(SCALARS)}
-        final = None
-        if packed.shape[1] > k + len(SCALARS):
-            f = packed[:, k + len(SCALARS) :]
-            final = {
-                "observation": f[:, :o],
-                "achieved_goal": f[:, o : o + GOAL_SIZE],
-                "desired_goal": f[:, o + GOAL_SIZE :],
-            }
-        return obs, scalars, final
-
-
 def _spaces(env: registry.RegistryEnv) -> tuple[spaces.Dict, spaces.Box]:
     box = lambda n: spaces.Box(-np.inf, np.inf, (n,), np.float32)  # noqa: E731
     obs = spaces.Dict(
@@ -202,15 +91,28 @@ def _spaces(env: registry.RegistryEnv) -> tuple[spaces.Dict, spaces.Box]:
     return obs, spaces.Box(-1.0, 1.0, (ACTION_SIZE,), np.float32)
 
 
-def _checked_actions(actions: Any, shape: tuple[int, ...]) -> np.ndarray:
-    a = np.asarray(actions)
+def _shape_checked(a: Any, shape: tuple[int, ...]) -> Any:
     if a.shape != shape:
         raise ValueError(
             f"action has shape {a.shape}; accepted: {shape} (dp_x, dp_y, dp_z, rot_x, rot_y, rot_z in [-1, 1])"
         )
-    if not np.issubdtype(a.dtype, np.number) or not np.all(np.isfinite(a)):
-        raise ValueError("action has NaN, inf or is not numeric; accepted: finite numbers in [-1, 1] (clipped)")
-    return a.astype(np.float32)
+    if not np.issubdtype(a.dtype, np.number):
+        raise ValueError(f"action has dtype {a.dtype}; accepted: finite numbers in [-1, 1] (clipped)")
+    return a
+
+
+def _checked_actions(actions: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """Host actions: of ``shape``, numeric and finite (NaN and inf refused here), as float32."""
+    a = _shape_checked(np.asarray(actions), shape)
+    if not np.isfinite(a.min()) or not np.isfinite(a.max()):  # min and max are NaN where any is
+        raise ValueError("action has NaN or inf; accepted: finite numbers in [-1, 1] (clipped)")
+    return np.asarray(a, np.float32)
+
+
+def _device_actions(actions: Any, shape: tuple[int, ...]) -> Any:
+    """Device actions: shape and dtype checked from the array's attributes alone (nothing waits for
+    the device; a NaN or inf is refused inside the compiled step, ``EnvConfig.check_actions``)."""
+    return _shape_checked(actions if hasattr(actions, "dtype") else np.asarray(actions), shape)
 
 
 def _episodes(episodes: Any, n: int, key: str) -> Episode:
@@ -253,7 +155,7 @@ class NeedleRegraspEnv(gymnasium.Env):
         self.registry_env = registry.load(name, config, config_overrides)
         self.observation_space, self.action_space = _spaces(self.registry_env)
         self.render_mode, self.width, self.height = render_mode, width, height
-        self._program = _Program(self.registry_env, 1, AutoresetMode.DISABLED)
+        self._program = Program(self.registry_env, 1, AutoresetMode.DISABLED)
         self._carry = None
         self._renderer = None
 
@@ -265,16 +167,16 @@ class NeedleRegraspEnv(gymnasium.Env):
         else:
             out = self._program.first(key)
         self._carry, packed = out
-        obs, scalars, _ = self._program.unpack(np.asarray(packed))
-        return _row(obs), _info(scalars, 0)
+        f = self._program.fields(packed, reset=True)
+        return _row(f), _info(f)
 
     def step(self, action):
         if self._carry is None:
             raise RuntimeError("call reset() before step()")
         a = _checked_actions(action, (ACTION_SIZE,))[None]
         self._carry, packed = self._program.advance(self._carry, a)
-        obs, s, _ = self._program.unpack(np.asarray(packed))
-        return _row(obs), float(s["reward"][0]), bool(s["terminated"][0]), bool(s["truncated"][0]), _info(s, 0)
+        f = self._program.fields(packed)
+        return _row(f), float(f["reward"][0]), bool(f["terminated"][0]), bool(f["truncated"][0]), _info(f)
 
     def compute_reward(self, achieved_goal, desired_goal, info):
         return goal_reward(self.registry_env.env_config, achieved_goal, desired_goal, info)
@@ -296,14 +198,14 @@ class NeedleRegraspEnv(gymnasium.Env):
             self._renderer = None
 
 
-def _row(obs: dict) -> dict:
-    return {k: v[0] for k, v in obs.items()}
+def _row(fields: dict) -> dict:
+    return {k: fields[k][0] for k in ("observation", "achieved_goal", "desired_goal")}
 
 
-def _info(scalars: dict, i: int) -> dict:
+def _info(fields: dict) -> dict:
     return {
-        "is_success": bool(scalars["success"][i]),
-        **{k: (bool(scalars[k][i]) if k in ("success", "collision") else float(scalars[k][i])) for k in INFO_KEYS},
+        "is_success": bool(fields["success"][0]),
+        **{k: (bool(fields[k][0]) if k in ("success", "collision") else float(fields[k][0])) for k in INFO_KEYS},
     }
 
 
@@ -311,7 +213,15 @@ class NeedleRegraspVectorEnv(VectorEnv):
     """``num_envs`` registered environments stepped as one jitted, vmapped program (see the module
     docstring for the autoreset modes). ``reset(options={"episodes": batch})`` starts every
     environment from a given problem (an :class:`~regrasp_mjx.world.sampling.Episode` of ``num_envs``
-    rows)."""
+    rows).
+
+    ``arrays="numpy"``: actions checked on the host (shape, numbers, finite), everything returned as
+    numpy arrays (the observations and goals read-only views of the step's one transfer, as
+    ``np.asarray`` of a jax array is). ``arrays="jax"``: actions taken as they are (a jax array stays
+    on the device; its shape and dtype are checked, a NaN or inf is refused inside the compiled step by an
+    error from JAX that holds the refusal's line, after which the environments need a ``reset``),
+    everything returned as jax arrays of the same names, shapes, dtypes and values, and nothing waits
+    for the step to finish."""
 
     def __init__(
         self,
@@ -321,6 +231,7 @@ class NeedleRegraspVectorEnv(VectorEnv):
         config_overrides: dict | None = None,
         autoreset_mode: str | AutoresetMode = "same_step",
         render_mode: str | None = None,
+        arrays: str = "numpy",
     ):
         if not (isinstance(num_envs, int) and num_envs >= 1):
             raise ValueError(f"num_envs = {num_envs!r} is not accepted: an integer >= 1")
@@ -328,6 +239,8 @@ class NeedleRegraspVectorEnv(VectorEnv):
             if autoreset_mode not in AUTORESET:
                 raise ValueError(f"autoreset_mode {autoreset_mode!r} is not accepted: one of {', '.join(AUTORESET)}")
             autoreset_mode = AUTORESET[autoreset_mode]
+        if arrays not in ARRAYS:
+            raise ValueError(f"arrays={arrays!r} is not accepted: one of {', '.join(ARRAYS)}")
         if render_mode is not None:
             raise ValueError(
                 "the vector environment does not render; accepted: render_mode=None (the single one draws)"
@@ -339,7 +252,9 @@ class NeedleRegraspVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.metadata = {"autoreset_mode": autoreset_mode}
         self.render_mode = None
-        self._program = _Program(self.registry_env, num_envs, autoreset_mode)
+        self.arrays = arrays
+        self._program = Program(self.registry_env, num_envs, autoreset_mode, arrays)
+        self._check = _device_actions if arrays == "jax" else _checked_actions
         self._carry = None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -349,28 +264,17 @@ class NeedleRegraspVectorEnv(VectorEnv):
             out = self._program.start_from(_episodes(options["episodes"], self.num_envs, "episodes"), key)
         else:
             out = self._program.first(key)
-        self._carry, packed = out
-        obs, scalars, _ = self._program.unpack(np.asarray(packed))
-        return obs, self._infos(scalars)
+        self._carry, out = out
+        obs, _, _, _, infos = assemble(self._program.fields(out, reset=True))
+        return obs, infos
 
     def step(self, actions):
         if self._carry is None:
-            raise RuntimeError("call reset() before step()")
-        a = _checked_actions(actions, (self.num_envs, ACTION_SIZE))
-        self._carry, packed = self._program.advance(self._carry, a)
-        obs, s, final = self._program.unpack(np.asarray(packed))
-        terminated, truncated = s["terminated"] > 0, s["truncated"] > 0
-        infos = self._infos(s)
-        if final is not None:
-            ended = terminated | truncated
-            infos.update({"final_obs": final, "_final_obs": ended, "final_info": dict(infos), "_final_info": ended})
-        return obs, s["reward"].copy(), terminated, truncated, infos
-
-    def _infos(self, s: dict) -> dict:
-        return {
-            "is_success": s["success"] > 0,
-            **{k: s[k] > 0 if k in ("success", "collision") else s[k] for k in INFO_KEYS},
-        }
+            raise RuntimeError("call reset() before step(), and again after a step that failed")
+        a = self._check(actions, (self.num_envs, ACTION_SIZE))
+        carry, self._carry = self._carry, None  # donated to the step: reset() again if it fails
+        self._carry, out = self._program.advance(carry, a)
+        return assemble(self._program.fields(out))
 
     def compute_reward(self, achieved_goal, desired_goal, info):
         return goal_reward(self.registry_env.env_config, achieved_goal, desired_goal, info)
