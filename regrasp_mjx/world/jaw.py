@@ -11,9 +11,8 @@ opening: an opening whose sampled angles all keep more than that is clear at eve
 them, not only at the samples (the capsule distance moves no faster than its end points).
 
 The Large Needle Driver opens to 80 degrees (jhu-dvrk/sawIntuitiveResearchKit,
-``share/tool/LARGE_NEEDLE_DRIVER_400006.json``: jaw qmax 1.39626 rad); the dVRK's teleoperation
-moves the jaw at most 2 pi rad/s (jhu-dvrk's Python ``teleoperation``: ``jaw_rate``), the speed
-:data:`JAW_RATE_DEG_S` the timed trajectory opens it with.
+``share/tool/LARGE_NEEDLE_DRIVER_400006.json``: jaw qmax 1.39626 rad); the timed trajectory opens
+it at the PSM's own jaw limits (:data:`regrasp_mjx.robot.psm_timing.JAW_V_MAX`, ``JAW_A_MAX``).
 """
 
 from __future__ import annotations
@@ -31,7 +30,6 @@ from regrasp_mjx.core.geometry import rotation_matrix, segment_distance
 from regrasp_mjx.world.distances import turn_jaws
 from regrasp_mjx.world.scene import Scene
 
-JAW_RATE_DEG_S = math.degrees(2.0 * math.pi)  # how fast the dVRK moves a jaw
 SAMPLE_DEG = 1.0  # the sweep's check points, in degrees of opening
 
 
