@@ -291,11 +291,13 @@ def _pair_below(tool, t, other, o, sums, below, threshold, ee_p, h, dp, w, bend)
 
 
 @njit(cache=True)
-def make_scratch(tool_local):
+def make_scratch(tool_local, rows=0):
     """The scratch arrays a collision test writes, for tool capsules ``tool_local`` ``[T, 2, 3]``:
-    the tool's end points and midpoints, and the continuous test's stack of intervals (depth
-    first: at most one more than the halvings, far under 64)."""
-    return np.empty_like(tool_local), np.empty((tool_local.shape[0], 3)), np.zeros((64, 2), np.int64)
+    the tool's end points (at least ``rows`` of them: room for the jaws' sweep,
+    :func:`regrasp_mjx.envs.lean_jaw.sweep_keeps`) and midpoints, and the continuous test's stack of
+    intervals (depth first: at most one more than the halvings, far under 64)."""
+    ends = np.empty((max(tool_local.shape[0], rows), 2, 3))
+    return ends, np.empty((tool_local.shape[0], 3)), np.zeros((64, 2), np.int64)
 
 
 # ---- what a compiled call takes: many arrays as one ----------------------------------------------

@@ -22,34 +22,37 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from regrasp_mjx.envs.lean_collision import BOUND_SLACK, Capsules
+from regrasp_mjx.envs.lean_collision import BOUND_SLACK
 from regrasp_mjx.envs.lean_geometry import matrix, rotate, segment_distance
 from regrasp_mjx.world import jaw
 
 
 class Jaws(NamedTuple):
-    """A policy's jaws as the compiled loops take them: whether they open on the way and, where they
-    do, the tool's capsules opened and the sweep's check points."""
+    """A policy's jaws that open on the way as the compiled loops take them: the jaw capsules
+    opened and the sweep's check points. A policy whose jaws stay has None instead: numba prunes
+    every branch on it (:func:`as_jaws`, :func:`opens_here`), so its loops compile to the code they
+    had before the jaws opened (a flag tested at every step cost the default's plan 10 %). A query
+    opens the jaws in its own copy of the tool's capsules (:func:`own_capsules`, :func:`open_jaws`):
+    no second set of capsules to choose from at every step."""
 
-    opens: bool  # EnvConfig.jaw_open_deg is set
     base_deg: float  # the scene's opening
-    open_deg: float  # jaw_open_deg (the scene's where they never open)
-    opened: Capsules  # the counted capsules with the jaws at open_deg
+    open_deg: float  # jaw_open_deg
     rows: np.ndarray  # [J] the jaw capsules' rows in Capsules.tool_local
+    opened: np.ndarray  # [J, 2, 3] the jaw capsules at open_deg (e_r)
     sweep: np.ndarray  # [A, J, 2, 3] the jaws at each check point of the opening sweep (e_r)
     turn: float  # the farthest a jaw point moves from the middle check point to any other [m]
     slack: float  # how far a jaw point moves between two check points, reach * delta / 4 [m]
     margin: float  # the room the sweep must keep to open [m]
 
 
-def jaws(scene: Any, geo: Capsules, open_deg: float | None, margin: float) -> Jaws:
-    """:class:`Jaws` of a scene (the :class:`~regrasp_mjx.world.scene.Scene` ``geo`` was made from),
-    its opening on the way ``open_deg`` (None: never) and the margin [m] (rounded to float32, as the
-    environment's comparison takes it)."""
+def jaws(scene: Any, open_deg: float | None, margin: float) -> Jaws | None:
+    """:class:`Jaws` of a scene (a :class:`~regrasp_mjx.world.scene.Scene`), its opening on the way
+    ``open_deg`` (None: they never open, and None is returned) and the margin [m] (rounded to
+    float32, as the environment's comparison takes it)."""
+    if open_deg is None:
+        return None
     base = float(scene.config.jaw_angle_deg)
     rows = jaw.jaw_rows(scene)
-    if open_deg is None:
-        return Jaws(False, base, base, geo, rows, np.zeros((0, len(rows), 2, 3)), 0.0, 0.0, 0.0)
     # the check points of sweep_fn from the scene's opening to open_deg: the same fractions and slack
     angles = base + (open_deg - base) * np.linspace(0.0, 1.0, jaw.SWEEP_STEPS + 1)
     sweep = np.ascontiguousarray(np.stack([jaw.opened_ends(scene, a)[rows] for a in angles]))
@@ -58,9 +61,57 @@ def jaws(scene: Any, geo: Capsules, open_deg: float | None, margin: float) -> Ja
     middle = angles[len(angles) // 2]
     # a point r from the hinge turned by x moves 2 r sin(x / 2) <= r x; the jaws turn by half the change
     turn = reach * math.radians(max(middle - angles[0], angles[-1] - middle) / 2.0)
-    ends = np.ascontiguousarray(jaw.opened_ends(scene, open_deg))
-    opened = geo._replace(tool_local=ends, tool_half=0.5 * np.linalg.norm(ends[:, 1] - ends[:, 0], axis=-1))
-    return Jaws(True, base, float(open_deg), opened, rows, sweep, turn, slack, float(np.float32(margin)))
+    opened = np.ascontiguousarray(jaw.opened_ends(scene, open_deg)[rows])
+    return Jaws(base, float(open_deg), rows, opened, sweep, turn, slack, float(np.float32(margin)))
+
+
+@njit(cache=True)
+def as_jaws(j):
+    """:class:`Jaws` of its fields as a plain tuple (a query's state), or None (jaws that stay)."""
+    if j is None:
+        return None
+    return Jaws(*j)
+
+
+@njit(cache=True)
+def own_capsules(j, tool_local):
+    """The tool's capsules ``[T, 2, 3]`` a query works with: its own copy where the jaws open on the
+    way (:func:`open_jaws` writes into it), else the policy's shared ones."""
+    if j is None:
+        return tool_local
+    return tool_local.copy()
+
+
+@njit(cache=True)
+def sweep_points(j):
+    """How many check points the opening sweep has (0: the jaws stay)."""
+    if j is None:
+        return 0
+    return j.sweep.shape[0]
+
+
+@njit(cache=True)
+def open_jaws(j, tool_local):
+    """The jaws opened to ``j.open_deg`` in a query's own tool capsules ``tool_local`` ``[T, 2, 3]``
+    (:func:`own_capsules`; turning about the hinge keeps every end point's distance from it and every
+    capsule's length: the levers and half lengths stay); nothing where they stay (``j`` None)."""
+    if j is None:
+        return
+    for jj in range(j.rows.shape[0]):
+        tool_local[j.rows[jj]] = j.opened[jj]
+
+
+@njit(cache=True)
+def opens_here(j, geo, fixed, ee_p, ee_q, ends):
+    """Whether the environment's rule (:meth:`regrasp_mjx.envs.env.RegraspEnv.move`) opens the jaws
+    before a step from the pose ``(ee_p, ee_q)``: the sweep keeps its margin there (:func:`sweep_keeps`;
+    where it does they open in ``geo``, the query's capsules); never where they stay (``j`` None)."""
+    if j is None:
+        return False
+    if not sweep_keeps(j, geo, fixed, ee_p, ee_q, ends):
+        return False
+    open_jaws(j, geo.tool_local)
+    return True
 
 
 @njit(cache=True)
@@ -87,7 +138,7 @@ def sweep_keeps(j, geo, fixed, ee_p, ee_q, ends):
     ee_q)`` (tuples, ``ee_q`` unit) keeps ``j.margin``: :func:`regrasp_mjx.world.jaw.sweep_fn`'s least
     clearance less its slack, at or above the margin, for every jaw, check point and counted capsule
     (``fixed``: :func:`~regrasp_mjx.envs.lean_collision.fixed_ends` of the query's needle; ``ends``
-    ``[A, 2, 3]`` scratch for one jaw's check points placed)."""
+    ``[>= A, 2, 3]`` scratch for one jaw's check points placed)."""
     f = fixed
     below = j.margin + j.slack  # a pair whose surface distance keeps this keeps the margin
     m = matrix(ee_q)

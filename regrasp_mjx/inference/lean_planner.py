@@ -123,7 +123,8 @@ class LeanPlanner:
         )
         self.geo = capsules(env.scene.capsule_frames, env.scene.config.needle_radius_mm * 1e-3)
         # the jaws that open on the way (EnvConfig.jaw_open_deg), by the environment's margin
-        self.jaws = jaws(env.scene, self.geo, cfg.jaw_open_deg, env.jaw_margin)
+        self.jaws = jaws(env.scene, cfg.jaw_open_deg, env.jaw_margin)
+        self.base_deg = float(env.scene.config.jaw_angle_deg)
         kernels, biases, layers = [], [], None
         for params, _, _ in weights:
             names = sorted(params["params"], key=lambda n: int(n.rsplit("_", 1)[1]))
@@ -154,7 +155,7 @@ class LeanPlanner:
             self.general,
             self.noise,
             self.shield,
-            tuple(self.jaws[:3]) + (tuple(self.jaws.opened),) + tuple(self.jaws[4:]),
+            None if self.jaws is None else tuple(self.jaws),
         )
         self.held = lean_collision.hold(self.state)  # what a call passes: the state as one native object
 
@@ -198,7 +199,8 @@ class LeanPlanner:
         f64 = np.ascontiguousarray
         needle, ee, goal = f64(needle, np.float64), f64(ee, np.float64), f64(goal, np.float64)
         at_goal = closed_loop_step(self.state, needle, ee, goal, radii, t, stop_scale, bool(opened), out)
-        return at_goal, out[:7], out[7:13], float(out[13])
+        jaw_deg = self.jaws.open_deg if out[13] > 0 and self.jaws is not None else self.base_deg
+        return at_goal, out[:7], out[7:13], jaw_deg
 
 
 class LeanResult(NamedTuple):

@@ -24,7 +24,7 @@ from numba import njit
 from regrasp_mjx.envs import lean_collision
 from regrasp_mjx.envs.lean_collision import Capsules, collides, fixed_ends, make_scratch, motion_collides
 from regrasp_mjx.envs.lean_geometry import angle, canonical, qexp, qmul, relative, unit
-from regrasp_mjx.envs.lean_jaw import Jaws, sweep_keeps
+from regrasp_mjx.envs.lean_jaw import Jaws, as_jaws, open_jaws, opens_here, own_capsules, sweep_points
 from regrasp_mjx.inference.lean_network import buffers, member_actions, observe
 
 # ---- the step and the rollout (regrasp_mjx.envs.env.RegraspEnv.step, regrasp_mjx.envs.rollout.rollout) -----
@@ -36,12 +36,11 @@ class Setup(NamedTuple):
     passed in from Python is typed field by field, hence the plain-tuple state)."""
 
     net: tuple  # (kernels, biases, layers, mean, std) of the members
-    geo: lean_collision.Capsules
-    jaws: Jaws  # the jaws' opening on the way (their capsules opened, the sweep's check points)
+    geo: lean_collision.Capsules  # where the jaws open on the way, with the query's own tool capsules
+    jaws: Jaws | None  # the jaws' opening on the way (their capsules opened, the sweep's check points)
     consts: np.ndarray  # max_dp, max_drot, clearance, success tolerances [m, rad]
     fixed: lean_collision.Fixed  # the query's needle and grasping tool placed
-    scratch: tuple  # make_scratch's arrays
-    ends: np.ndarray  # [A, 2, 3] scratch: one jaw at the sweep's check points
+    scratch: tuple  # make_scratch's arrays (its first also the sweep's)
     general: bool
     shield: bool
     needle: tuple  # (p, q): position and unit quaternion, tuples of float32 values
@@ -55,25 +54,22 @@ class Setup(NamedTuple):
 def setup(state, needle, goal, radii):
     """:class:`Setup` of one query: the state (:attr:`LeanPlanner.state`), the needle's and the
     goal's poses ``[7]`` and the radii ``[2]`` [m], each rounded to float32 as the JAX path takes them."""
-    net, geo, consts, _, varies, general, _, shield, j = state
-    geo = Capsules(*geo)
-    jaws = Jaws(j[0], j[1], j[2], Capsules(*j[3]), j[4], j[5], j[6], j[7], j[8])
+    net, geo, consts, _, varies, general, _, shield, jaws = state
+    jaws = as_jaws(jaws)
+    geo = Capsules(own_capsules(jaws, geo[0]), *geo[1:])  # jaws that open on the way open in a copy
     radii = (f32(radii[0]), f32(radii[1]))
     needle, goal = pose(needle), pose(goal)
     fixed = fixed_ends(geo, varies, *needle, *radii)
     goal_in_needle = relative(*goal, *needle)
-    scratch, work = make_scratch(geo.tool_local), buffers(net[3], net[1])
-    ends = np.empty((jaws.sweep.shape[0], 2, 3))
-    return Setup(
-        net, geo, jaws, consts, fixed, scratch, ends, general, shield, needle, goal, goal_in_needle, radii, work
-    )
+    scratch, work = make_scratch(geo.tool_local, sweep_points(jaws)), buffers(net[3], net[1])
+    return Setup(net, geo, jaws, consts, fixed, scratch, general, shield, needle, goal, goal_in_needle, radii, work)
 
 
 @njit(cache=True)
-def _step(s, geo, ee_p, ee_q, action):
-    """One step of the float32 ``action`` from the pose ``ee`` (``s``: the query's :class:`Setup`;
-    ``geo``: the counted capsules with the jaws where they are for the step): the new pose, whether
-    the swept motion collides, whether it reached the goal, and its translation [m]."""
+def _step(s, ee_p, ee_q, action):
+    """One step of the float32 ``action`` from the pose ``ee`` (``s``: the query's :class:`Setup`,
+    its capsules with the jaws where they are): the new pose, whether the swept motion collides,
+    whether it reached the goal, and its translation [m]."""
     consts, scratch, (gn_p, gn_q) = s.consts, s.scratch, s.goal_in_needle
     max_dp, max_drot, clearance, tol_pos, tol_rot = consts[0], consts[1], consts[2], consts[3], consts[4]
     # the action clipped; the JAX path steps it in float32
@@ -88,7 +84,7 @@ def _step(s, geo, ee_p, ee_q, action):
     quat = qmul(qexp(wx, wy, wz), ee_q)
     # the whole motion proved clear, not sampled poses (regrasp_mjx.world.continuous)
     collision = motion_collides(
-        geo, s.fixed, ee_p, ee_q, (dx, dy, dz), (wx, wy, wz), clearance, scratch[0], scratch[1], scratch[2]
+        s.geo, s.fixed, ee_p, ee_q, (dx, dy, dz), (wx, wy, wz), clearance, scratch[0], scratch[1], scratch[2]
     )
     quat = canonical(quat)
     p, q = relative(pos, quat, *s.needle)
@@ -112,28 +108,15 @@ def pose(v):
 
 
 @njit(cache=True)
-def _opens(s, ee_p, ee_q, opened):
-    """Whether the jaws are open for the step from ``ee``: open already, or opened before it where
-    the policy opens them on the way and the sweep keeps its margin here (the environment's rule,
-    :meth:`regrasp_mjx.envs.env.RegraspEnv.move`)."""
-    if opened or not s.jaws.opens:
-        return opened
-    return sweep_keeps(s.jaws, s.geo, s.fixed, ee_p, ee_q, s.ends)
-
-
-@njit(cache=True)
-def _decide(s, noise_t, ee_p, ee_q, opened):
-    """One step of the policy from the pose ``ee`` with the jaws ``opened`` or not (``s``: the
-    query's :class:`Setup`): the members' mean action (into ``s.buffers[4]``), the jaws opened first
-    where the environment's rule opens them and, with ``s.shield``, where the action collides, the
-    first free alternative (``noise_t``: this step's perturbations); returns :func:`_step`'s outcome
-    of the action taken and whether the jaws are open after it."""
+def _decide(s, noise_t, ee_p, ee_q):
+    """One step of the policy from the pose ``ee`` (``s``: the query's :class:`Setup`, its jaws where
+    :func:`~regrasp_mjx.envs.lean_jaw.opens_here` left them): the members' mean action (into ``s.buffers[4]``) and, with
+    ``s.shield``, where it collides, the first free alternative (``noise_t``: this step's
+    perturbations); returns :func:`_step`'s outcome of the action taken. The jaws are opened (or
+    not) before it, whatever the action: every alternative moves with them where they are."""
     kernels, biases, layers, mean, std = s.net
     obs, work, rows, own, act, cand = s.buffers
     members = mean.shape[0]
-    # the opening is decided on the start of the step, before the action: every alternative moves with it
-    opened = _opens(s, ee_p, ee_q, opened)
-    geo = s.jaws.opened if opened else s.geo
     observe(obs, s.general, *s.needle, ee_p, ee_q, *s.goal, *s.radii)
     member_actions(kernels, biases, layers, mean, std, obs, work, rows, own)
     for j in range(6):  # the members' mean, summed in their order as the JAX path does
@@ -142,7 +125,7 @@ def _decide(s, noise_t, ee_p, ee_q, opened):
             act[j] += own[m, j]
         if members > 1:
             act[j] /= np.float32(members)
-    pos, quat, collision, success, dl = _step(s, geo, ee_p, ee_q, act)
+    pos, quat, collision, success, dl = _step(s, ee_p, ee_q, act)
     if collision and s.shield:
         # the alternatives in shield_candidates' order: each member's own (an ensemble), half
         # the action, then the action plus the step's fixed noise, clipped; the first free one
@@ -155,11 +138,11 @@ def _decide(s, noise_t, ee_p, ee_q, opened):
                     cand[j] = np.float32(0.5) * act[j]
                 else:
                     cand[j] = min(max(act[j] + noise_t[c - extra - 1, j], np.float32(-1.0)), np.float32(1.0))
-            p2, q2, col2, suc2, dl2 = _step(s, geo, ee_p, ee_q, cand)
+            p2, q2, col2, suc2, dl2 = _step(s, ee_p, ee_q, cand)
             if not col2:
                 act[:] = cand
-                return p2, q2, col2, suc2, dl2, opened
-    return pos, quat, collision, success, dl, opened
+                return p2, q2, col2, suc2, dl2
+    return pos, quat, collision, success, dl
 
 
 @njit(cache=True)
@@ -168,10 +151,12 @@ def closed_loop_step(state, needle, ee, goal, radii, t, stop_scale, opened, out)
     estimates ``needle``, ``ee``, ``goal`` ``[7]`` (rounded to float32 as the JAX path takes them)
     with the jaws ``opened`` or not: ``out[:7]`` the pose to command next, ``out[7:13]`` the action
     (zero, and ``ee`` kept, where the estimate is within ``stop_scale`` of the success tolerances of
-    the goal) and ``out[13]`` the jaws' opening [deg] to command before the motion. Returns whether
-    the estimate is at the goal."""
+    the goal) and ``out[13]`` 1 where the jaws are open for the motion (0: at the scene's opening).
+    Returns whether the estimate is at the goal."""
     s = setup(state, needle, goal, radii)
     consts, noise = state[2], state[6]
+    if opened:  # opened by an earlier step
+        open_jaws(s.jaws, s.geo.tool_local)
     ee_p, ee_q = pose(ee)
     p, q = relative(ee_p, ee_q, *s.needle)
     gn_p, gn_q = s.goal_in_needle
@@ -180,16 +165,17 @@ def closed_loop_step(state, needle, ee, goal, radii, t, stop_scale, opened, out)
         out[:3] = ee_p
         out[3:7] = ee_q
         out[7:13] = 0.0
-        out[13] = s.jaws.open_deg if opened else s.jaws.base_deg
+        out[13] = 1.0 if opened else 0.0
         return True
-    pos, quat, _, _, _, opened = _decide(s, noise[t], ee_p, ee_q, opened)
+    opened = opened or opens_here(s.jaws, s.geo, s.fixed, ee_p, ee_q, s.scratch[0])
+    pos, quat, _, _, _ = _decide(s, noise[t], ee_p, ee_q)
     for r in range(3):
         out[r] = f32(pos[r])
     for r in range(4):
         out[3 + r] = f32(quat[r])
     for j in range(6):
         out[7 + j] = min(max(s.buffers[4][j], np.float32(-1.0)), np.float32(1.0))
-    out[13] = s.jaws.open_deg if opened else s.jaws.base_deg
+    out[13] = 1.0 if opened else 0.0
     return False
 
 
@@ -217,11 +203,11 @@ def rollout(state, needle, start, goal, radii, outcome):
         return poses[:1], actions[:0], -1
     length = 0.0
     steps = 0
-    opened, opened_at = False, -1
+    shut, opened_at = True, -1  # the jaws at the scene's opening, where they open on the way
     for t in range(horizon):
-        pos, quat, collision, success, dl, now = _decide(s, noise[t], ee_p, ee_q, opened)
-        if now and not opened:
-            opened, opened_at = True, t
+        if shut and opens_here(s.jaws, s.geo, s.fixed, ee_p, ee_q, s.scratch[0]):
+            shut, opened_at = False, t
+        pos, quat, collision, success, dl = _decide(s, noise[t], ee_p, ee_q)
         act = s.buffers[4]
         # the state as the JAX path keeps it, in float32 (the two paths' rounding drifts apart less)
         ee_p = (f32(pos[0]), f32(pos[1]), f32(pos[2]))
