@@ -182,10 +182,11 @@ LEARNER_SNIPPETS = [
     "snippet",
     # the Playground and vector-env snippets compile batches of rollouts: in the long tier (see tests/conftest.py)
     [pytest.param(s, marks=pytest.mark.slow) if i != 1 else s for i, s in enumerate(LEARNER_SNIPPETS)],
-    ids=["playground", "gymnasium", "gymnasium-vector"],
+    ids=["playground", "gymnasium", "gymnasium-vector", "gymnasium-vector-jax"],
 )
 def test_the_learners_page_snippets_run(snippet, capsys):
-    """docs/learners.md's three snippets (Playground style, gymnasium single and vector) run as written."""
+    """docs/learners.md's four snippets (Playground style, gymnasium single and vector, the vector env
+    with device arrays) run as written."""
     exec(compile(snippet, "docs/learners.md", "exec"), {"__name__": "__docs__"})
     assert capsys.readouterr().out.strip()  # each prints what it shows
 
