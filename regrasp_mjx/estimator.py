@@ -1,13 +1,15 @@
 """``python -m regrasp_mjx.estimator``: render labelled stereo frames, train the keypoint estimator, measure it.
 
-Four subcommands (each with ``--help``):
+Five subcommands (each with ``--help``):
 
 - ``render``: N episodes x F frames of one seed to an npz (MuJoCo's OpenGL renderer; ``MUJOCO_GL=egl``
   headless), in worker processes, resumable;
 - ``train``: the estimator on rendered frames, validated each epoch on frames of another seed;
   checkpoints, resume (the same command again), the best epoch exported to ``OUT/estimator``;
 - ``evaluate``: its pose errors on held-out frames, ``OUT/estimator_errors.json`` and ``.md``;
-- ``bench``: its milliseconds per stereo pair on this machine's default device.
+- ``bench``: its milliseconds per stereo pair on this machine's default device;
+- ``loop``: the closed loop from pixels (a policy driven by the estimator's view of rendered frames, judged
+  on the true poses) on a test set or held-out problems, ``OUT/pixel_loop.json`` and ``.md``, resumable.
 """
 
 from __future__ import annotations
@@ -16,16 +18,20 @@ import argparse
 import sys
 
 from regrasp_mjx.core.atomic import dumps, output_file_problem, output_folder_problem
-from regrasp_mjx.core.config import TASKS
+from regrasp_mjx.core.config import TASKS, ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, run_command
+from regrasp_mjx.inference.policy import PolicyError, load_policy
 from regrasp_mjx.vision.estimator_file import EstimatorError
 from regrasp_mjx.vision.network import WIDTHS
+from regrasp_mjx.vision.oracle import OracleError
 from regrasp_mjx.vision.training import CheckpointError
-from regrasp_mjx.workflows import estimator_report
+from regrasp_mjx.workflows import estimator_report, pixel_report
 from regrasp_mjx.workflows.estimator_training import Settings, deterministic_gpu, train
 from regrasp_mjx.workflows.frame_dataset import MAX_PAIRS, DatasetError, render_dataset
+from regrasp_mjx.workflows.pixel_eyes import PixelLoopError
 from regrasp_mjx.workflows.render import RenderUnavailable
 from regrasp_mjx.world.endoscope import RESOLUTION, Rig
+from regrasp_mjx.world.sampling import TestsetError
 
 
 def _widths(text: str) -> tuple[int, ...]:
@@ -48,13 +54,23 @@ def _positive(text: str) -> int:
     return value
 
 
+def _heldout(text: str) -> tuple[int, int]:
+    try:
+        n, seed = (int(x) for x in text.split(":"))
+    except ValueError:
+        n = seed = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: accepted N:SEED, N >= 1 problems drawn from the integer SEED")
+    return n, seed
+
+
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(
         prog="python -m regrasp_mjx.estimator",
         description=__doc__.split("\n\n")[0].split(": ", 1)[1],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = top.add_subparsers(dest="command", required=True, metavar="{render,train,evaluate,bench}")
+    sub = top.add_subparsers(dest="command", required=True, metavar="{render,train,evaluate,bench,loop}")
     r = sub.add_parser("render", help="render labelled stereo frames to an npz")
     r.add_argument("--out", required=True, help="output .npz (written atomically; chunks in OUT.parts/ until done)")
     r.add_argument("--episodes", type=_positive, required=True, help="episodes (problems, each its own randomisation)")
@@ -101,6 +117,24 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--estimator", required=True, help="an estimator folder")
     b.add_argument("--repeats", type=_positive, default=50, help="timed calls (default 50)")
     b.add_argument("--batch", type=_positive, default=1, help="stereo pairs per call (default 1)")
+    lp = sub.add_parser("loop", help="the closed loop from pixels, judged on the true poses")
+    lp.add_argument(
+        "--estimator", required=True, help="an estimator folder, or 'oracle' (keypoints from the true poses)"
+    )
+    lp.add_argument("--policy", default="default", help="a shipped policy's name or a policy folder (default: default)")
+    lp.add_argument("--out", required=True, help="folder for pixel_loop.json, .md and pixel_loop_rows.npz")
+    lp.add_argument("--testset", default="paper300", help="a shipped test set's name or an .npz (default paper300)")
+    lp.add_argument("--heldout", type=_heldout, metavar="N:SEED", help="N problems drawn from SEED instead")
+    lp.add_argument("--n", type=_positive, help="only the first N problems")
+    lp.add_argument(
+        "--seed", type=int, default=0, help="the episodes' randomisation and the oracle's noise (default 0)"
+    )
+    lp.add_argument("--batch", type=_positive, default=32, help="problems run side by side (default 32)")
+    lp.add_argument("--width", type=int, default=RESOLUTION[0], help="the oracle's image width (default 320)")
+    lp.add_argument("--height", type=int, default=RESOLUTION[1], help="the oracle's image height (default 180)")
+    lp.add_argument("--noise-px", type=float, default=0.0, help="the oracle's pixel noise, sd (default 0)")
+    lp.add_argument("--no-render", action="store_true", help="the oracle without images (it reads the true poses)")
+    lp.add_argument("--quiet", action="store_true", help="no progress lines")
     lines = ["options of each subcommand:"]
     for name, p in sub.choices.items():
         opts = [a.option_strings[0] for a in p._actions if a.option_strings and a.option_strings[0] != "-h"]
@@ -119,6 +153,19 @@ def main(argv: list[str] | None = None) -> int:
             p.error(
                 problem or f"--episodes x --frames is {args.episodes * args.frames}: accepted at most {MAX_PAIRS} pairs"
             )
+        try:
+            Rig(width=args.width, height=args.height)
+        except ValueError as err:
+            p.error(f"--width {args.width} --height {args.height}: {err}")
+    elif args.command == "loop":
+        oracle = args.estimator == pixel_report.ORACLE
+        problem = output_folder_problem(args.out)
+        if not problem and not oracle and (args.noise_px or args.no_render):
+            problem = "--noise-px and --no-render are the oracle's: accepted only with --estimator oracle"
+        if not problem and not (0.0 <= args.noise_px <= 100.0):
+            problem = f"--noise-px {args.noise_px}: accepted pixels in [0, 100]"
+        if problem:
+            p.error(problem)
         try:
             Rig(width=args.width, height=args.height)
         except ValueError as err:
@@ -145,13 +192,48 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "evaluate":
             rep = estimator_report.evaluate(args.estimator, args.data, args.out, args.batch)
             print(dumps(estimator_report.headline(rep)))
-        else:
+        elif args.command == "bench":
             print(dumps(estimator_report.bench(args.estimator, args.repeats, args.batch)))
-    except (DatasetError, EstimatorError, CheckpointError, FolderInUse, RenderUnavailable) as err:
+        else:
+            loop_args = pixel_report.LoopArgs(
+                args.policy,
+                args.estimator,
+                None if args.heldout else args.testset,
+                args.heldout,
+                args.n,
+                args.seed,
+                args.batch,
+                args.width,
+                args.height,
+                args.noise_px,
+                not args.no_render,
+            )
+            log = (lambda *_: None) if args.quiet else (lambda line: print(line, flush=True))
+            rep = pixel_report.run(loop_args, args.out, load_policy(args.policy), log=log)
+            s = rep["summary"]
+            rates = ("success_rate", "collision_rate", "time_out_rate", "stopped_short_rate")
+            needle = s["estimate_per_frame"]["needle_in_e_g"]
+            print(
+                dumps(
+                    {"out": args.out, "problems": rep["problems"], **{k: s[k] for k in rates}, "needle_in_e_g": needle}
+                )
+            )
+    except (
+        DatasetError,
+        EstimatorError,
+        CheckpointError,
+        FolderInUse,
+        RenderUnavailable,
+        PixelLoopError,
+        OracleError,
+        PolicyError,
+        TestsetError,
+        ConfigError,
+    ) as err:
         print(f"python -m regrasp_mjx.estimator {args.command}: {err}", file=sys.stderr)
         return 2
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(run_command(main, "run the same command again: render and train go on from where they stopped"))
+    sys.exit(run_command(main, "run the same command again: render, train and loop go on from where they stopped"))

@@ -1,0 +1,269 @@
+"""The closed loop from pixels over a set of problems (``python -m regrasp_mjx.estimator loop``): the
+problems (a test set, or held-out problems drawn from a seed), the estimator (a file, or the oracle),
+the loop run a batch at a time with each finished batch written to ``OUT/pixel_loop.parts/`` (a killed
+run goes on from where it stopped, with the same command), and its numbers: ``OUT/pixel_loop.json``
+(strict JSON), ``OUT/pixel_loop.md`` (a table) and ``OUT/pixel_loop_rows.npz`` (every row's outcome,
+each frame's estimate error, the true poses; plain arrays).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from regrasp_mjx.core.atomic import atomic_write, machine, write_json, write_results
+from regrasp_mjx.core.host_loop import eta, folder_lock
+from regrasp_mjx.inference.robustness import policy_hash
+from regrasp_mjx.vision.estimator_file import Estimator, load_estimator
+from regrasp_mjx.vision.oracle import OracleEstimator
+from regrasp_mjx.workflows.frames import FrameRenderer
+from regrasp_mjx.workflows.pixel_eyes import ERROR_COLUMNS, PixelLoopError, episode_seeds, rig_of
+from regrasp_mjx.workflows.pixel_loop import MAX_REFUSED, execute_from_pixels
+from regrasp_mjx.world.endoscope import Rig
+from regrasp_mjx.world.sampling import episode_poses, load_testset
+from regrasp_mjx.world.testsets import make_testset, versions
+
+REPORT = "pixel_loop"
+ORACLE = "oracle"  # the --estimator that names the oracle
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopArgs:
+    """What a run of the loop from pixels measures (what its parts folder must match to be resumed)."""
+
+    policy: str
+    estimator: str
+    testset: str | None = "paper300"
+    heldout: tuple[int, int] | None = None  # (problems, seed), instead of the test set
+    n: int | None = None  # the first n problems (None: all)
+    seed: int = 0
+    batch: int = 32
+    width: int = Rig().width  # the oracle's rig (a learned estimator's is the one it was trained at)
+    height: int = Rig().height
+    noise_px: float = 0.0  # the oracle's pixel noise
+    render: bool = True
+
+
+def problems(policy: Any, args: LoopArgs) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+    """The name and the needle, start and goal poses ``[N, 7]`` of the problems ``args`` names: a test
+    set, or ``heldout`` problems drawn from its seed with the policy's task; the first ``n`` of them.
+    Raises :class:`PixelLoopError` on needles the endoscope does not draw (other than the scene's)."""
+    if args.heldout is not None:
+        count, seed = args.heldout
+        episodes, name = make_testset(int(count), int(seed), policy.env_config), f"held-out {count} (seed {seed})"
+    else:
+        episodes, name = load_testset(args.testset)[0], Path(str(args.testset)).stem
+    scene = policy.env_config.scene
+    for field, want in (("needle_radius", scene.needle_radius_mm), ("wire_radius", scene.wire_radius_mm)):
+        radii = getattr(episodes, field)
+        if radii is not None and not np.allclose(np.asarray(radii) * 1e3, want):
+            raise PixelLoopError(
+                f"{name}'s needles are not the scene's ({field} {want} mm): the endoscope draws the scene's needle"
+            )
+    needle, start, goal = (np.asarray(x, np.float64) for x in episode_poses(episodes))
+    if args.n is not None:
+        if not 1 <= args.n <= len(needle):
+            raise PixelLoopError(f"n={args.n} is not accepted: 1 to the {len(needle)} problems of {name}")
+        needle, start, goal, name = needle[: args.n], start[: args.n], goal[: args.n], f"{name}[:{args.n}]"
+    return name, needle, start, goal
+
+
+def estimator_of(args: LoopArgs) -> Estimator | OracleEstimator:
+    """The estimator ``args`` names: the oracle at ``width`` x ``height`` with ``noise_px``, or a file."""
+    if args.estimator == ORACLE:
+        return OracleEstimator.of(Rig(width=args.width, height=args.height), noise_px=args.noise_px, seed=args.seed)
+    if args.noise_px or not args.render:
+        raise PixelLoopError("noise_px and render=False are the oracle's: not accepted with an estimator file")
+    return load_estimator(args.estimator)
+
+
+def _stats(values: np.ndarray) -> dict[str, float | None]:
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {"median": None, "p95": None}
+    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
+
+
+def summary(rows: dict[str, np.ndarray]) -> dict[str, Any]:
+    """A run's numbers from its rows: rates, steps and frames, and the estimate's errors over every frame
+    (each column of :data:`ERROR_COLUMNS`; frames the fit gave no pose counted as failed)."""
+    n = len(rows["success"])
+    short = rows["stopped"] & ~rows["success"] & ~rows["collision"]
+    taken = np.arange(rows["estimate_error_mm"].shape[1])[None] < rows["frames"][:, None]  # [N, F]
+    estimate = {}
+    for c, name in enumerate(ERROR_COLUMNS):
+        mm, deg = rows["estimate_error_mm"][..., c][taken], rows["estimate_error_deg"][..., c][taken]
+        estimate[name] = {
+            "position_mm": _stats(mm),
+            "orientation_deg": _stats(deg),
+            "failed": int((~np.isfinite(mm)).sum()),
+        }
+    return {
+        "problems": n,
+        "success_rate": float(rows["success"].mean()),
+        "collision_rate": float(rows["collision"].mean()),
+        "time_out_rate": float(rows["time_out"].mean()),
+        "stopped_short_rate": float(short.mean()),
+        "invalid_starts": int((~rows["start_valid"]).sum()),
+        "steps": _stats(rows["steps"]),
+        "frames": _stats(rows["frames"]),
+        "frames_total": int(rows["frames"].sum()),
+        "refused_total": int(rows["refused"].sum()),
+        "estimate_per_frame": estimate,
+        "view_at_last_decision_mm": {
+            "needle_in_e_g": _stats(rows["view_error_mm"][:, 0]),
+            "regrasping_tool_in_e_g": _stats(rows["view_error_mm"][:, 1]),
+        },
+    }
+
+
+def _cell(s: dict[str, float | None], f: str = ".3f") -> str:
+    return "-" if s["median"] is None else f"{s['median']:{f}} / {s['p95']:{f}}"
+
+
+def markdown(rep: dict[str, Any]) -> list[str]:
+    """The report as markdown lines."""
+    s = rep["summary"]
+    lines = [
+        f"# The closed loop from pixels: `{rep['policy']}` on {rep['problems']}",
+        "",
+        f"Estimator: {rep['estimator']['name']} ({rep['estimator']['kind']}; frames {rep['frames']['width']} x "
+        f"{rep['frames']['height']}{'' if rep['frames']['rendered'] else ', not rendered: the oracle reads the poses'}); "
+        f"the policy's own closed loop (warm-up {rep['settings']['warmup_frames']} frames, stop tolerance "
+        f"{rep['settings']['stop_tolerance']}); seed {rep['seed']}; judged on the true poses. {rep['machine']}; "
+        f"{rep['seconds']:.0f} s, {rep['pairs_per_s']:.1f} stereo pairs/s.",
+        "",
+        "| problems | success | collision | time-out | stopped short | steps median / p95 | frames median / p95 | refused frames |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        f"| {s['problems']} | {s['success_rate']:.3f} | {s['collision_rate']:.3f} | {s['time_out_rate']:.3f} | "
+        f"{s['stopped_short_rate']:.3f} | {_cell(s['steps'], '.0f')} | {_cell(s['frames'], '.0f')} | "
+        f"{s['refused_total']} of {s['frames_total']} |",
+        "",
+        "Each frame's estimate against the truth (median / p95; the first three in the left camera's frame, "
+        "the last two as the policy sees them, in the grasping tool's frame):",
+        "",
+        "| object | position mm | orientation deg | failed frames |",
+        "| --- | ---: | ---: | ---: |",
+    ]
+    for name, e in s["estimate_per_frame"].items():
+        lines.append(f"| {name} | {_cell(e['position_mm'])} | {_cell(e['orientation_deg'], '.2f')} | {e['failed']} |")
+    v = s["view_at_last_decision_mm"]
+    lines += [
+        "",
+        f"The fused view at each row's last decision, position error (mm, median / p95): needle "
+        f"{_cell(v['needle_in_e_g'])}, regrasping tool {_cell(v['regrasping_tool_in_e_g'])}.",
+    ]
+    return lines
+
+
+def _manifest(args: LoopArgs) -> dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(args).items()}
+
+
+def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, Any]:
+    """The loop from pixels on ``args``'s problems with ``policy`` (loaded from ``args.policy``),
+    resumable by batches; writes the report and the rows into ``out`` and returns the report.
+
+    Raises:
+      PixelLoopError: problems, an estimator or settings the loop cannot run; ``OUT``'s parts of another run.
+      EstimatorError, TestsetError, ConfigError: an unreadable estimator or test set, bad problem counts.
+      FolderInUse: another run writes into ``out``.
+      RenderUnavailable: no OpenGL context can be made here.
+    """
+    out = Path(out)
+    name, needle, start, goal = problems(policy, args)
+    estimator = estimator_of(args)
+    rig = rig_of(estimator)
+    seeds = episode_seeds(len(needle), args.seed)
+    parts = out / f"{REPORT}.parts"
+    manifest = _manifest(args)
+    with folder_lock(out):
+        if (parts / "manifest.json").is_file() and json.loads((parts / "manifest.json").read_text()) != manifest:
+            raise PixelLoopError(
+                f"{parts} holds the batches of another run ({(parts / 'manifest.json').read_text().strip()}); "
+                "accepted: the same arguments to resume it, or remove that folder"
+            )
+        write_json(parts / "manifest.json", manifest)
+        chunks = [(a, min(a + args.batch, len(needle))) for a in range(0, len(needle), args.batch)]
+        todo = [(a, b) for a, b in chunks if not (parts / f"rows_{a:06d}.npz").is_file()]
+        log(
+            f"pixels: {args.policy} on {name}, {len(needle)} problems in "
+            f"{len(chunks)} batches ({len(chunks) - len(todo)} done before), estimator {args.estimator}, "
+            f"{rig.width} x {rig.height}, seed {args.seed}"
+        )
+        renderer = FrameRenderer(rig=rig) if args.render else None
+        t0, pairs = time.perf_counter(), 0
+        try:
+            for k, (a, b) in enumerate(todo):
+                rows = execute_from_pixels(
+                    policy,
+                    estimator,
+                    needle[a:b],
+                    start[a:b],
+                    goal[a:b],
+                    batch=args.batch,
+                    render=args.render,
+                    renderer=renderer,
+                    log=log,
+                    seeds=seeds[a:b],
+                )
+                atomic_write(parts / f"rows_{a:06d}.npz", lambda f, rows=rows: np.savez(f, **rows))
+                pairs += int(rows["frames"].sum())
+                seconds = time.perf_counter() - t0
+                log(
+                    f"pixels: batch {k + 1}/{len(todo)} (rows {a}-{b - 1}): success {int(rows['success'].sum())}/{b - a}, "
+                    f"{pairs / seconds:.1f} stereo pairs/s, {eta(k + 1, len(todo), seconds)}"
+                )
+        finally:
+            if renderer is not None:
+                renderer.close()
+        loaded = []
+        for a, _ in chunks:
+            with np.load(parts / f"rows_{a:06d}.npz", allow_pickle=False) as f:
+                loaded.append({k: f[k] for k in f.files})
+        longest = max(p["estimate_error_mm"].shape[1] for p in loaded)
+        pad = lambda x: np.pad(x, ((0, 0), (0, longest - x.shape[1]), (0, 0)), constant_values=np.nan)  # noqa: E731
+        rows = {
+            k: np.concatenate([pad(p[k]) if k.startswith("estimate_error") else p[k] for p in loaded])
+            for k in loaded[0]
+        }
+        seconds = time.perf_counter() - t0
+        defaults = policy.closed_loop_defaults
+        rep = {
+            "policy": args.policy,
+            "policy_hash": policy_hash(args.policy),
+            "problems": name,
+            "estimator": {
+                "name": args.estimator,
+                "kind": "oracle: keypoints projected from the true poses, the learned estimator's fit"
+                if isinstance(estimator, OracleEstimator)
+                else "learned",
+                "noise_px": args.noise_px,
+                "training": None if isinstance(estimator, OracleEstimator) else estimator.contract.get("training"),
+            },
+            "frames": {"width": rig.width, "height": rig.height, "rendered": args.render},
+            "settings": {
+                "warmup_frames": defaults["warmup_frames"],
+                "stop_tolerance": defaults["stop_tolerance"],
+                "max_refused": MAX_REFUSED,
+                "batch": args.batch,
+            },
+            "seed": args.seed,
+            "summary": summary(rows),
+            "seconds": seconds,
+            "pairs_per_s": pairs / seconds if pairs and seconds else 0.0,
+            "machine": machine(),
+            "versions": versions(),
+            "date": time.strftime("%Y-%m-%d"),
+        }
+        atomic_write(out / f"{REPORT}_rows.npz", lambda f: np.savez(f, **rows))
+        write_results(out, REPORT, markdown(rep), rep)
+        shutil.rmtree(parts)
+    return rep

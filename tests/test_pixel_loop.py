@@ -1,0 +1,297 @@
+"""The closed loop from pixels (issue 68, step 5): the oracle estimator (keypoints projected from the true
+poses, then the learned estimator's fit) returns the true poses, and a biased one moves the needle by what
+the projection says; the loop through the oracle, on frames rendered for real (skipped where no OpenGL
+context can be made), takes the policy's own plan step by step, and (slow) reproduces the simulated camera
+loop's outcomes, steps and frames at the policy's own settings; the learned estimator's path sees rendered
+frames; the command line writes its report, resumes a killed run to the same rows and refuses bad input."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import regrasp_mjx
+from regrasp_mjx import estimator as cli
+from regrasp_mjx.vision import stereo
+from regrasp_mjx.vision.estimator_file import load_estimator, save_estimator
+from regrasp_mjx.vision.network import NetConfig, init_params
+from regrasp_mjx.vision.oracle import OracleError, OracleEstimator
+from regrasp_mjx.workflows import pixel_loop, pixel_report
+from regrasp_mjx.workflows.frames import FrameRenderer
+from regrasp_mjx.workflows.pixel_eyes import Eyes, PixelLoopError, episode_seeds, frame_errors, matrices, rig_of
+from regrasp_mjx.workflows.pixel_loop import execute_from_pixels
+from regrasp_mjx.workflows.render import RenderUnavailable
+from regrasp_mjx.world import domain_randomisation as dr
+from regrasp_mjx.world import endoscope
+from regrasp_mjx.world.sampling import episode_poses
+
+W, H = 64, 36  # tiny frames
+ROWS = 2  # every loop here runs 2 problems side by side: one compiled judge
+
+
+@pytest.fixture(scope="module")
+def problems(paper_testset):
+    return tuple(np.asarray(x) for x in episode_poses(paper_testset[0]))
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return regrasp_mjx.load_policy()
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    try:
+        r = FrameRenderer(rig=endoscope.Rig(width=W, height=H))
+    except RenderUnavailable as err:
+        pytest.skip(f"no OpenGL on this machine ({err}); the oracle without images is tested without it")
+    yield r
+    r.close()
+
+
+def _cameras(rig, seeds):
+    d = dr.draws(np.asarray(seeds))
+    return endoscope.invert(endoscope.camera_poses(rig, np.asarray(d.camera_shift), np.asarray(d.camera_rotvec)))
+
+
+# ---- the oracle ------------------------------------------------------------------------------------------
+
+
+def test_the_oracle_returns_the_true_poses(problems):
+    needle, start, _ = problems
+    rig = endoscope.Rig()
+    oracle = OracleEstimator.of(rig)
+    poses, extrinsics = endoscope.object_poses(needle[:8], start[:8]), _cameras(rig, range(8))
+    out = oracle.estimate(poses, extrinsics)
+    mm, deg = frame_errors(out["poses"], extrinsics[:, 0, None] @ matrices(poses))
+    assert out["poses"].shape == (8, 3, 7) and out["pixels"].shape == (8, 2, len(oracle.keypoints.names), 2)
+    assert mm.max() < 1e-3 and deg.max() < 1e-3, (mm.max(), deg.max())  # micrometres, millidegrees: float32's fit
+    assert np.all(out["rms_px"] < 1e-3)
+
+
+def test_a_biased_oracle_moves_the_needle_by_what_the_projection_says(problems):
+    """Every needle keypoint shifted by the same pixels in both images (no change of disparity) moves the
+    needle across the optical axis by what those pixels are at its keypoints' depths (the mean of their
+    triangulated shifts); depth and the tools stay."""
+    needle, start, _ = problems
+    rig = endoscope.Rig()
+    exact = OracleEstimator.of(rig)
+    poses, extrinsics = endoscope.object_poses(needle[:6], start[:6]), _cameras(rig, range(6))
+    truth = exact.estimate(poses, extrinsics)["poses"]
+    rows = exact.rows("needle")
+    k, right = jnp.asarray(rig.intrinsics()), jnp.asarray(stereo.rectified(rig.baseline_m))
+    uv = exact.pixels(poses, extrinsics)[:, :, rows]
+
+    def triangulated(px):
+        return np.asarray(stereo.triangulate(jnp.asarray(px[:, 0]), jnp.asarray(px[:, 1]), k, right))
+
+    for shift in ((1.5, 0.0), (0.0, -1.0)):  # pixels (u, v), both images
+        bias = np.zeros((2, len(exact.keypoints.names), 2))
+        bias[:, rows] = shift
+        biased = OracleEstimator.of(rig, bias_px=bias).estimate(poses, extrinsics)["poses"]
+        moved = (biased[:, 0, :3] - truth[:, 0, :3]) * 1e3  # mm, left camera frame
+        said = (triangulated(uv + shift) - triangulated(uv)).mean(axis=1) * 1e3
+        axis = 0 if shift[0] else 1
+        assert np.all(np.abs(said[:, axis]) > 0.2), said  # a pixel is 0.22 mm at the working distance
+        np.testing.assert_allclose(moved[:, axis], said[:, axis], rtol=0.08)
+        assert np.abs(moved[:, 1 - axis]).max() < 0.01 and np.abs(moved[:, 2]).max() < 0.03, moved
+        np.testing.assert_allclose(biased[:, 1:], truth[:, 1:], atol=1e-6)  # the tools' keypoints are not biased
+
+
+def test_the_oracle_s_noise_is_keyed_and_its_refusals(problems):
+    needle, start, _ = problems
+    rig = endoscope.Rig()
+    poses, extrinsics = endoscope.object_poses(needle[:2], start[:2]), _cameras(rig, range(2))
+    noisy = OracleEstimator.of(rig, noise_px=0.5, seed=3)
+    keys = np.array([[7, 0], [7, 1]])
+    a, b = noisy.estimate(poses, extrinsics, keys), noisy.estimate(poses, extrinsics, keys)
+    np.testing.assert_array_equal(a["pixels"], b["pixels"])  # the same episode and frame, the same noise
+    c = noisy.estimate(poses[::-1], extrinsics[::-1], keys[::-1])  # a row's noise is its key's, wherever it is
+    np.testing.assert_allclose(c["pixels"][::-1], a["pixels"], atol=1e-12)
+    assert not np.allclose(noisy.estimate(poses, extrinsics, keys + 1)["pixels"], a["pixels"])
+    assert 0.3 < np.std(a["pixels"] - noisy.pixels(poses, extrinsics)) < 0.7
+    with pytest.raises(OracleError, match="bias_px of shape"):
+        OracleEstimator.of(rig, bias_px=np.zeros(5))
+    with pytest.raises(OracleError, match="noise_px"):
+        OracleEstimator.of(rig, noise_px=-1.0)
+    with pytest.raises(OracleError, match="e_g itself"):
+        noisy.estimate(poses[:, [1, 0, 2]], extrinsics)
+    with pytest.raises(OracleError, match="keys"):
+        noisy.estimate(poses, extrinsics, np.array([[1, -1], [0, 0]]))
+    with pytest.raises(OracleError, match="one of"):
+        noisy.rows("needle_holder")
+
+
+# ---- the loop ----------------------------------------------------------------------------------------------
+
+
+def test_the_loop_through_the_oracle_plans_as_the_policy(policy, problems, renderer, monkeypatch):
+    """Frames rendered at the true poses, the oracle's estimate, CameraLoop at one warm-up frame and the
+    full stop tolerance: the policy's own plan, step by step (as CameraLoop with exact camera frames)."""
+    monkeypatch.setattr(pixel_loop, "PROGRESS_STEPS", 4)
+    needle, start, goal = (x[:ROWS] for x in problems)
+    oracle = OracleEstimator.of(renderer.rig)
+    lines = []
+    out = execute_from_pixels(
+        policy, oracle, needle, start, goal, renderer=renderer, warmup_frames=1, stop_tolerance=1.0, log=lines.append
+    )
+    for i in range(ROWS):
+        plan = policy.plan(needle[i], start[i], goal[i], check_grasp=False)
+        steps = int(plan.steps)
+        assert bool(out["success"][i]) == bool(plan.success) and int(out["steps"][i]) == steps
+        np.testing.assert_allclose(out["poses"][i, : steps + 1], plan.poses, atol=2e-6)
+    assert out["success"].all() and not out["collision"].any() and out["stopped"].all()
+    np.testing.assert_array_equal(out["frames"], out["steps"] + 1)  # one frame a step and the one that stopped
+    assert out["refused"].sum() == 0 and out["estimate_error_mm"].shape[-1] == 5
+    taken = np.arange(out["estimate_error_mm"].shape[1])[None] < out["frames"][:, None]
+    assert np.nanmax(out["estimate_error_mm"][taken]) < 1e-3 and np.isnan(out["estimate_error_mm"][~taken]).all()
+    np.testing.assert_array_equal(out["seeds"], episode_seeds(ROWS, 0))
+    assert lines and all(re.match(r"  rows 0-1 of 2 step [48]: \d of 2 rows live, \d+ stereo pairs", x) for x in lines)
+
+
+@pytest.mark.slow
+def test_the_loop_through_the_oracle_is_the_simulated_camera_loop(policy, problems, renderer):
+    """At the policy's own settings (warm-up frames, stop tolerance) and no error, the loop from pixels
+    through the oracle ends each problem as ``Policy.execute`` does, in as many steps and frames."""
+    needle, start, goal = (x[:ROWS] for x in problems)
+    out = execute_from_pixels(policy, OracleEstimator.of(renderer.rig), needle, start, goal, renderer=renderer)
+    ref = policy.execute(needle, start, goal)
+    for key in ("success", "collision", "time_out", "stopped", "steps", "frames"):
+        np.testing.assert_array_equal(out[key], ref[key], err_msg=key)
+    np.testing.assert_allclose(out["poses"], ref["poses"], atol=2e-6)
+
+
+def test_the_learned_estimator_sees_rendered_frames(renderer, problems, tmp_path):
+    """The learned path: a stereo pair rendered for each row, the estimator's poses (an untrained network
+    here: shapes, not accuracy), the truth beside them; its cameras checked against the endoscope's."""
+    needle, start, _ = problems
+    kp = OracleEstimator.of(renderer.rig).keypoints
+    net = NetConfig(len(kp.names), W, H)
+    rig = renderer.rig
+    folder = save_estimator(
+        tmp_path / "est", init_params(net, jax.random.PRNGKey(0)), net, kp, rig.intrinsics(), rig.baseline_m
+    )
+    est = load_estimator(folder)
+    assert rig_of(est) == rig
+    eyes = Eyes(est, rig, renderer, episode_seeds(3, 0), needle[:3], 3)
+    seen, truth = eyes.look(np.array([0, 2]), start[[0, 2]])
+    assert seen["poses"].shape == (2, 3, 7) and truth.shape == (2, 3, 4, 4) and eyes.pairs == 2
+    np.testing.assert_array_equal(eyes.next_frame, [1, 0, 1])
+    other = save_estimator(
+        tmp_path / "other", init_params(net, jax.random.PRNGKey(0)), net, kp, rig.intrinsics() * 1.1, rig.baseline_m
+    )
+    with pytest.raises(PixelLoopError, match="not the endoscope's"):
+        rig_of(load_estimator(other))
+    policy = regrasp_mjx.load_policy()
+    with pytest.raises(PixelLoopError, match="render=False"):
+        execute_from_pixels(policy, est, needle[:1], start[:1], render=False)
+
+
+def test_the_loop_s_refusals(policy, problems, monkeypatch):
+    needle, start, goal = (x[:1] for x in problems)
+    oracle = OracleEstimator.of(endoscope.Rig(width=W, height=H))
+    with pytest.raises(PixelLoopError, match="not accepted: a loaded Estimator"):
+        execute_from_pixels(policy, object(), needle, start, goal)
+    with pytest.raises(PixelLoopError, match="batch=0"):
+        execute_from_pixels(policy, oracle, needle, start, goal, batch=0, render=False)
+    with pytest.raises(PixelLoopError, match="seeds of shape"):
+        execute_from_pixels(policy, oracle, needle, start, goal, seeds=[1, 2], render=False)
+    with pytest.raises(PixelLoopError, match="warmup_frames=0"):
+        execute_from_pixels(policy, oracle, needle, start, goal, warmup_frames=0, render=False)
+    with pytest.raises(PixelLoopError, match="needle"):
+        execute_from_pixels(policy, oracle, needle * np.nan, start, goal, render=False)
+    with monkeypatch.context() as m:
+        m.setattr(
+            type(policy),
+            "closed_loop_defaults",
+            property(lambda self: {"look_frames": 30, "warmup_frames": 10, "stop_tolerance": 0.8}),
+        )
+        with pytest.raises(PixelLoopError, match="does not look yet"):
+            execute_from_pixels(policy, oracle, needle, start, goal, render=False)
+
+
+# ---- the command line --------------------------------------------------------------------------------------
+
+
+def _cli(argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = cli.main(argv)
+        except SystemExit as stop:
+            code = stop.code
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_the_command_writes_its_report_and_resumes_a_killed_run(tmp_path, policy):
+    """``estimator loop`` through the oracle without images (fast): strict JSON, a markdown table and the
+    rows; a run killed after its first batch goes on from there, to the rows of a run never killed."""
+    # 320 x 180 (no images drawn): 0.05 px of noise is about 0.1 mm of needle in e_g a frame
+    base = ["loop", "--estimator", "oracle", "--n", "4", "--batch", str(ROWS), "--no-render", "--noise-px", "0.05"]
+    base += ["--seed", "5"]
+    code, out, err = _cli(base + ["--out", str(tmp_path / "whole")])
+    assert code == 0, err
+    printed = json.loads(out.strip().splitlines()[-1])
+    assert printed["problems"] == "paper300[:4]" and printed["success_rate"] == 1.0
+    rep = json.loads((tmp_path / "whole" / "pixel_loop.json").read_text())  # strict JSON: no NaN
+    assert (
+        rep["summary"]["problems"] == 4
+        and rep["settings"]["warmup_frames"] == policy.closed_loop_defaults["warmup_frames"]
+    )
+    assert 0.01 < rep["summary"]["estimate_per_frame"]["needle_in_e_g"]["position_mm"]["median"] < 0.2
+    table = (tmp_path / "whole" / "pixel_loop.md").read_text()
+    assert "| 4 | 1.000 | 0.000 | 0.000 | 0.000 |" in table
+    assert not (tmp_path / "whole" / "pixel_loop.parts").exists()
+
+    args = pixel_report.LoopArgs("default", "oracle", "paper300", None, 4, 5, ROWS, noise_px=0.05, render=False)
+
+    def killed(line):
+        if line.startswith("pixels: batch 1/2"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        pixel_report.run(args, tmp_path / "killed", policy, log=killed)
+    assert sorted(p.name for p in (tmp_path / "killed" / "pixel_loop.parts").iterdir()) == [
+        "manifest.json",
+        "rows_000000.npz",
+    ]
+    lines = []
+    pixel_report.run(args, tmp_path / "killed", policy, log=lines.append)
+    assert "(1 done before)" in lines[0] and len([x for x in lines if x.startswith("pixels: batch")]) == 1
+    with (
+        np.load(tmp_path / "whole" / "pixel_loop_rows.npz") as a,
+        np.load(tmp_path / "killed" / "pixel_loop_rows.npz") as b,
+    ):
+        assert sorted(a.files) == sorted(b.files)
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+    (tmp_path / "other" / "pixel_loop.parts").mkdir(parents=True)
+    (tmp_path / "other" / "pixel_loop.parts" / "manifest.json").write_text(json.dumps({"seed": 1}))
+    code, _, err = _cli(base + ["--out", str(tmp_path / "other")])
+    assert code == 2 and "holds the batches of another run" in err
+
+
+def test_the_command_s_bad_arguments(tmp_path):
+    out = ["--out", str(tmp_path / "o")]
+    code, _, err = _cli(["loop", "--estimator", str(tmp_path / "none"), "--noise-px", "1"] + out)
+    assert code == 2 and "the oracle's" in err
+    code, _, err = _cli(["loop", "--estimator", str(tmp_path / "none"), "--n", "1"] + out)
+    assert code == 2 and "estimator folder not found" in err
+    code, _, err = _cli(["loop", "--estimator", "oracle", "--heldout", "5"] + out)
+    assert code == 2 and "N:SEED" in err
+    code, _, err = _cli(["loop", "--estimator", "oracle", "--width", "8"] + out)
+    assert code == 2 and "within [16, 4096]" in err
+    code, _, err = _cli(["loop", "--estimator", "oracle", "--n", "400", "--no-render"] + out)
+    assert code == 2 and "n=400 is not accepted" in err
+    code, _, err = _cli(["loop", "--estimator", "oracle", "--policy", "nope", "--no-render"] + out)
+    assert code == 2 and "nope" in err
+    code, _, err = _cli(["loop", "--estimator", "oracle", "--testset", "general1000", "--no-render"] + out)
+    assert code == 2 and "the endoscope draws the scene's needle" in err
