@@ -80,6 +80,47 @@ def test_the_lean_sweep_opens_exactly_where_its_room_keeps_the_margin(open40):
         assert lean_jaw == jax_jaw[0] == (40.0 if opens else 20.0), gap
 
 
+def test_the_lean_sweeps_verdict_is_the_environments_near_the_needle(open40, paper_testset):
+    """1200 poses about paper300's starts (1.5 mm and 10 degrees of scatter): the lean sweep's verdict
+    (bounds that skip pairs and check points) is the environment's room against its margin wherever
+    the room is more than 1e-6 m from it (float32 there, float64 here), and both verdicts occur."""
+    planner = open40.lean(True)
+    env = RegraspEnv(open40.env_config)
+    rng = np.random.default_rng(5)
+    needle, start, _ = (np.repeat(x[:300], 4, axis=0) for x in episode_poses(paper_testset[0]))
+    turn = rng.normal(0.0, math.radians(10.0) / 2.0, (len(start), 3))  # small rotations as quaternions
+    ee = start.copy()
+    ee[:, :3] += rng.normal(0.0, 1.5e-3, (len(start), 3))
+    ee[:, 3:] = np.stack([_qmul(np.r_[1.0, t], q) for t, q in zip(turn, start[:, 3:])])
+    ee[:, 3:] /= np.linalg.norm(ee[:, 3:], axis=1, keepdims=True)
+    episode = Episode.from_poses(*(jnp.asarray(x, jnp.float32) for x in (needle, ee, ee)))
+    es = jax.jit(jax.vmap(env.reset_from))(episode).pipeline_state
+    room = np.asarray(jax.jit(jax.vmap(env.opening_room, in_axes=(0, None)))(es, 40.0))
+    scratch = np.empty((len(planner.jaws.sweep), 2, 3))
+    lean = np.zeros(len(ee), bool)
+    for i in range(len(ee)):
+        n, e = (np.float64(np.float32(x)) for x in (needle[i], ee[i]))
+        n[3:], e[3:] = n[3:] / np.linalg.norm(n[3:]), e[3:] / np.linalg.norm(e[3:])
+        fixed = fixed_ends(planner.geo, False, tuple(n[:3]), tuple(n[3:]), 5.4e-3, 0.25e-3)
+        lean[i] = sweep_keeps(planner.jaws, planner.geo, fixed, tuple(e[:3]), tuple(e[3:]), scratch)
+    decided = np.abs(room - env.jaw_margin) > 1e-6
+    np.testing.assert_array_equal(lean[decided], room[decided] >= env.jaw_margin)
+    assert 0.2 < lean.mean() < 0.8 and decided.mean() > 0.99
+
+
+def _qmul(a, b):
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
+
+
 def test_the_lean_path_carries_the_jaws_as_the_jax_program_on_paper300_rows(open40, paper_testset):
     """The first 48 problems (the jaws open before step 0, 1, 2 or 3 and, on row 43, never), bare
     and shielded; Policy.plan's automatic engine is the lean one for such a policy too."""
