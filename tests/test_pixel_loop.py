@@ -140,7 +140,16 @@ def test_the_loop_through_the_oracle_plans_as_the_policy(policy, problems, rende
     oracle = OracleEstimator.of(renderer.rig)
     lines = []
     out = execute_from_pixels(
-        policy, oracle, needle, start, goal, renderer=renderer, warmup_frames=1, stop_tolerance=1.0, log=lines.append
+        policy,
+        oracle,
+        needle,
+        start,
+        goal,
+        batch=ROWS,
+        renderer=renderer,
+        warmup_frames=1,
+        stop_tolerance=1.0,
+        log=lines.append,
     )
     for i in range(ROWS):
         plan = policy.plan(needle[i], start[i], goal[i], check_grasp=False)
@@ -161,7 +170,9 @@ def test_the_loop_through_the_oracle_is_the_simulated_camera_loop(policy, proble
     """At the policy's own settings (warm-up frames, stop tolerance) and no error, the loop from pixels
     through the oracle ends each problem as ``Policy.execute`` does, in as many steps and frames."""
     needle, start, goal = (x[:ROWS] for x in problems)
-    out = execute_from_pixels(policy, OracleEstimator.of(renderer.rig), needle, start, goal, renderer=renderer)
+    out = execute_from_pixels(
+        policy, OracleEstimator.of(renderer.rig), needle, start, goal, batch=ROWS, renderer=renderer
+    )
     ref = policy.execute(needle, start, goal)
     for key in ("success", "collision", "time_out", "stopped", "steps", "frames"):
         np.testing.assert_array_equal(out[key], ref[key], err_msg=key)
@@ -234,23 +245,23 @@ def test_the_command_writes_its_report_and_resumes_a_killed_run(tmp_path, policy
     """``estimator loop`` through the oracle without images (fast): strict JSON, a markdown table and the
     rows; a run killed after its first batch goes on from there, to the rows of a run never killed."""
     # 320 x 180 (no images drawn): 0.05 px of noise is about 0.1 mm of needle in e_g a frame
-    base = ["loop", "--estimator", "oracle", "--n", "4", "--batch", str(ROWS), "--no-render", "--noise-px", "0.05"]
+    base = ["loop", "--estimator", "oracle", "--n", "3", "--batch", str(ROWS), "--no-render", "--noise-px", "0.05"]
     base += ["--seed", "5"]
     code, out, err = _cli(base + ["--out", str(tmp_path / "whole")])
     assert code == 0, err
     printed = json.loads(out.strip().splitlines()[-1])
-    assert printed["problems"] == "paper300[:4]" and printed["success_rate"] == 1.0
+    assert printed["problems"] == "paper300[:3]" and printed["success_rate"] == 1.0
     rep = json.loads((tmp_path / "whole" / "pixel_loop.json").read_text())  # strict JSON: no NaN
     assert (
-        rep["summary"]["problems"] == 4
+        rep["summary"]["problems"] == 3
         and rep["settings"]["warmup_frames"] == policy.closed_loop_defaults["warmup_frames"]
     )
     assert 0.01 < rep["summary"]["estimate_per_frame"]["needle_in_e_g"]["position_mm"]["median"] < 0.2
     table = (tmp_path / "whole" / "pixel_loop.md").read_text()
-    assert "| 4 | 1.000 | 0.000 | 0.000 | 0.000 |" in table
+    assert "| 3 | 1.000 | 0.000 | 0.000 | 0.000 |" in table
     assert not (tmp_path / "whole" / "pixel_loop.parts").exists()
 
-    args = pixel_report.LoopArgs("default", "oracle", "paper300", None, 4, 5, ROWS, noise_px=0.05, render=False)
+    args = pixel_report.LoopArgs("default", "oracle", "paper300", None, 3, 5, ROWS, noise_px=0.05, render=False)
 
     def killed(line):
         if line.startswith("pixels: batch 1/2"):

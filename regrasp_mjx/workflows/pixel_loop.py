@@ -123,9 +123,10 @@ def _motion_in_eg(ee: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.nd
 class _Batch:
     """One batch of rows through the loop (see :func:`execute_from_pixels`)."""
 
-    def __init__(self, policy, eyes: Eyes, problems, settings: dict, judge, log, label):
+    def __init__(self, policy, eyes: Eyes, problems, settings: dict, judge, log, label, real: int):
         self.policy, self.eyes, self.judge, self.log, self.label = policy, eyes, judge, log, label
-        self.needle, self.start, self.goal = problems
+        self.needle, self.start, self.goal = problems  # the first `real` rows; the rest pad the batch
+        self.real = real
         b = len(self.needle)
         inv = endoscope.invert(matrices(self.needle))
         self.loops = [policy.camera_loop(goal_in_needle=inv[i] @ matrices(self.goal[i]), **settings) for i in range(b)]
@@ -172,7 +173,8 @@ class _Batch:
         b, judge, needle = len(self.needle), self.judge, f32(self.needle)
         state = judge("reset", needle, f32(self.start), f32(self.goal))
         valid = np.asarray(state.metrics["reset_valid"]) > 0
-        ended, collision = ~valid, ~valid  # a start that collides: a collision after 0 steps
+        collision = ~valid  # a start that collides: a collision after 0 steps
+        ended = ~valid | (np.arange(b) >= self.real)  # the rows that pad the batch end before they begin
         success, time_out, stopped = (np.zeros(b, bool) for _ in range(3))
         steps = np.zeros(b, np.int32)
         poses = np.repeat(self.start[:, None], horizon + 1, axis=1)
@@ -204,7 +206,7 @@ class _Batch:
             if (t + 1) % PROGRESS_STEPS == 0:
                 seconds = time.perf_counter() - t0
                 self.log(
-                    f"  {self.label} step {t + 1}: {int((~ended).sum())} of {b} rows live, "
+                    f"  {self.label} step {t + 1}: {int((~ended).sum())} of {self.real} rows live, "
                     f"{self.eyes.pairs} stereo pairs ({self.eyes.pairs / seconds:.1f}/s)"
                 )
         frames = np.array([len(s) for s in self.seen], np.int32)
@@ -212,7 +214,7 @@ class _Batch:
         for i, s in enumerate(self.seen):
             if s:
                 errors[i, : len(s)] = np.stack([np.stack(pair) for pair in s])
-        return {
+        out = {
             "success": success,
             "collision": collision,
             "time_out": time_out,
@@ -226,6 +228,12 @@ class _Batch:
             "estimate_error_deg": errors[:, :, 1],
             "poses": poses,
         }
+        return {k: v[: self.real] for k, v in out.items()}
+
+
+def _padded(x: np.ndarray, size: int) -> np.ndarray:
+    """``x`` ``[m, ...]`` with copies of its last row to ``size`` rows."""
+    return np.concatenate([x, np.repeat(x[-1:], size - len(x), 0)])
 
 
 def _joined(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -257,7 +265,9 @@ def execute_from_pixels(
     stop_tolerance: float | None = None,
 ) -> dict[str, np.ndarray]:
     """The closed loop from pixels (see the module docstring) on true needle, start and goal poses
-    ``[B, 7]`` (e_g; ``goal`` None: the task's goal grasp on each needle), ``batch`` rows at a time.
+    ``[B, 7]`` (e_g; ``goal`` None: the task's goal grasp on each needle), ``batch`` rows at a time
+    (the last batch padded to as many: one compiled program for every batch; a few problems run best
+    with ``batch`` no larger than their number).
 
     Args:
       policy: a loaded policy (its own closed-loop settings; jaws that stay at the scene's opening).
@@ -311,11 +321,14 @@ def execute_from_pixels(
     try:
         for a in range(0, n, batch):
             rows = slice(a, min(a + batch, n))
-            size = min(batch, n)
-            eyes = Eyes(estimator, rig, renderer, seeds[rows], needle[rows], size)
+            real = rows.stop - a
+            # every batch padded to `batch` rows (copies of its last, ended before they begin): one compiled
+            # judge and estimator for every batch
+            needle_b, start_b, goal_b, seeds_b = (_padded(x[rows], batch) for x in (needle, start, goal, seeds))
+            eyes = Eyes(estimator, rig, renderer, seeds_b, needle_b, batch)
             label = f"rows {a}-{rows.stop - 1} of {n}"
-            problems = (needle[rows], start[rows], goal[rows])
-            part = _Batch(policy, eyes, problems, settings, judge, log, label).run(horizon, t0)
+            problems = (needle_b, start_b, goal_b)
+            part = _Batch(policy, eyes, problems, settings, judge, log, label, real).run(horizon, t0)
             parts.append(part)
             if n > batch:  # a line a batch
                 done, seconds = rows.stop, time.perf_counter() - t0
