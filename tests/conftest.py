@@ -69,6 +69,7 @@ SLOW_FIRST = (
     "tests/test_env.py",  # ~130
     "tests/test_general.py",  # ~120
     "tests/test_lean_planner.py",  # ~150 (numba compiles the rollout once: ~30 s)
+    "tests/test_pixel_loop.py",  # ~160 (renders, compiles the judge and the estimator)
     "notebooks/04_policy.ipynb",  # ~65
 )
 
