@@ -130,8 +130,8 @@ def parser() -> argparse.ArgumentParser:
         "--seed", type=int, default=0, help="the episodes' randomisation and the oracle's noise (default 0)"
     )
     lp.add_argument("--batch", type=_positive, default=32, help="problems run side by side (default 32)")
-    lp.add_argument("--width", type=int, default=RESOLUTION[0], help="the oracle's image width (default 320)")
-    lp.add_argument("--height", type=int, default=RESOLUTION[1], help="the oracle's image height (default 180)")
+    lp.add_argument("--width", type=int, help=f"the oracle's image width (default {RESOLUTION[0]})")
+    lp.add_argument("--height", type=int, help=f"the oracle's image height (default {RESOLUTION[1]})")
     lp.add_argument("--noise-px", type=float, default=0.0, help="the oracle's pixel noise, sd (default 0)")
     lp.add_argument("--no-render", action="store_true", help="the oracle without images (it reads the true poses)")
     lp.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -160,8 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "loop":
         oracle = args.estimator == pixel_report.ORACLE
         problem = output_folder_problem(args.out)
-        if not problem and not oracle and (args.noise_px or args.no_render):
-            problem = "--noise-px and --no-render are the oracle's: accepted only with --estimator oracle"
+        if not problem and not oracle and (args.noise_px or args.no_render or args.width or args.height):
+            problem = (
+                "--noise-px, --no-render, --width and --height are the oracle's: accepted only with --estimator "
+                "oracle (a learned estimator renders at the size it was trained at)"
+            )
+        args.width, args.height = args.width or RESOLUTION[0], args.height or RESOLUTION[1]
         if not problem and not (0.0 <= args.noise_px <= 100.0):
             problem = f"--noise-px {args.noise_px}: accepted pixels in [0, 100]"
         if problem:

@@ -294,6 +294,8 @@ def test_the_command_s_bad_arguments(tmp_path):
     out = ["--out", str(tmp_path / "o")]
     code, _, err = _cli(["loop", "--estimator", str(tmp_path / "none"), "--noise-px", "1"] + out)
     assert code == 2 and "the oracle's" in err
+    code, _, err = _cli(["loop", "--estimator", str(tmp_path / "none"), "--width", "64"] + out)
+    assert code == 2 and "the size it was trained at" in err
     code, _, err = _cli(["loop", "--estimator", str(tmp_path / "none"), "--n", "1"] + out)
     assert code == 2 and "estimator folder not found" in err
     code, _, err = _cli(["loop", "--estimator", "oracle", "--heldout", "5"] + out)
