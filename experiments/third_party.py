@@ -392,7 +392,8 @@ def main(argv: list[str] | None = None) -> None:
     if demos is None:
         stem = f"{args.algo}{'' if args.no_her else '_her'}_seed{args.seed}"
     else:
-        stem = f"demos_{args.algo}_bc{args.bc_steps}_steps{args.steps}_seed{args.seed}"
+        dataset = args.demos.rsplit("/", 1)[-1]  # the id without its namespace
+        stem = f"{dataset}_{args.algo}_bc{args.bc_steps}_steps{args.steps}_seed{args.seed}"
     write_results(args.out, stem, lines, data)
     print("\n".join(lines))
     print(json.dumps({"train_wall_s": data["train_wall_s"], **{k: v["test"]["success"] for k, v in rows.items()}}))

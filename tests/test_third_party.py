@@ -94,7 +94,7 @@ def test_demonstrations_load_and_behaviour_cloning_fits_them(third_party, datase
 
 
 @needs_extras
-@pytest.mark.slow  # two minutes on the 2-core VM, most of it compiling the env's programs
+@pytest.mark.slow  # 75-120 s on the 2-core VM, most of it compiling the env's programs
 def test_the_script_clones_fine_tunes_and_judges(third_party, dataset, tmp_path, monkeypatch, capsys):
     """The command end to end on the tiny set: BC, a few environment steps, judged on 4 problems of the
     set's own environment; the table and JSON written, each row a verdict for every problem."""
@@ -107,8 +107,8 @@ def test_the_script_clones_fine_tunes_and_judges(third_party, dataset, tmp_path,
     monkeypatch.setattr(sys, "argv", ["third_party.py"])
     third_party.main(argv)
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    data = json.loads((tmp_path / "demos_td3_bc50_steps30_seed0.json").read_text())
-    assert (tmp_path / "demos_td3_bc50_steps30_seed0.md").is_file()
+    data = json.loads((tmp_path / "tiny-third-party-v0_td3_bc50_steps30_seed0.json").read_text())
+    assert (tmp_path / "tiny-third-party-v0_td3_bc50_steps30_seed0.md").is_file()
     assert data["demonstrations"] == {
         "dataset": DATASET,
         "episodes": 6,
