@@ -109,8 +109,9 @@ def closed_loop_step(
         raise ConfigError(f"clearance_mm={clearance_mm!r} is not accepted: a finite number of mm in [0, 1]")
     spec = TaskSpec.of(task)
     (needle, ee), single = batch_poses(needle=needle, ee=ee)
-    jaws = _jaws_now(policy, jaw_deg, len(needle))
     opens = policy.env_config.jaw_open_deg is not None
+    # each row's opening now; None: the scene's (a policy whose jaws stay, called as before: no work)
+    jaws = None if jaw_deg is None and not opens else _jaws_now(policy, jaw_deg, len(needle))
     if single and not clearance_mm and 0 <= t < policy.env_config.horizon and auto_engine(1, policy) == "lean":
         # one query on the CPU: the lean numba step, its default goal made by the compiled code (the
         # JAX program below stays the reference)
@@ -119,12 +120,13 @@ def closed_loop_step(
         goal = lean.goal(needle[0], grasp[0], radii[0, 0]) if goal is None else check_poses("goal", goal)
         if goal.shape != (7,):
             raise PoseError(f"goal {goal.shape} and needle (7,) poses differ in batch size")
-        opened = bool(jaws[0] > policy.env_config.scene.jaw_angle_deg)
+        opened = jaws is not None and bool(jaws[0] > policy.env_config.scene.jaw_angle_deg)
         at_goal, nxt, a, jaw = lean.step(needle[0], ee[0], goal, radii[0], int(t), float(stop_tolerance), opened)
         return (a, nxt, np.bool_(at_goal)) + ((np.float64(jaw),) if opens else ())
     needle, ee, goal, radii, single = _estimate_inputs(policy, needle, "ee", ee, goal, spec)
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     step = _program(policy, "step", shield, clearance_mm=float(clearance_mm), stop=float(stop_tolerance))
+    jaws = np.full(len(needle), policy.env_config.scene.jaw_angle_deg) if jaws is None else jaws
     out = jax.device_get(step(f32(needle), f32(ee), f32(goal), np.int32(t), f32(radii), f32(jaws)))
     a, nxt, done, jaw = (np.asarray(x, np.float64) for x in out)
     out = (a, nxt, done.astype(bool)) + ((jaw,) if opens else ())

@@ -199,7 +199,7 @@ class LeanPlanner:
         f64 = np.ascontiguousarray
         needle, ee, goal = f64(needle, np.float64), f64(ee, np.float64), f64(goal, np.float64)
         at_goal = closed_loop_step(self.state, needle, ee, goal, radii, t, stop_scale, bool(opened), out)
-        jaw_deg = self.jaws.open_deg if out[13] > 0 and self.jaws is not None else self.base_deg
+        jaw_deg = self.base_deg if self.jaws is None or not out[13] else self.jaws.open_deg
         return at_goal, out[:7], out[7:13], jaw_deg
 
 
