@@ -2,9 +2,12 @@
 for one query on the CPU), the same step through the JAX program, and ``CameraLoop.update`` (a camera
 frame of both tools and the needle: fusing, the step, the tool-frame motion).
 
-The states are every pose along the shipped default's plans of the first ``--queries`` paper300
-problems (the start, each step, the goal), visited in rounds; each round rotates which method goes
-first. Prints each method's median, mean and 90th percentile in milliseconds.
+The states are every pose along the policy's plans (``--policy``, default the shipped default) of the
+first ``--queries`` paper300 problems (the start, each step, the goal), visited in rounds; each round
+rotates which method goes first. A policy whose jaws open on the way steps each state with its jaws
+where its plan has them there (``jaw_opening.opening_steps``) and has no ``CameraLoop`` row (the
+camera loop does not carry the opening). Prints each method's median, mean and 90th percentile in
+milliseconds.
 
     python experiments/bench_closed_loop.py --core 0 --out experiments/results/robot_errors
 """
@@ -26,6 +29,7 @@ from datetime import date
 import numpy as np
 
 from regrasp_mjx.core.atomic import machine, write_results
+from regrasp_mjx.inference.jaw_opening import opening_steps
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.robustness import policy_hash
 from regrasp_mjx.robot import dvrk
@@ -43,27 +47,40 @@ def _vec(m):
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--core", type=int, default=0, help="the CPU core this process is pinned to (default 0)")
+    p.add_argument("--policy", default=None, help="a shipped name or policy folder (default: the shipped default)")
     p.add_argument("--queries", type=int, default=50, help="paper300 problems whose plans give the states")
     p.add_argument("--repeats", type=int, default=5, help="rounds over all states and methods")
     p.add_argument("--out", default=None, help="folder for bench_closed_loop.md and .json")
     args = p.parse_args()
-    policy = load_policy()
+    policy = load_policy(args.policy)
     episodes, _ = load_testset("paper300")
     needle, start, goal = (x[: args.queries] for x in episode_poses(episodes))
     plan = policy.plan(needle, start, goal, check_grasp=False, engine="jax")
-    states = [(needle[i], plan.poses[i, k], goal[i], k) for i in range(len(needle)) for k in range(plan.steps[i] + 1)]
+    queries = range(len(needle))
+    base, wide = policy.env_config.scene.jaw_angle_deg, policy.env_config.jaw_open_deg
+    jaws = {}  # the jaws' opening at each state, for a policy that opens them on the way
+    if wide is not None:
+        opened = opening_steps(policy, needle, plan.poses, plan.steps)
+        jaws = {
+            (i, k): {"jaw_deg": wide if 0 <= opened[i] < k else base} for i in queries for k in range(plan.steps[i] + 1)
+        }
+    states = [
+        (needle[i], plan.poses[i, k], goal[i], k, jaws.get((i, k), {}))
+        for i in queries
+        for k in range(plan.steps[i] + 1)
+    ]
     camera = dvrk.pose_matrix(np.array([0.03, -0.02, 0.1, 0.3, 0.8, -0.1, 0.5]))
     cam_inv = np.linalg.inv(camera)
     frames = [
-        [_vec(cam_inv @ dvrk.pose_matrix(x)) for x in (np.r_[0, 0, 0, 1, 0, 0, 0], e, n)] for n, e, _, _ in states
+        [_vec(cam_inv @ dvrk.pose_matrix(x)) for x in (np.r_[0, 0, 0, 1, 0, 0, 0], e, n)] for n, e, _, _, _ in states
     ]
-    loop = policy.camera_loop(warmup_frames=1)
+    loop = None if wide is not None else policy.camera_loop(warmup_frames=1)  # it does not carry the jaws
 
     def lean(s):
-        policy.closed_loop_step(s[0], s[1], s[2], t=s[3])
+        policy.closed_loop_step(s[0], s[1], s[2], t=s[3], **s[4])
 
-    def jax_path(s):
-        policy.closed_loop_step(s[0][None], s[1][None], s[2][None], t=s[3])  # a batch of one: the JAX program
+    def jax_path(s):  # a batch of one: the JAX program
+        policy.closed_loop_step(s[0][None], s[1][None], s[2][None], t=s[3], **s[4])
 
     def camera_frame(i):
         loop.update(*frames[i])
@@ -72,10 +89,12 @@ def main() -> None:
     for f in methods.values():  # compile and warm up
         for s in states[:3]:
             f(s)
-    camera_frame(0)
-    times: dict[str, list[float]] = {name: [] for name in [*methods, "CameraLoop.update"]}
+    names = [*methods] + ([] if loop is None else ["CameraLoop.update"])
+    if loop is not None:
+        camera_frame(0)
+    times: dict[str, list[float]] = {name: [] for name in names}
     for r in range(args.repeats):
-        order = list(times)[r % 3 :] + list(times)[: r % 3]
+        order = names[r % len(names) :] + names[: r % len(names)]
         for name in order:
             for i, s in enumerate(states):
                 t0 = time.perf_counter()
@@ -92,8 +111,8 @@ def main() -> None:
     }
     where = machine(devices=False) + f"; pinned to core {args.core}"
     lines = [
-        f"One closed-loop step, one query at a time: {where}; {date.today()}; policy default "
-        f"(hash {policy_hash()}); {len(states)} states along {len(needle)} paper300 plans, {args.repeats} rounds.",
+        f"One closed-loop step, one query at a time: {where}; {date.today()}; policy {args.policy or 'default'} "
+        f"(hash {policy_hash(args.policy)}); {len(states)} states along {len(needle)} paper300 plans, {args.repeats} rounds.",
         "",
         "| method | median ms | mean ms | p90 ms | calls |",
         "| --- | ---: | ---: | ---: | ---: |",
