@@ -6,8 +6,6 @@ dataset writer, a tiny overfit, a training run killed and resumed to the same nu
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
 import re
@@ -31,6 +29,7 @@ from regrasp_mjx.workflows.render import RenderUnavailable
 from regrasp_mjx.world import endoscope
 from regrasp_mjx.world.sampling import episode_poses
 from regrasp_mjx.world.scene import load_scene
+from tests.cli_helper import run_main
 from tests.conftest import ROOT
 
 W, H = 96, 54  # tiny frames: 0.73 mm a pixel at the working distance
@@ -390,13 +389,7 @@ def test_training_killed_and_resumed_gives_the_same_run(frames, tmp_path):
 
 
 def _cli(argv):
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = cli.main(argv)
-        except SystemExit as stop:
-            code = stop.code
-    return code, out.getvalue(), err.getvalue()
+    return run_main(cli.main, argv)
 
 
 def test_the_command_line_help_and_bad_arguments(tmp_path, monkeypatch):

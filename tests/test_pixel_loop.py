@@ -7,8 +7,6 @@ frames; the command line writes its report, resumes a killed run to the same row
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import re
 
@@ -31,6 +29,7 @@ from regrasp_mjx.workflows.render import RenderUnavailable
 from regrasp_mjx.world import domain_randomisation as dr
 from regrasp_mjx.world import endoscope
 from regrasp_mjx.world.sampling import episode_poses
+from tests.cli_helper import run_main
 
 W, H = 64, 36  # tiny frames
 ROWS = 2  # every loop here runs 2 problems side by side: one compiled judge
@@ -232,13 +231,7 @@ def test_the_loop_s_refusals(policy, problems, monkeypatch):
 
 
 def _cli(argv):
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = cli.main(argv)
-        except SystemExit as stop:
-            code = stop.code
-    return code, out.getvalue(), err.getvalue()
+    return run_main(cli.main, argv)
 
 
 def test_the_command_writes_its_report_and_resumes_a_killed_run(tmp_path, policy):
