@@ -1116,7 +1116,7 @@ def test_the_one_h200_recipe_times_in_the_training_docs_are_their_result_files()
 
     mib = float(re.search(r"NVIDIA H200, (\d+) MiB", (folder / "README.md").read_text()).group(1))
     assert f"on a 141 GB H200 it is given {REFERENCE_MIB / mib:.2f} of its share" in _prose("training.md")
-    share = RECIPES["default"].students.share * REFERENCE_MIB / mib
+    share = RECIPES["student_v3"].students.share * REFERENCE_MIB / mib
     assert f"started students/t07/s0 on GPU 0, {share:.0%} of its memory" in (folder / "d1" / "call.log").read_text()
 
 

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_a_set_reaches_every_stage_that_has_its_key_and_a_prefixed_one_only_its_stage():
-    r = RECIPES["default"]
+    r = RECIPES["student_v3"]
     routed = recipes.route(
         r, {"obs_noise_mm": 0.3, "env.scene.needle_radius_mm": 4.0, "teachers.hidden": (64,), "iterations": 5}
     )
@@ -40,7 +40,7 @@ def test_a_set_reaches_every_stage_that_has_its_key_and_a_prefixed_one_only_its_
     assert r.student_config("t07n075", routed["students"]).obs_noise_mm == 0.3
     assert r.student_config("t07n075", {}).obs_noise_mm == 0.75
     assert r.teacher_config(routed["teachers"]).env.scene.needle_radius_mm == 4.0
-    with pytest.raises(ConfigError, match="no stage of recipe default has 'colour'"):
+    with pytest.raises(ConfigError, match="no stage of recipe student_v3 has 'colour'"):
         recipes.route(r, {"colour": 1})
     with pytest.raises(ConfigError, match="recipe general has no students"):
         recipes.route(RECIPES["general"], {"students.iterations": 3})
@@ -48,8 +48,8 @@ def test_a_set_reaches_every_stage_that_has_its_key_and_a_prefixed_one_only_its_
         recipes.check(r, {"epochs": -1})
 
 
-def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
-    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["env.scene.needle_radius_mm=4.0", "iterations=5"], 3)
+def test_a_students_recipe_makes_the_documented_jobs(tmp_path):
+    plan = recipe_cli.Plan(RECIPES["student_v3"], tmp_path, ["env.scene.needle_radius_mm=4.0", "iterations=5"], 3)
     jobs = {j.name: j for j in plan.jobs()}
     students = [n for n in jobs if n.startswith("students/")]
     assert students == [f"students/{v}/s{s}" for v in ("t07", "t07n075") for s in range(3)]
@@ -75,7 +75,7 @@ def test_the_default_recipe_makes_the_documented_jobs(tmp_path):
     # without a GPU the report is one job; on GPUs it is parts side by side, one compiled program
     # each, that hold exactly the whole table's rows (in its order once joined), and a job joining them
     assert jobs["report"].needs == ("choose",) and not any(n.startswith("report/") for n in jobs)
-    on_gpus = {j.name: j for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3, gpus=True).jobs()}
+    on_gpus = {j.name: j for j in recipe_cli.Plan(RECIPES["student_v3"], tmp_path, [], 3, gpus=True).jobs()}
     parts = [n for n in on_gpus if n.startswith("report/")]
     assert len(parts) == 15 and on_gpus["report"].needs == tuple(parts)
     rows = []
@@ -104,7 +104,7 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
     same shape (so the same compiled programs; tests/test_recipe.py's slow check shows they are),
     shares their programs key; the distillations start beside the teachers, the rest beside the
     students (a generalist's, without students, beside the teachers); without a GPU there are none."""
-    plan = recipe_cli.Plan(RECIPES["default"], tmp_path, ["iterations=5"], 3, gpus=True)
+    plan = recipe_cli.Plan(RECIPES["student_v3"], tmp_path, ["iterations=5"], 3, gpus=True)
     jobs = {j.name: j for j in plan.jobs()}
     pre = [n for n in jobs if n.startswith("precompile/")]
     assert pre[:3] == ["precompile/students/t07", "precompile/students/t07n075", "precompile/select"]
@@ -141,7 +141,7 @@ def test_on_gpus_precompile_jobs_run_each_later_stage_s_programs_on_untrained_ne
     g = general["precompile/select"]
     assert g.needs == ("demos",) and f"untrained={tmp_path / 'g/precompile/teacher'}" in g.argv()
     assert not any(n.startswith("precompile/students") for n in general)
-    assert not any(j.stage == "precompile" for j in recipe_cli.Plan(RECIPES["default"], tmp_path, [], 3).jobs())
+    assert not any(j.stage == "precompile" for j in recipe_cli.Plan(RECIPES["student_v3"], tmp_path, [], 3).jobs())
 
 
 def test_the_jaws40_recipe_trains_jaws_that_open_and_chooses_under_a_camera_s_errors(tmp_path):
@@ -170,6 +170,32 @@ def test_the_jaws40_recipe_trains_jaws_that_open_and_chooses_under_a_camera_s_er
     assert set(wanted) <= names  # every row the score needs is one the table has
     assert not any(n.startswith("precompile/report") for n in jobs) and "precompile/select" in jobs
     assert r.selection.loop_looks == (0, 60) and len(parse_noises(r.selection.loop_noises)) == 4
+
+
+def test_the_default_recipe_ships_its_best_teacher_and_precompiles_the_report_of_its_looking_loop(tmp_path):
+    """Issue 67: the default's jaws open on the way, its candidates are its teacher seeds (no students),
+    scored under a camera's errors; its loop looks (one look budget, one warm-up), so the report's
+    programs are precompiled beside the teachers on an untrained teacher whose file names them."""
+    r = RECIPES["default"]
+    assert r.students is None and r.teacher_config().env.jaw_open_deg == 40
+    assert r.selection.loop_looks == (60,) and r.selection.loop_warmups == (10,)
+    plan = recipe_cli.Plan(r, tmp_path, [], 3, gpus=True)
+    jobs = {j.name: j for j in plan.jobs()}
+    assert list(plan.candidates()) == ["teacher_s0", "teacher_s1", "teacher_s2"]
+    reports = [n for n in jobs if n.startswith("precompile/report/")]
+    assert len(reports) == 15 and all(jobs[n].needs == ("demos",) for n in reports)  # beside the teachers
+    report = str(tmp_path / "precompile" / "report_candidate")
+    assert all(jobs[n].argv()[jobs[n].argv().index("--policy") + 1] == f"untrained={report}" for n in reports)
+    plan.prepare()
+    candidate = load_policy(report)
+    assert candidate.hidden == plan.teacher_cfg.hidden and candidate.env_config.jaw_open_deg == 40
+    assert candidate.closed_loop_defaults["look_frames"] == 60 and candidate.closed_loop_defaults["warmup_frames"] == 10
+    assert candidate.closed_loop_defaults["jaw_sigmas"] == 0.0  # the exported policy's margin too
+    # a recipe that chooses among look budgets cannot know the report's programs before it chooses
+    assert not any(
+        n.startswith("precompile/report")
+        for n in (j.name for j in recipe_cli.Plan(RECIPES["jaws40"], tmp_path / "j", [], 3, gpus=True).jobs())
+    )
 
 
 def test_a_helper_job_fails_nothing_and_is_not_run_once_what_it_helps_has_finished(tmp_path):

@@ -131,7 +131,12 @@ def save_policy(
 
 
 def untrained_policy(
-    out_dir: str | os.PathLike, hidden: tuple[int, ...], env_config: Any, seed: int = 0, note: str = ""
+    out_dir: str | os.PathLike,
+    hidden: tuple[int, ...],
+    env_config: Any,
+    seed: int = 0,
+    note: str = "",
+    closed_loop: dict[str, Any] | None = None,
 ) -> Path:
     """Writes an untrained network of ``hidden`` layers for ``env_config``'s task as
     :func:`save_policy` writes a trained one: the same arrays, shapes and contract, so every program
@@ -139,7 +144,8 @@ def untrained_policy(
     never constants). What it is for: compiling those programs before any policy is trained
     (``python -m regrasp_mjx.recipe`` fills the compilation cache with one while its teachers train);
     its actions mean nothing. Numpy only: writing it starts no JAX backend, so a process that must
-    leave the GPU to its jobs can."""
+    leave the GPU to its jobs can. ``closed_loop``: its file's closed-loop settings (the warm-up and
+    look frames are constants of the closed loop's programs)."""
     rng = np.random.default_rng(seed)
     sizes = (obs_size(env_config), *(int(h) for h in hidden), 6)
     params = {
@@ -158,7 +164,8 @@ def untrained_policy(
         std=np.ones(sizes[0], np.float32),
     )
     training = {"untrained": True, "seed": seed, "note": note or "untrained: its actions mean nothing"}
-    return save_policy(out_dir, params, normalizer, tuple(hidden), env_config, extra={"training": training})
+    extra = {"training": training} | ({"closed_loop": dict(closed_loop)} if closed_loop else {})
+    return save_policy(out_dir, params, normalizer, tuple(hidden), env_config, extra=extra)
 
 
 # a closed loop's settings where a policy file names none (regrasp_mjx.inference.closed_loop_host.execute)

@@ -12,7 +12,7 @@ from regrasp_mjx.core.config import TASKS
 from regrasp_mjx.core.config_text import parse_overrides
 from regrasp_mjx.core.jobs import Job
 from regrasp_mjx.inference import robustness
-from regrasp_mjx.inference.policy_file import DEFAULT_WARMUP, untrained_policy
+from regrasp_mjx.inference.policy_file import untrained_policy
 from regrasp_mjx.workflows import recipes
 from regrasp_mjx.workflows.distillation import DISTILL_OUTPUTS
 from regrasp_mjx.workflows.preflight import restart_args
@@ -206,8 +206,11 @@ class Plan:
     def untrained(self) -> dict[str, Path]:
         """Where the precompile jobs' untrained networks are: ``teacher`` (the teachers' shape and
         task) and ``candidate`` (a selection candidate's: a student's, or a teacher's without students)."""
-        pre = self.out / "precompile"
-        return {"teacher": pre / "teacher", "candidate": pre / ("student" if self.recipe.students else "teacher")}
+        pre, sel = self.out / "precompile", self.recipe.selection
+        out = {"teacher": pre / "teacher", "candidate": pre / ("student" if self.recipe.students else "teacher")}
+        if len(sel.loop_warmups) == 1 and len(sel.loop_looks) == 1:  # the exported loop's constants are known
+            out["report"] = pre / "report_candidate"
+        return out
 
     def prepare(self) -> None:
         """Writes the untrained networks the precompile jobs run (numpy only: this process leaves
@@ -219,9 +222,14 @@ class Plan:
         hidden = {"teacher": cfg.hidden}
         if students is not None:
             hidden["candidate"] = self.recipe.student_config(students.variants[0][0], self.routed["students"]).hidden
+        hidden.setdefault("candidate", cfg.hidden)
+        hidden["report"] = hidden["candidate"]
+        sel = self.recipe.selection
+        loop = {"warmup_frames": sel.loop_warmups[0], "look_frames": sel.loop_looks[0]}
         for kind, folder in self.untrained().items():
-            if kind in hidden and not (folder / "policy.json").is_file():
-                untrained_policy(folder, hidden[kind], cfg.env, note="recipe precompile")
+            if not (folder / "policy.json").is_file():
+                extra = {"closed_loop": loop} if kind == "report" else {}
+                untrained_policy(folder, hidden[kind], cfg.env, note="recipe precompile", **extra)
 
     def precompile_jobs(self, job, jobs: list[Job]) -> list[Job]:
         """On GPUs, jobs that run each later stage's programs once on untrained networks of the
@@ -232,8 +240,8 @@ class Plan:
         (:mod:`regrasp_mjx.core.jobs`); the distillations start beside the teachers once the
         demonstrations (which take every core) are made, the rest beside the students (without
         students, beside the teachers: the candidates are the teachers). The
-        report's are made only where the exported policy's warm-up frames are the untrained
-        candidate's (a constant of its programs)."""
+        report's are made only where the recipe chooses among one warm-up and one look-frame count
+        (constants of its programs), on an untrained candidate whose file names them."""
         r, pre, untrained = self.recipe, self.out / "precompile", self.untrained()
         names = [j.name for j in jobs]
         out: list[Job] = []
@@ -274,8 +282,9 @@ class Plan:
                 helps=tuple(n for n in names if n.startswith("select/")),
             )
         )
-        if r.selection.loop_warmups != (DEFAULT_WARMUP,) or r.selection.loop_looks != (0,):
-            return out  # the report runs the chosen loop, which an untrained candidate's programs may not be
+        if "report" not in untrained:
+            return out  # the report runs the chosen loop, whose warm-up and look frames are not known yet
+        loop_candidate = f"untrained={untrained['report']}"  # a candidate's shape, the exported loop's constants
         groups = self.report_groups()
         for i, (modes, conditions) in enumerate(groups):
             real = "report" if len(groups) == 1 else f"report/part{i:02d}"
@@ -284,7 +293,7 @@ class Plan:
                     f"precompile/report/{i:02d}",
                     "precompile",
                     lambda modes=modes, conditions=conditions, i=i: self.report_argv(
-                        candidate, modes, conditions, pre / "report", f"part{i:02d}"
+                        loop_candidate, modes, conditions, pre / "report", f"part{i:02d}"
                     ),
                     pre / "report" / f"part{i:02d}.json",
                     r.report.share / len(groups),
