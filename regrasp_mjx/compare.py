@@ -140,7 +140,7 @@ def tables(policies: dict, args: argparse.Namespace) -> None:
     """Each policy's robustness table on its first problem set, the files rewritten after each."""
     modes = tuple(args.modes.split(","))
     wanted = args.conditions.split(",") if args.conditions else None
-    everything = robustness.ALL_CONDITIONS
+    everything = robustness.ALL_CONDITIONS if wanted is None else robustness.NAMED_CONDITIONS
     conditions = tuple(c for c in everything if wanted is None or c.name in wanted)
     meta = {"machine": machine(), "seed": args.seed, "modes": modes}
     found, lines = [], [f"Machine: {meta['machine']}; shielded; seed {args.seed}.", ""]
@@ -167,7 +167,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE", help="e.g. clearance_mm=0.1")
     p.add_argument("--robustness", action="store_true", help="each policy's robustness table instead")
     p.add_argument("--modes", default=",".join(robustness.MODES), help="with --robustness: comma-separated modes")
-    p.add_argument("--conditions", default=None, help="with --robustness: comma-separated condition names (all)")
+    p.add_argument(
+        "--conditions",
+        default=None,
+        help="with --robustness: comma-separated condition names (default: all but the fitted camera's, "
+        "'camera: rendered', which is asked for by name)",
+    )
     p.add_argument("--seed", type=int, default=0, help="with --robustness: seed of the needle-estimate noise")
     p.add_argument("--merge", nargs="+", metavar="JSON", help="with --robustness: only join earlier runs' tables")
     p.add_argument("--out", default=None, help="folder for NAME.md and NAME.json (default: print only)")
@@ -201,9 +206,15 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"{', '.join(given)} is not accepted without --robustness (it selects the robustness table's rows)")
     if set(args.modes.split(",")) - set(robustness.MODES):
         p.error(f"--modes {args.modes} is not accepted: comma-separated of {list(robustness.MODES)}")
-    names = [c.name for c in robustness.ALL_CONDITIONS]
+    names = [c.name for c in robustness.NAMED_CONDITIONS]
     if args.conditions and set(args.conditions.split(",")) - set(names):
         p.error(f"--conditions {args.conditions} is not accepted: comma-separated of {names}")
+    for c in robustness.NAMED_CONDITIONS:  # a fitted preset's file read now, not after minutes of other rows
+        if args.conditions and c.name in args.conditions.split(","):
+            try:
+                c.resolved_camera()
+            except ConfigError as err:
+                p.error(f"--conditions {c.name!r}: {err}")
     if args.merge:
         if not args.robustness:
             p.error("--merge is not accepted without --robustness")

@@ -1,12 +1,15 @@
 """``python -m regrasp_mjx.estimator``: render labelled stereo frames, train the keypoint estimator, measure it.
 
-Five subcommands (each with ``--help``):
+Six subcommands (each with ``--help``):
 
 - ``render``: N episodes x F frames of one seed to an npz (MuJoCo's OpenGL renderer; ``MUJOCO_GL=egl``
   headless), in worker processes, resumable;
 - ``train``: the estimator on rendered frames, validated each epoch on frames of another seed;
   checkpoints, resume (the same command again), the best epoch exported to ``OUT/estimator``;
-- ``evaluate``: its pose errors on held-out frames, ``OUT/estimator_errors.json`` and ``.md``;
+- ``evaluate``: its pose errors on held-out frames, ``OUT/estimator_errors.json`` and ``.md`` (and every
+  frame's, ``OUT/estimator_errors_frames.npz``);
+- ``fit``: the camera-error model fitted to those per-frame errors, a strict JSON file (the ``rendered``
+  preset's, ``regrasp_mjx/data/camera_rendered.json``);
 - ``bench``: its milliseconds per stereo pair on this machine's default device;
 - ``loop``: the closed loop from pixels (a policy driven by the estimator's view of rendered frames, judged
   on the true poses) on a test set or held-out problems, ``OUT/pixel_loop.json`` and ``.md``, resumable.
@@ -21,6 +24,8 @@ from regrasp_mjx.core.atomic import dumps, output_file_problem, output_folder_pr
 from regrasp_mjx.core.config import TASKS, ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, run_command
 from regrasp_mjx.inference.policy import PolicyError, load_policy
+from regrasp_mjx.vision import error_fit
+from regrasp_mjx.vision.error_fit import FitError
 from regrasp_mjx.vision.estimator_file import EstimatorError
 from regrasp_mjx.vision.network import WIDTHS
 from regrasp_mjx.vision.oracle import OracleError
@@ -70,7 +75,7 @@ def parser() -> argparse.ArgumentParser:
         description=__doc__.split("\n\n")[0].split(": ", 1)[1],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = top.add_subparsers(dest="command", required=True, metavar="{render,train,evaluate,bench,loop}")
+    sub = top.add_subparsers(dest="command", required=True, metavar="{render,train,evaluate,fit,bench,loop}")
     r = sub.add_parser("render", help="render labelled stereo frames to an npz")
     r.add_argument("--out", required=True, help="output .npz (written atomically; chunks in OUT.parts/ until done)")
     r.add_argument("--episodes", type=_positive, required=True, help="episodes (problems, each its own randomisation)")
@@ -113,6 +118,29 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="held-out frames (an npz from render, another seed)")
     e.add_argument("--out", help="folder for estimator_errors.json and .md (default: print only)")
     e.add_argument("--batch", type=_positive, default=64, help="stereo pairs per call (default 64)")
+    f = sub.add_parser("fit", help="the camera-error model fitted to evaluate's per-frame errors")
+    f.add_argument(
+        "--errors", required=True, help=f"evaluate's --out folder (its {error_fit.FRAMES_FILE}), or that file"
+    )
+    f.add_argument(
+        "--out",
+        required=True,
+        help="the fit file (.json, strict; the rendered preset's: regrasp_mjx/data/camera_rendered.json)",
+    )
+    f.add_argument(
+        "--motion-frames",
+        type=float,
+        default=error_fit.MOTION_FRAMES,
+        help="the closed loop's frames from start to goal, which an episode's frames span "
+        f"(default {error_fit.MOTION_FRAMES:g})",
+    )
+    f.add_argument("--max-lag", type=_positive, help="the variogram's largest lag in frames (default: all, frames - 1)")
+    f.add_argument(
+        "--bootstrap",
+        type=int,
+        default=error_fit.BOOTSTRAP,
+        help=f"resamples of the episodes for the sizes' 90 %% intervals (default {error_fit.BOOTSTRAP}; 0: none)",
+    )
     b = sub.add_parser("bench", help="milliseconds per stereo pair on the default device")
     b.add_argument("--estimator", required=True, help="an estimator folder")
     b.add_argument("--repeats", type=_positive, default=50, help="timed calls (default 50)")
@@ -178,6 +206,14 @@ def main(argv: list[str] | None = None) -> int:
         problem = output_folder_problem(args.out)
         if problem:
             p.error(problem)
+    elif args.command == "fit":
+        problem = output_file_problem(args.out, ".json")
+        if not problem and not (0.0 < args.motion_frames <= 1000.0):
+            problem = f"--motion-frames {args.motion_frames}: accepted a number of frames in (0, 1000]"
+        if not problem and not (0 <= args.bootstrap <= 10_000):
+            problem = f"--bootstrap {args.bootstrap}: accepted an integer in [0, 10000]"
+        if problem:
+            p.error(problem)
     if args.command == "train":
         try:
             settings = Settings(args.epochs, args.batch, args.lr, widths=args.widths, seed=args.seed)
@@ -196,6 +232,12 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "evaluate":
             rep = estimator_report.evaluate(args.estimator, args.data, args.out, args.batch)
             print(dumps(estimator_report.headline(rep)))
+        elif args.command == "fit":
+            errors = error_fit.load_frame_errors(args.errors)
+            result = error_fit.fit(errors, args.motion_frames, args.max_lag, args.bootstrap, source=args.errors)
+            error_fit.write_fit(args.out, result)
+            print("\n".join(error_fit.markdown(result)))
+            print(dumps({"out": args.out, "preset": result["preset"]}))
         elif args.command == "bench":
             print(dumps(estimator_report.bench(args.estimator, args.repeats, args.batch)))
         else:
@@ -230,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         RenderUnavailable,
         PixelLoopError,
         OracleError,
+        FitError,
         PolicyError,
         TestsetError,
         ConfigError,

@@ -30,6 +30,7 @@ import jax
 from regrasp_mjx.core.atomic import dumps
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import run_command
+from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.envs.camera_errors import PRESETS
 from regrasp_mjx.inference import robustness, robustness_report, testset_report
 from regrasp_mjx.inference.closed_loop import MAX_LOOK
@@ -79,6 +80,11 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     robot = args.robot != RobotErrors() or args.camera is not None
     if args.camera is not None and (args.noise_mm or args.bias_mm or args.tool_noise_mm):
         p.error(f"--camera {args.camera} is not accepted with --noise-mm, --bias-mm or --tool-noise-mm: it sets them")
+    if args.camera is not None:  # a fitted preset's file read now: a missing one says how to make it
+        try:
+            args.camera_errors = camera_errors.preset(args.camera)
+        except ConfigError as err:
+            p.error(f"--camera {args.camera}: {err}")
     if args.look_frames is not None and (
         not args.closed_loop or args.per_frame or not 0 <= args.look_frames <= MAX_LOOK
     ):
@@ -206,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
         choices=tuple(PRESETS),
         default=None,
         help="a real camera's errors by name (they replace the needle and tool noise options): for the needle and "
-        "each tool a bias per episode, a drift over frames and white noise, depth 2x (docs/inference.md)",
+        "each tool a bias per episode, a drift over frames and white noise, depth worse than across "
+        "(docs/inference.md; rendered: fitted to the learned estimator's errors, docs/rendering.md)",
     )
     robot.add_argument(
         "--observe",
@@ -279,7 +286,7 @@ def _run(policy, episodes, name: str, args: argparse.Namespace) -> int:
         return _agreement(policy, episodes, name, args)
     if args.noise_mm or args.bias_mm or args.closed_loop or args.robot != RobotErrors() or args.camera:
         mode = ("per-frame" if args.per_frame else "fused") if args.closed_loop else "open"
-        camera = None if args.camera is None else PRESETS[args.camera]
+        camera = None if args.camera is None else args.camera_errors
         condition = robustness.Condition(
             "given",
             args.noise_mm,

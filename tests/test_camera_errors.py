@@ -110,7 +110,7 @@ def test_the_presets_have_their_sources_sizes_and_bad_values_are_refused():
         (lambda: CameraErrors(needle=0.5), "needle=0.5 is not accepted: a Tracking"),
         (
             lambda: camera_errors.preset("lab-best"),
-            "'lab-best' are not accepted: one of \\('lab-good', 'lab-typical'\\)",
+            "'lab-best' are not accepted: one of \\('lab-good', 'lab-typical', 'rendered'\\)",
         ),
         (lambda: camera_errors.split(1.0, 0.8, 0.3, 15.0, 2.0, 2.0), "shares of the variance summing to <= 1"),
     ):

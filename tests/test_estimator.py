@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import estimator as cli
+from regrasp_mjx.vision import error_fit, pose_errors, stereo
 from regrasp_mjx.vision import layout as kp_layout
-from regrasp_mjx.vision import pose_errors, stereo
 from regrasp_mjx.vision.estimator_file import EstimatorError, load_estimator, predict, save_estimator
 from regrasp_mjx.vision.network import STRIDE, NetConfig, decode, init_params, make_network
 from regrasp_mjx.vision.training import CheckpointError, init_state, make_epoch, make_keypoints, optimizer, targets
@@ -386,6 +386,17 @@ def test_training_killed_and_resumed_gives_the_same_run(frames, tmp_path):
     saved = json.loads((tmp_path / "eval" / "estimator_errors.json").read_text(), parse_constant=pytest.fail)
     assert set(saved) >= {"needle", "grasping_tool", "regrasping_tool", "keypoints_px", "relative", "machine"}
     assert "| regrasping_tool | orientation (deg) |" in (tmp_path / "eval" / "estimator_errors.md").read_text()
+    # and every frame's errors, what `estimator fit` reads: the report's numbers come from them
+    frames = error_fit.load_frame_errors(tmp_path / "eval")
+    assert frames.position_mm.shape == (4, 3, 3) and frames.meta["held_out"] and saved["frame_errors"]
+    for o, name in enumerate(("needle", "grasping_tool", "regrasping_tool")):  # 2 epochs: gross errors, mostly
+        norm = np.linalg.norm(frames.position_mm[:, o], axis=-1)
+        assert rep[name]["failed"] == np.mean(np.isnan(norm)) and rep[name]["gross"] == np.mean(norm > 5.0)
+        kept = norm[norm <= 5.0]
+        median = rep[name]["position_mm"]["total"]["norm"]["median"]
+        assert median is None if not kept.size else median == pytest.approx(np.median(kept))
+    with pytest.raises(error_fit.FitError, match="2 frames an episode: the fit needs 3 or more"):
+        error_fit.fit(frames)
 
 
 def _cli(argv):

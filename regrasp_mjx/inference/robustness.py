@@ -35,7 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.config import ConfigError, is_number, require
-from regrasp_mjx.envs.camera_errors import FPS, PRESETS, CameraErrors
+from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs.camera_errors import FPS, LITERATURE, PRESETS, CameraErrors
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import NeedleNoise
 from regrasp_mjx.inference.policy_file import resolve
@@ -58,7 +59,9 @@ class Condition:
     """One row of the robustness table: frame noise ``sigma_mm``, a fixed bias ``bias_mm`` and a
     clearance margin ``clearance_mm`` (each checked: finite, within its range); the robot's errors
     ``robot`` (:class:`~regrasp_mjx.robot.robot_errors.RobotErrors`) and how the policy sees its tools,
-    ``observe``; ``modes``: the only modes it is measured in (None: every one asked)."""
+    ``observe``; ``modes``: the only modes it is measured in (None: every one asked); ``camera``: a
+    real camera's errors (a :class:`~regrasp_mjx.envs.camera_errors.CameraErrors`, or a preset's name,
+    read when measured: a fitted preset's file may not exist yet, :meth:`resolved_camera`)."""
 
     name: str
     sigma_mm: float = 0.0
@@ -67,7 +70,7 @@ class Condition:
     robot: RobotErrors = RobotErrors()
     observe: str = "camera"
     modes: tuple[str, ...] | None = None
-    camera: CameraErrors | None = None
+    camera: CameraErrors | str | None = None
 
     def __post_init__(self) -> None:
         check_condition(self.sigma_mm, self.bias_mm, self.clearance_mm)
@@ -75,10 +78,14 @@ class Condition:
         if not isinstance(self.robot, RobotErrors):
             raise ConfigError(f"robot={self.robot!r} is not accepted: a RobotErrors")
         if self.camera is not None:
-            if not isinstance(self.camera, CameraErrors):
-                raise ConfigError(f"camera={self.camera!r} is not accepted: a CameraErrors")
+            if not (isinstance(self.camera, CameraErrors) or isinstance(self.camera, str) and self.camera in PRESETS):
+                raise ConfigError(f"camera={self.camera!r} is not accepted: a CameraErrors or one of {tuple(PRESETS)}")
             if self.sigma_mm or self.bias_mm or self.robot.tool_noise_mm:
                 raise ConfigError("a camera's errors are not accepted with sigma_mm, bias_mm or tool_noise_mm")
+
+    def resolved_camera(self) -> CameraErrors | None:
+        """The camera's errors, a preset's read now (:class:`ConfigError` if its fit file is missing)."""
+        return camera_errors.preset(self.camera) if isinstance(self.camera, str) else self.camera
 
 
 def check_condition(sigma_mm: float, bias_mm: float, clearance_mm: float) -> None:
@@ -131,13 +138,20 @@ CAMERA_ERRORS = {
     "tools 1.0 mm": CameraErrors.of(0.25, 0.0, 1.0),
     "needle bias 0.5 mm": CameraErrors.of(0.25, 0.5, 0.25),
     "needle bias 1.0 mm": CameraErrors.of(0.25, 1.0, 0.25),
-    **{name: camera for name, camera in PRESETS.items()},
+    **LITERATURE,
 }
 CAMERA_CONDITIONS = tuple(
     Condition(f"camera: {name}", robot=CAMERA_ROBOT, modes=("fused",), camera=camera)
     for name, camera in CAMERA_ERRORS.items()
 )
 ALL_CONDITIONS = CONDITIONS + ROBOT_CONDITIONS + CAMERA_CONDITIONS
+# the presets fitted to a measurement (issue 68: "rendered", the learned estimator's errors on rendered
+# frames), read from their files when measured: rows only asked for by name (``compare --robustness
+# --conditions "camera: rendered"``), not in the default table, so that a table runs before a fit exists
+FITTED_CONDITIONS = tuple(
+    Condition(f"camera: {name}", robot=CAMERA_ROBOT, modes=("fused",), camera=name) for name in camera_errors.FITTED
+)
+NAMED_CONDITIONS = ALL_CONDITIONS + FITTED_CONDITIONS  # every row a table may be asked for by name
 
 
 def program_groups(modes: tuple[str, ...], names: tuple[str, ...] | None = None) -> list[tuple[str, list[str]]]:
@@ -148,7 +162,7 @@ def program_groups(modes: tuple[str, ...], names: tuple[str, ...] | None = None)
     (``python -m regrasp_mjx.recipe``'s report; join their files with ``compare --merge``)."""
     groups: dict[tuple, tuple[str, list[str]]] = {}
     for mode in modes:
-        for c in ALL_CONDITIONS:
+        for c in ALL_CONDITIONS if names is None else NAMED_CONDITIONS:
             if (names is not None and c.name not in names) or (c.modes is not None and mode not in c.modes):
                 continue
             key = (mode, c.clearance_mm, c.observe, c.robot.joint_offset > 0)
@@ -178,7 +192,8 @@ def measure(
     if condition.clearance_mm != policy.env_config.clearance_mm:
         policy = policy.with_env(clearance_mm=condition.clearance_mm)
     needle, start, goal = episode_poses(episodes)
-    noise = None if condition.camera else NeedleNoise(condition.sigma_mm, condition.bias_mm)
+    camera = condition.resolved_camera()
+    noise = None if camera else NeedleNoise(condition.sigma_mm, condition.bias_mm)
     r = policy.execute(
         needle,
         start,
@@ -188,7 +203,7 @@ def measure(
         seed=seed,
         robot=condition.robot,
         observe=condition.observe,
-        camera=condition.camera,
+        camera=camera,
         **{**MODES[mode], **options},
         **episode_needles(episodes),
     )
@@ -202,7 +217,7 @@ def measure(
         "clearance_mm": condition.clearance_mm,
         **dataclasses.asdict(condition.robot),
         "observe": condition.observe,
-        "camera": None if condition.camera is None else dataclasses.asdict(condition.camera),
+        "camera": None if camera is None else dataclasses.asdict(camera),
         "shield": shield,
         "seed": seed,
         "problems": int(valid.size),

@@ -9,11 +9,12 @@ from typing import Any
 
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.inference.robustness import (
-    ALL_CONDITIONS,
     CALIBRATIONS,
     CAMERA_CONDITIONS,
     CONDITIONS,
+    FITTED_CONDITIONS,
     MODES,
+    NAMED_CONDITIONS,
     ROBOT_CONDITIONS,
     robot_condition_name,
 )
@@ -70,7 +71,7 @@ def merge(parts: list[dict[str, Any]]) -> list[dict[str, Any]]:
             seen["wall_s"] = seen.get("wall_s", 0.0) + t.get("wall_s", 0.0)
             if t["machine"] not in seen["machine"]:
                 seen["machine"] += f"; {t['machine']}"
-    order = {c.name: i for i, c in enumerate(ALL_CONDITIONS)}
+    order = {c.name: i for i, c in enumerate(NAMED_CONDITIONS)}
     for t in by_policy.values():
         t["rows"].sort(key=lambda r: order.get(r["condition"], len(order)))
     return list(by_policy.values())
@@ -78,7 +79,7 @@ def merge(parts: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 NOISE_NAMES = frozenset(c.name for c in CONDITIONS)
 ROBOT_NAMES = frozenset(c.name for c in ROBOT_CONDITIONS)
-CAMERA_NAMES = frozenset(c.name for c in CAMERA_CONDITIONS)
+CAMERA_NAMES = frozenset(c.name for c in CAMERA_CONDITIONS + FITTED_CONDITIONS)
 
 # The docs' summary: these policies side by side (docs/results.md), their full tables in
 # experiments/RESULTS.md; each between `<!-- robustness:begin KIND -->` and `<!-- robustness:end -->`,
@@ -213,7 +214,9 @@ def camera_block(tables: list[dict[str, Any]]) -> list[str]:
         "| the camera's errors | " + " | ".join(f"`{t['policy']}`" for t in measured) + " |",
         "| --- |" + " ---: |" * len(measured),
     ]
-    for condition in CAMERA_CONDITIONS:
+    # a fitted preset's row only where a table holds it (it is asked for by name)
+    fitted = [c for c in FITTED_CONDITIONS if any(r["condition"] == c.name for t in measured for r in t["rows"])]
+    for condition in CAMERA_CONDITIONS + tuple(fitted):
         cells = []
         for t in measured:
             r = next((r for r in t["rows"] if r["condition"] == condition.name and r["mode"] == "fused"), None)

@@ -50,6 +50,16 @@ def errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndar
     return pos, rotvec(rel)
 
 
+def frame_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every frame's position errors (mm) and orientation errors (rotation vectors, degrees) ``[N, O, 3]`` of
+    poses ``[N, O, 7]`` (both in the same frame), NaN where the estimate is not finite (no pose)."""
+    finite = np.all(np.isfinite(estimate), axis=-1)
+    pos, rot = np.full(estimate.shape[:-1] + (3,), np.nan), np.full(estimate.shape[:-1] + (3,), np.nan)
+    p, r = errors(estimate[finite], truth[finite])
+    pos[finite], rot[finite] = p * 1e3, np.degrees(r)
+    return pos, rot
+
+
 def _stats(values: np.ndarray) -> dict[str, float | None]:
     if values.size == 0:
         return {"median": None, "p95": None}

@@ -2,7 +2,8 @@
 needle's and each tool's, fixed per episode and per frame, along and across the optical axis, median and
 95th percentile), its keypoints' pixel errors (seen and hidden), and the relative poses a policy
 observes (the needle and the regrasping tool in the grasping tool's frame), written as strict JSON and
-a markdown table; and its time per stereo pair on this machine's default device.
+a markdown table, with every frame's errors beside them (what the camera-error model is fitted to:
+:mod:`regrasp_mjx.vision.error_fit`); and its time per stereo pair on this machine's default device.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.atomic import machine, write_results
-from regrasp_mjx.vision import pose_errors
+from regrasp_mjx.vision import error_fit, pose_errors
 from regrasp_mjx.vision.estimator_file import Estimator, EstimatorError, estimator_folder, load_estimator, predict
 from regrasp_mjx.vision.network import decode, make_network
 from regrasp_mjx.workflows.frame_dataset import FrameDataset, load_dataset
@@ -88,7 +89,8 @@ def _keypoint_errors(est: Estimator, data: FrameDataset, pixels: np.ndarray) -> 
 
 def evaluate(estimator: str | Path, data_path: str | Path, out: str | Path | None, batch: int = 64, log=print) -> dict:
     """The estimator's errors on the frames of ``data_path``; ``OUT/estimator_errors.json`` and ``.md``
-    written when ``out`` is given.
+    written when ``out`` is given, and every frame's errors in ``OUT/estimator_errors_frames.npz``
+    (:func:`regrasp_mjx.vision.error_fit.save_frame_errors`: what ``estimator fit`` reads).
 
     Raises:
       EstimatorError: an unreadable estimator, or frames it does not take.
@@ -129,6 +131,12 @@ def evaluate(estimator: str | Path, data_path: str | Path, out: str | Path | Non
             f"{k[s]['median']:.2f} / {k[s]['p95']:.2f} ({k[s]['n']})" if k[s]["n"] else "-" for s in ("seen", "hidden")
         ]
         lines.append(f"- {name}: seen {cells[0]}, hidden {cells[1]}")
+    if out is not None:
+        pos, rot = pose_errors.frame_errors(np.asarray(result["poses"], np.float64), truth)
+        meta = {k: rep[k] for k in ("held_out", "estimator", "data", "machine")}
+        frames = error_fit.FrameErrors(data.episode, data.frame, pos, rot, meta)
+        error_fit.save_frame_errors(Path(out) / error_fit.FRAMES_FILE, frames)
+        rep["frame_errors"] = error_fit.FRAMES_FILE
     write_results(out, REPORT, lines, rep)
     return rep
 
