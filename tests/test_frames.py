@@ -178,12 +178,31 @@ def test_bad_arguments_and_a_closed_renderer(renderer, batch):
         r.render(needle[0], start[0], 0)
 
 
-def test_the_docs_snippet_runs(renderer, capsys):
+def _snippet(marker: str) -> str:
+    """The python snippet of docs/rendering.md that names ``marker`` (the page has three: the frames', the
+    estimator's, the pixel loop's)."""
     text = (ROOT / "docs" / "rendering.md").read_text()
-    # the frames' snippet (the page has others: the pixel loop's, the estimator's)
-    (snippet,) = [s for s in re.findall(r"```python\n(.*?)```", text, re.S) if "FrameRenderer" in s]
-    exec(compile(snippet, "docs/rendering.md", "exec"), {"__name__": "__docs__"})
+    (snippet,) = [s for s in re.findall(r"```python\n(.*?)```", text, re.S) if marker in s]
+    return snippet
+
+
+def test_the_docs_snippet_runs(renderer, capsys):
+    exec(compile(_snippet("FrameRenderer"), "docs/rendering.md", "exec"), {"__name__": "__docs__"})
     assert "stereo pairs" in capsys.readouterr().out
+
+
+def test_the_docs_pixel_loop_snippet_runs(renderer):
+    """The pixel loop's snippet as written, but for its estimator: the oracle its comment names, at 64 x 36
+    (no estimator has been trained here; the loop is the same), its frames rendered for real."""
+    snippet = _snippet("execute_from_pixels")
+    trained = 'load_estimator("runs/estimator/estimator")'
+    assert trained in snippet and "OracleEstimator.of(Rig(), noise_px=0.1)" in snippet
+    snippet = snippet.replace(trained, "OracleEstimator.of(Rig(width=64, height=36), noise_px=0.1)")
+    scope = {"__name__": "__docs__"}
+    exec(compile(snippet, "docs/rendering.md", "exec"), scope)
+    out = scope["out"]
+    assert out["success"].shape == out["steps"].shape == (4,) and out["estimate_error_mm"].shape[0] == 4
+    assert (out["frames"] >= out["steps"]).all() and out["frames"].min() >= 1
 
 
 def test_the_batched_renderer_says_what_it_needs():
