@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from regrasp_mjx.core.atomic import dumps, output_file_problem, output_folder_problem
+from regrasp_mjx.core.atomic import dumps, output_file_problem, output_folder_problem, write_json
 from regrasp_mjx.core.config import TASKS, ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, run_command
 from regrasp_mjx.inference.policy import PolicyError, load_policy
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "fit":
             errors = error_fit.load_frame_errors(args.errors)
             result = error_fit.fit(errors, args.motion_frames, args.max_lag, args.bootstrap, source=args.errors)
-            error_fit.write_fit(args.out, result)
+            write_json(args.out, result)
             print("\n".join(error_fit.markdown(result)))
             print(dumps({"out": args.out, "preset": result["preset"]}))
         elif args.command == "bench":

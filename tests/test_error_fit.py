@@ -137,6 +137,12 @@ def test_lost_and_gross_frames_are_left_out_and_counted(errors):
     row = error_fit.fit_object(pos, rot, errors.episode[: 40 * F], errors.frame[: 40 * F], F)
     assert row["failed_rate"] == pytest.approx(1 / (40 * F)) and row["gross_rate"] == pytest.approx(1 / (40 * F))
     assert row["frames_used"] == 40 * F - 2 and row["series"]["across"]["pairs"][0] == 40 * (F - 1) - 4
+    big = errors.position_mm.copy()
+    big[::10, 2] = [0.0, 0.0, 6.0]  # a tenth of the regrasping tool's frames gross
+    result = error_fit.fit(dataclasses.replace(errors, position_mm=big))
+    assert result["objects"]["regrasping_tool"]["gross_rate"] == pytest.approx(0.1)
+    assert any(n.startswith("regrasping_tool: 10.0 % of the frames left out") for n in result["notes"])
+    assert not any(n.startswith("needle: ") and "left out" in n for n in result["notes"])
     with pytest.raises(FitError, match="3 or more"):
         error_fit.fit_object(pos, rot, errors.episode[: 40 * F], errors.frame[: 40 * F] % 2, 2)
 

@@ -22,10 +22,7 @@ motion from start to goal, which the closed loop covers in about ``motion_frames
 :data:`MOTION_FRAMES`), so ``tau`` in the data's frames times ``motion_frames / (F - 1)``. The tools'
 sizes (the model has one set for both) are fitted to both tools' episodes together.
 
-What the model cannot hold, and the file says: errors correlated between objects (one picture shows them
-all), a drift that follows the pose rather than time (it does not fade while the tool holds still), gross
-errors and failed fits (left out, their rates kept), an orientation error that differs about the axis
-and across it.
+What the model cannot hold is in the file's notes (:func:`fit`).
 """
 
 from __future__ import annotations
@@ -39,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from regrasp_mjx.core.atomic import atomic_write, dumps, machine, write_json
+from regrasp_mjx.core.atomic import atomic_write, dumps, machine
 from regrasp_mjx.envs.camera_errors import (
     FIT_FORMAT,
     FIT_VERSION,
@@ -63,6 +60,7 @@ MOTION_FRAMES = 7.0
 MAX_DEG_PER_MM = 30.0
 SERIES = ("across", "along", "rotation")  # position x, y; position z; rotation vector x, y, z
 BOOTSTRAP = 100  # the command's resamples of the episodes for the sizes' intervals
+LOST_NOTED = 0.05  # a share of frames left out (failed, gross) that the file's notes name
 
 
 class FitError(ValueError):
@@ -315,6 +313,12 @@ def fit(
     depth = _clamped("depth_factor", depth_ratio, 1.0, MAX_DEPTH_FACTOR, notes, "all objects")
     camera = CameraErrors(needle, tool, depth)
     for name, row in objects.items():
+        lost = row["failed_rate"] + row["gross_rate"]
+        if lost > LOST_NOTED:
+            notes.append(
+                f"{name}: {100 * lost:.1f} % of the frames left out (no pose, or over {GROSS_MM:g} mm off): the fit "
+                "describes the rest, smaller errors than the estimator's whole"
+            )
         if row["drift_frames_at_bound"]:
             notes.append(
                 f"{name}: the correlation time is at its bound ({row['tracking']['drift_frames']:.4g} of the loop's "
@@ -353,10 +357,6 @@ def fit(
         "source": source,
         "fitted": {"date": time.strftime("%Y-%m-%d"), "machine": machine(devices=False)},
     }
-
-
-def write_fit(path: str | Path, result: dict[str, Any]) -> None:
-    write_json(path, result)
 
 
 def markdown(result: dict[str, Any]) -> list[str]:
