@@ -74,6 +74,18 @@ def test_stopping_uses_only_the_estimate(policy, paper_testset):
     assert (run["success"] <= run["stopped"]).all() and (run["stopped"] & ~run["success"]).any()
 
 
+def test_one_query_through_the_jax_program_comes_back_as_one(policy, paper_testset):
+    """A query the lean path does not take (``clearance_mm``; every query on a GPU host) returns one
+    action and one pose, as the lean path does: CameraLoop unpacks ``next_ee`` as a 7-vector (a
+    [1, 7] array failed it on an H200, 2026-11-29)."""
+    episodes, _ = paper_testset
+    needle, start, goal = (x[0] for x in episode_poses(episodes))
+    a, nxt, done = policy.closed_loop_step(needle, start, goal, clearance_mm=0.05)
+    assert a.shape == (6,) and nxt.shape == (7,) and np.ndim(done) == 0 and not done
+    a1, nxt1, _ = policy.closed_loop_step(needle, start, goal)  # the lean path: the same step
+    np.testing.assert_allclose(nxt1, nxt, atol=1e-3)
+
+
 @pytest.mark.slow
 def test_one_closed_loop_step_on_the_lean_path_is_the_jax_program(policy, paper_testset):
     """One query on the CPU takes the lean numba step; a batch takes the JAX program: the same

@@ -123,7 +123,8 @@ def closed_loop_step(
         opened = jaws is not None and bool(jaws[0] > policy.env_config.scene.jaw_angle_deg)
         at_goal, nxt, a, jaw = lean.step(needle[0], ee[0], goal, radii[0], int(t), float(stop_tolerance), opened)
         return (a, nxt, np.bool_(at_goal)) + ((np.float64(jaw),) if opens else ())
-    needle, ee, goal, radii, single = _estimate_inputs(policy, needle, "ee", ee, goal, spec)
+    # one query stays one: the arrays are batched by now, so the flag is the caller's, found above
+    needle, ee, goal, radii, _ = _estimate_inputs(policy, needle, "ee", ee, goal, spec)
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     step = _program(policy, "step", shield, clearance_mm=float(clearance_mm), stop=float(stop_tolerance))
     jaws = np.full(len(needle), policy.env_config.scene.jaw_angle_deg) if jaws is None else jaws
