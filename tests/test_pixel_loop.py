@@ -2,8 +2,9 @@
 poses, then the learned estimator's fit) returns the true poses, and a biased one moves the needle by what
 the projection says; the loop through the oracle, on frames rendered for real (skipped where no OpenGL
 context can be made), takes the policy's own plan step by step, and (slow) reproduces the simulated camera
-loop's outcomes, steps and frames at the policy's own settings; the learned estimator's path sees rendered
-frames; the command line writes its report, resumes a killed run to the same rows and refuses bad input."""
+loop's outcomes, steps and frames at the policy's own settings, with jaws that open on the way its openings too;
+the learned estimator's path sees rendered frames; the command line writes its report, resumes a killed run to
+the same rows and refuses bad input."""
 
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ from regrasp_mjx.world.sampling import episode_poses
 from tests.cli_helper import run_main
 
 W, H = 64, 36  # tiny frames
+OPEN40 = "experiments/results/jaw_on_the_way/policy_open40"  # a teacher whose jaws open on the way to 40 degrees
 ROWS = 2  # every loop here runs 2 problems side by side: one compiled judge
 
 
@@ -178,6 +180,23 @@ def test_the_loop_through_the_oracle_is_the_simulated_camera_loop(policy, proble
     np.testing.assert_allclose(out["poses"], ref["poses"], atol=2e-6)
 
 
+@pytest.mark.slow
+def test_the_loop_through_the_oracle_opens_the_jaws_as_the_simulated_loop(problems):
+    """policy_open40 (jaws that open on the way to 40 degrees) through the oracle without images, at its own
+    settings and no error: each row opens its jaws before the step ``Policy.execute``'s loop does and ends
+    as it does, in as many steps and frames (the judge carrying the commanded openings out)."""
+    policy = regrasp_mjx.load_policy(OPEN40)
+    needle, start, goal = (x[:ROWS] for x in problems)
+    out = execute_from_pixels(
+        policy, OracleEstimator.of(endoscope.Rig(width=W, height=H)), needle, start, goal, batch=ROWS, render=False
+    )
+    ref = policy.execute(needle, start, goal)
+    for key in ("success", "collision", "time_out", "stopped", "steps", "frames", "looked", "jaw_deg", "opened_at"):
+        np.testing.assert_array_equal(out[key], ref[key], err_msg=key)
+    np.testing.assert_allclose(out["poses"], ref["poses"], atol=2e-6)
+    assert (ref["opened_at"] >= 0).all() and ref["success"].all()
+
+
 def test_the_learned_estimator_sees_rendered_frames(renderer, problems, tmp_path):
     """The learned path: a stereo pair rendered for each row, the estimator's poses (an untrained network
     here: shapes, not accuracy), the truth beside them; its cameras checked against the endoscope's."""
@@ -202,6 +221,9 @@ def test_the_learned_estimator_sees_rendered_frames(renderer, problems, tmp_path
     policy = regrasp_mjx.load_policy()
     with pytest.raises(PixelLoopError, match="render=False"):
         execute_from_pixels(policy, est, needle[:1], start[:1], render=False)
+    # the endoscope draws the jaws at the scene's opening: a learned estimator would not see them open
+    with pytest.raises(PixelLoopError, match="jaws open on the way .* not accepted with a learned estimator"):
+        execute_from_pixels(regrasp_mjx.load_policy(OPEN40), est, needle[:1], start[:1])
 
 
 def test_the_loop_s_refusals(policy, problems, monkeypatch):
@@ -218,13 +240,12 @@ def test_the_loop_s_refusals(policy, problems, monkeypatch):
     with pytest.raises(PixelLoopError, match="needle"):
         execute_from_pixels(policy, oracle, needle * np.nan, start, goal, render=False)
     with monkeypatch.context() as m:
-        m.setattr(
-            type(policy),
-            "closed_loop_defaults",
-            property(lambda self: {"look_frames": 30, "warmup_frames": 10, "stop_tolerance": 0.8}),
-        )
-        with pytest.raises(PixelLoopError, match="does not look yet"):
+        looks = {"look_frames": 30, "warmup_frames": 10, "stop_tolerance": 0.8, "jaw_deg": None, "jaw_sigmas": 0.0}
+        m.setattr(type(policy), "closed_loop_defaults", property(lambda self: looks))
+        with pytest.raises(PixelLoopError, match=r"looks before its last moves \(look_frames 30\).* pass camera="):
             execute_from_pixels(policy, oracle, needle, start, goal, render=False)
+        with pytest.raises(PixelLoopError, match="camera errors 'lab-bad' are not accepted"):  # given to CameraLoop
+            execute_from_pixels(policy, oracle, needle, start, goal, render=False, camera="lab-bad")
 
 
 # ---- the command line --------------------------------------------------------------------------------------

@@ -164,12 +164,20 @@ def opening_steps(policy: Any, needle: np.ndarray, poses: np.ndarray, steps: np.
     config = policy.env_config
     if config.jaw_open_deg is None:
         raise ConfigError("opening_steps takes a policy whose jaws open on the way (EnvConfig.jaw_open_deg set)")
-    room_of = policy.program(("opening_room",), lambda: _room_program(RegraspEnv(config)))
-    f32 = lambda x: None if x is None else np.asarray(x, np.float32)  # noqa: E731
-    room = np.asarray(room_of(f32(needle), f32(poses), f32(radii)))
+    room = opening_room(policy, needle, poses, radii)
     n = room.shape[1]
     ok = (room >= config.jaw_open_margin_mm * 1e-3) & (np.arange(n)[None, :] < np.asarray(steps)[:, None])
     return np.where(ok.any(axis=1), ok.argmax(axis=1), -1)
+
+
+def opening_room(policy: Any, needle: np.ndarray, poses: np.ndarray, radii=None) -> np.ndarray:
+    """The room [m] opening the jaws from the scene's opening to ``jaw_open_deg`` leaves at each pose
+    ``poses`` ``[B, N, 7]`` of ``needle`` ``[B, 7]`` (e_g; ``radii`` ``[B, 2]`` m for a task that draws
+    needles), the tool holding still: :meth:`~regrasp_mjx.envs.env.RegraspEnv.opening_room`, jitted
+    once per policy, ``[B, N]`` float32."""
+    room_of = policy.program(("opening_room",), lambda: _room_program(RegraspEnv(policy.env_config)))
+    f32 = lambda x: None if x is None else np.asarray(x, np.float32)  # noqa: E731
+    return np.asarray(room_of(f32(needle), f32(poses), f32(radii)))
 
 
 def _room_program(env: RegraspEnv) -> Callable:

@@ -33,7 +33,7 @@ from regrasp_mjx.envs.lean_collision import capsules
 from regrasp_mjx.envs.lean_geometry import goal_pose, nearest_grasp
 from regrasp_mjx.envs.lean_jaw import jaws
 from regrasp_mjx.envs.shield import candidate_noise, step_key
-from regrasp_mjx.inference.lean_rollout import closed_loop_step, rollout
+from regrasp_mjx.inference.lean_rollout import closed_loop_step, opening_keeps, rollout
 
 # the status _query reports in outcome[STATUS]: the pose that failed its check, or none
 POSE_OK, BAD_NEEDLE, BAD_START, BAD_GOAL = 0, 1, 2, 3
@@ -201,6 +201,15 @@ class LeanPlanner:
         at_goal = closed_loop_step(self.state, needle, ee, goal, radii, t, stop_scale, bool(opened), out)
         jaw_deg = self.base_deg if self.jaws is None or not out[13] else self.jaws.open_deg
         return at_goal, out[:7], out[7:13], jaw_deg
+
+    def opening_keeps(self, needle: np.ndarray, ee: np.ndarray, radii: np.ndarray, margin: float) -> bool:
+        """Whether opening the jaws at the pose ``ee`` keeps ``margin`` [m] (rounded to float32, as the
+        environment compares it) from the needle ``needle`` (``[7]`` each, e_g; ``radii`` ``[2]`` m) and
+        the grasping tool (:func:`~regrasp_mjx.inference.lean_rollout.opening_keeps`); False where the
+        jaws stay."""
+        f64 = np.ascontiguousarray
+        needle, ee, radii = f64(needle, np.float64), f64(ee, np.float64), f64(radii, np.float64)
+        return bool(opening_keeps(self.state, needle, ee, radii, float(np.float32(margin))))
 
 
 class LeanResult(NamedTuple):

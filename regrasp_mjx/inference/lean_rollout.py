@@ -24,7 +24,7 @@ from numba import njit
 from regrasp_mjx.envs import lean_collision
 from regrasp_mjx.envs.lean_collision import Capsules, collides, fixed_ends, make_scratch, motion_collides
 from regrasp_mjx.envs.lean_geometry import angle, canonical, qexp, qmul, relative, unit
-from regrasp_mjx.envs.lean_jaw import Jaws, as_jaws, open_jaws, opens_here, own_capsules, sweep_points
+from regrasp_mjx.envs.lean_jaw import Jaws, as_jaws, open_jaws, opens_here, own_capsules, sweep_keeps, sweep_points
 from regrasp_mjx.inference.lean_network import buffers, member_actions, observe
 
 # ---- the step and the rollout (regrasp_mjx.envs.env.RegraspEnv.step, regrasp_mjx.envs.rollout.rollout) -----
@@ -177,6 +177,29 @@ def closed_loop_step(state, needle, ee, goal, radii, t, stop_scale, opened, out)
         out[7 + j] = min(max(s.buffers[4][j], np.float32(-1.0)), np.float32(1.0))
     out[13] = 1.0 if opened else 0.0
     return False
+
+
+@njit(cache=True)
+def _keeps(j, margin, geo, fixed, ee_p, ee_q, ends):
+    """:func:`~regrasp_mjx.envs.lean_jaw.sweep_keeps` with the margin ``margin`` [m] in place of the
+    environment's; False where the jaws stay (``j`` None)."""
+    if j is None:
+        return False
+    own = Jaws(j.base_deg, j.open_deg, j.rows, j.opened, j.sweep, j.turn, j.slack, margin)
+    return sweep_keeps(own, geo, fixed, ee_p, ee_q, ends)
+
+
+@njit(cache=True)
+def opening_keeps(state, needle, ee, radii, margin):
+    """Whether opening the jaws from the scene's opening to ``jaw_open_deg`` at the pose ``ee`` ``[7]``,
+    the tool holding still, keeps ``margin`` [m] from the needle ``needle`` ``[7]`` (radii ``[2]`` m)
+    and the grasping tool: the environment's sweep test (the same check points and slack) with a
+    margin of the caller's (the closed loop's: the environment's plus its view's error,
+    :class:`~regrasp_mjx.inference.camera_loop.CameraLoop`). Poses rounded to float32 as the JAX path
+    takes them; False for a policy whose jaws stay."""
+    s = setup(state, needle, needle, radii)
+    ee_p, ee_q = pose(ee)
+    return _keeps(s.jaws, margin, s.geo, s.fixed, ee_p, ee_q, s.scratch[0])
 
 
 @njit(cache=True)

@@ -187,8 +187,9 @@ class Policy:
 
     def camera_loop(self, **options: Any):
         """A closed loop driven by camera frames of both tools and the needle, in which a
-        camera-to-base calibration error cancels (options ``warmup_frames``, ``stop_tolerance``,
-        ``shield`` and the task keywords): :class:`regrasp_mjx.inference.camera_loop.CameraLoop`."""
+        camera-to-base calibration error cancels (options ``goal_in_needle``, ``warmup_frames``,
+        ``stop_tolerance``, ``shield``, ``look_frames``, ``camera``, ``jaw_sigmas`` and the task
+        keywords; jaws that open on the way carried): :class:`regrasp_mjx.inference.camera_loop.CameraLoop`."""
         return camera_loop.CameraLoop(self, **options)
 
     def execute(self, needle: Any, start: Any, goal: Any = None, noise: Any = None, **options: Any) -> dict:

@@ -15,9 +15,16 @@ Each problem is one episode of the endoscope's domain randomisation (its draw se
 ``seed`` and the problem's row: :func:`episode_seeds`): the rig's pose jitter, lights, materials and
 the image's blur and gain fixed per episode, the image noise drawn anew each frame. The loop takes the
 policy's own closed-loop settings (``Policy.closed_loop_defaults``: the warm-up frames fused before the
-first step, the stop tolerance; the fused view is :class:`CameraLoop`'s). It does not look (hold still
-to fuse more frames before the last moves): that needs the estimator's known error sizes, which no
-fitted error model gives yet, so a policy whose own ``look_frames`` is not 0 is refused.
+first step, the stop tolerance, the frames a look may take; the fused view is :class:`CameraLoop`'s).
+Looking (holding still to fuse more frames before the last moves while the fused view is too uncertain)
+is decided by the camera's known error sizes, which the loop cannot read off its estimator: the caller
+names them (``camera``: a :class:`~regrasp_mjx.envs.camera_errors.CameraErrors` or a preset's name, such
+as one fitted to the estimator's errors), or a policy that looks is refused (or ``look_frames=0`` asks
+it not to). A policy whose jaws open on the way opens them as :class:`CameraLoop` commands, and the
+judge carries the opening out (its sweep proved on the true poses, the motions tested with the jaws
+where they are); the endoscope draws the regrasping jaws at the scene's opening, so such a policy is
+accepted with the oracle (which reads the true poses), not with a learned estimator (whose images
+would not show the jaws the robot holds once they open).
 
 The judge is the environment's: each commanded motion is carried out on the true state by
 :meth:`regrasp_mjx.envs.env.RegraspEnv.move` (the continuous collision test along the whole motion,
@@ -70,9 +77,11 @@ PROGRESS_STEPS = 10  # a progress line every this many steps of a batch
 def _judge(policy: Any) -> Callable:
     """The environment's judge of the true state, jitted once per environment (the policy's program
     cache): ``("reset", needle, start, goal)`` the batch's true states; ``("at_goal", state, needle)``
-    whether each is at its goal on the true needle; ``("move", state, dp, rotvec, live)`` the live
-    rows moved by ``dp`` [m] and ``rotvec`` [rad] (e_g) with :meth:`RegraspEnv.move` (the others held),
-    and whether each collided."""
+    whether each is at its goal on the true needle; ``("move", state, dp, rotvec, live, jaw_deg)`` the
+    live rows moved by ``dp`` [m] and ``rotvec`` [rad] (e_g) with :meth:`RegraspEnv.move` (the others
+    held), the jaws first opened to ``jaw_deg`` [deg] where it is wider than they are (a sweep the true
+    poses do not prove clear is a collision), and whether each collided. A policy whose jaws stay takes
+    ``jaw_deg`` None: the environment's own step."""
 
     def build():
         env = RegraspEnv(policy.env_config)
@@ -80,8 +89,10 @@ def _judge(policy: Any) -> Callable:
         at_goal = jax.jit(lambda state, needle: _at_goal(env, state, needle))
 
         @jax.jit
-        def move(state, dp, rv, live):
-            nxt = jax.vmap(env.move)(state, dp, rv)
+        def move(state, dp, rv, live, jaw_deg=None):
+            # the loop's opening (the environment's own rule would decide on the truth, not on the view)
+            opening = () if jaw_deg is None else (jaw_deg,)
+            nxt = jax.vmap(env.move)(state, dp, rv, *opening)
             held = jax.tree.map(lambda x, y: jnp.where(live.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), nxt, state)
             return held, live & (nxt.metrics["collision"] > 0)
 
@@ -91,17 +102,29 @@ def _judge(policy: Any) -> Callable:
     return policy.program(("pixel_loop_judge",), build)
 
 
-def _check(policy: Any, needle: Any, start: Any, goal: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    if policy.env_config.jaw_open_deg is not None:
+def _check(
+    policy: Any, estimator: Any, needle: Any, start: Any, goal: Any, look_frames: Any, camera: Any
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    # CameraLoop carries jaws that open on the way; the images do not: the endoscope draws the regrasping
+    # jaws at the scene's opening, so a learned estimator, which sees them, would be measured on jaws that
+    # are not the robot's once they open (its errors then unknown either way). The oracle reads the truth.
+    if policy.env_config.jaw_open_deg is not None and isinstance(estimator, Estimator):
         raise PixelLoopError(
-            "a policy whose jaws open on the way is not accepted: CameraLoop does not carry the jaws' opening "
-            "and the endoscope draws them at the scene's"
+            f"a policy whose jaws open on the way (to {policy.env_config.jaw_open_deg} deg) is not accepted with a "
+            f"learned estimator: the endoscope draws the regrasping jaws at the scene's "
+            f"{policy.env_config.scene.jaw_angle_deg} deg, so its images would not show the robot's once they "
+            "open; accepted: the oracle, or a policy whose jaws stay"
         )
-    if policy.closed_loop_defaults.get("look_frames", 0):
+    # Looking is decided by the camera's known error sizes. The loop cannot read them off its estimator (a
+    # learned one's errors are measured elsewhere, `estimator fit`), and not looking would run another loop
+    # than the policy's, so the caller names them or turns the looking off: nothing is assumed.
+    look = policy.closed_loop_defaults.get("look_frames", 0) if look_frames is None else look_frames
+    if look and camera is None:
         raise PixelLoopError(
-            f"this policy looks before its last moves (look_frames {policy.closed_loop_defaults['look_frames']}): "
-            "the loop from pixels does not look yet (it needs the estimator's known error sizes); accepted: a "
-            "policy whose closed_loop.look_frames is 0"
+            f"this policy looks before its last moves (look_frames {look}) while its fused view is too "
+            "uncertain by the camera's known error sizes, which the loop from pixels cannot know: pass "
+            "camera= (a CameraErrors or a preset's name, e.g. one fitted to the estimator's errors), or "
+            "look_frames=0 not to look"
         )
     try:
         (needle, start), _ = batch_poses(needle=needle, start=start)
@@ -135,11 +158,14 @@ class _Batch:
         self.view = np.full((b, 2), np.nan)  # the fused view's position errors at the last decision
 
     def decide(self, ee: np.ndarray, live: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Frames of the ``live`` rows (tools truly at ``ee`` ``[B, 7]``) until each has a decision: which
-        stop (the view says the goal is reached) and the others' tool-frame motions ``[B, 4, 4]``."""
+        """Frames of the ``live`` rows (tools truly at ``ee`` ``[B, 7]``) until each has a decision (a frame
+        a look holds still for is taken like a warm-up frame: the next one at once): which stop (the view
+        says the goal is reached) and the others' tool-frame motions ``[B, 4, 4]``; the jaws' opening each
+        row commands before its motion in :attr:`jaw_deg`."""
         b = len(ee)
         need, tries = live.copy(), np.zeros(b, np.int64)
         stopping, motion = np.zeros(b, bool), np.tile(np.eye(4), (b, 1, 1))
+        self.jaw_deg = np.array([loop.jaw_deg for loop in self.loops])  # the opening each row commands
         g_true = matrices(ee)
         while need.any():
             rows = np.nonzero(need)[0]
@@ -159,7 +185,7 @@ class _Batch:
                 if not command.ready:
                     continue
                 need[i] = False
-                stopping[i], motion[i] = command.at_goal, command.motion
+                stopping[i], motion[i], self.jaw_deg[i] = command.at_goal, command.motion, command.jaw_deg
                 truth_n = matrices(self.needle[i])
                 self.view[i] = (
                     np.linalg.norm(command.needle[:3] - truth_n[:3, 3]) * 1e3,
@@ -196,7 +222,8 @@ class _Batch:
             if t >= horizon or not live.any():
                 break
             dp, rv = _motion_in_eg(ee, motion)
-            state, hit = judge("move", state, f32(dp * live[:, None]), f32(rv * live[:, None]), live)
+            jaws = (f32(self.jaw_deg),) if self.policy.env_config.jaw_open_deg is not None else ()
+            state, hit = judge("move", state, f32(dp * live[:, None]), f32(rv * live[:, None]), live, *jaws)
             hit = np.asarray(hit)
             collision |= hit
             ended |= hit
@@ -223,6 +250,9 @@ class _Batch:
             "steps": steps,
             "frames": frames,
             "refused": self.refused,
+            "looked": np.array([loop.looked for loop in self.loops], np.int32),
+            "jaw_deg": np.array([loop.jaw_deg for loop in self.loops], np.float32),
+            "opened_at": np.array([loop.opened_at for loop in self.loops], np.int32),
             "view_error_mm": self.view,
             "estimate_error_mm": errors[:, :, 0],
             "estimate_error_deg": errors[:, :, 1],
@@ -263,6 +293,8 @@ def execute_from_pixels(
     seeds: Any = None,
     warmup_frames: int | None = None,
     stop_tolerance: float | None = None,
+    look_frames: int | None = None,
+    camera: Any = None,
 ) -> dict[str, np.ndarray]:
     """The closed loop from pixels (see the module docstring) on true needle, start and goal poses
     ``[B, 7]`` (e_g; ``goal`` None: the task's goal grasp on each needle), ``batch`` rows at a time
@@ -270,7 +302,7 @@ def execute_from_pixels(
     with ``batch`` no larger than their number).
 
     Args:
-      policy: a loaded policy (its own closed-loop settings; jaws that stay at the scene's opening).
+      policy: a loaded policy (its own closed-loop settings; jaws that open on the way with the oracle only).
       estimator: a loaded :class:`~regrasp_mjx.vision.estimator_file.Estimator` or an
         :class:`~regrasp_mjx.vision.oracle.OracleEstimator`.
       seed: the episodes' randomisation draws (:func:`episode_seeds`) and so each frame's image noise.
@@ -280,13 +312,17 @@ def execute_from_pixels(
       log: progress lines (None: none).
       seeds: each problem's randomisation seed ``[B]`` (None: :func:`episode_seeds` of ``seed``), so
         that a part of a set of problems sees what it would see in the whole.
-      warmup_frames, stop_tolerance: :class:`CameraLoop`'s (None: the policy's own).
+      warmup_frames, stop_tolerance, look_frames: :class:`CameraLoop`'s (None: the policy's own).
+      camera: the camera's known error sizes the loop looks by and keeps the jaws' margin by
+        (:class:`CameraLoop`'s: a :class:`~regrasp_mjx.envs.camera_errors.CameraErrors` or a preset's
+        name); None: none known, and a policy that looks is refused.
 
     Returns:
       numpy arrays per row: ``success`` (stopped at the true goal, no collision), ``collision`` (on
-      the true poses, along every motion), ``time_out``, ``stopped`` (the view said the goal was
-      reached), ``start_valid``, ``steps``, ``frames`` (every frame taken: the warm-up, one a step,
-      the refused), ``refused``, ``view_error_mm`` ``[B, 2]`` (the fused needle and regrasping tool in
+      the true poses, along every motion and the jaws' opening), ``time_out``, ``stopped`` (the view
+      said the goal was reached), ``start_valid``, ``steps``, ``frames`` (every frame taken: the
+      warm-up, one a step, the looked, the refused), ``refused``, ``looked``, ``jaw_deg`` (the jaws'
+      last opening), ``opened_at`` (the step they opened before, -1: never), ``view_error_mm`` ``[B, 2]`` (the fused needle and regrasping tool in
       the seen e_g against the truth at the last decision), ``estimate_error_mm`` and
       ``estimate_error_deg`` ``[B, F, 5]`` (each frame's estimate against the truth:
       :data:`ERROR_COLUMNS`; NaN past a row's frames or where the fit gave no pose), ``poses``
@@ -296,7 +332,7 @@ def execute_from_pixels(
       PixelLoopError: a policy, estimator or settings the loop cannot run.
       RenderUnavailable: no OpenGL context can be made here (with ``render``).
     """
-    needle, start, goal = _check(policy, needle, start, goal)
+    needle, start, goal = _check(policy, estimator, needle, start, goal, look_frames, camera)
     rig = rig_of(estimator)
     if not render and not isinstance(estimator, OracleEstimator):
         raise PixelLoopError("render=False is not accepted with a learned estimator: it sees the images")
@@ -309,7 +345,12 @@ def execute_from_pixels(
     seeds = episode_seeds(n, seed) if seeds is None else np.asarray(seeds)
     if seeds.shape != (n,) or seeds.dtype.kind not in "iu" or (seeds < 0).any():
         raise PixelLoopError(f"seeds of shape {seeds.shape} are not accepted: one integer >= 0 per problem ({n})")
-    settings = {"warmup_frames": warmup_frames, "stop_tolerance": stop_tolerance}
+    settings = {
+        "warmup_frames": warmup_frames,
+        "stop_tolerance": stop_tolerance,
+        "look_frames": look_frames,
+        "camera": camera,
+    }
     try:
         policy.camera_loop(**settings)
     except ValueError as err:
