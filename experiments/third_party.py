@@ -221,20 +221,205 @@ def warm_critic(model, steps: int, batch: int) -> None:
             model.actor_target.load_state_dict(model.actor.state_dict())
 
 
-def _Progress(total: int, t0: float, sb3):
+def demonstration_statistics(demos: Demonstrations) -> dict[str, dict[str, list[float]]]:
+    """Each observation key's per-component mean and standard deviation over the demonstrations'
+    transitions (what ``--obs-norm`` fixes in the policy's input layer)."""
+    return {
+        k: {"mean": v.mean(0).astype(float).tolist(), "std": v.std(0).astype(float).tolist()}
+        for k, v in demos.obs.items()
+    }
+
+
+def normalised_extractor(torch, sb3):
+    """SB3's ``CombinedExtractor`` with fixed input statistics: each key's components
+    ``(x - mean) / max(std, 1e-6)``, clipped to +-5 (brax's running statistics and clip, as our learner
+    normalises its inputs, fixed here from the demonstrations), then flattened and concatenated in the
+    observation space's key order. The statistics are buffers of the module: they travel with the
+    policy; SB3's TD3 gives the actor and each critic an instance of their own."""
+    from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+    class NormalisedCombinedExtractor(BaseFeaturesExtractor):
+        def __init__(self, observation_space, statistics: dict, clip: float = 5.0):
+            keys = list(observation_space.spaces)
+            if sorted(keys) != sorted(statistics):
+                raise ValueError(f"statistics for {sorted(statistics)}, observations have {sorted(keys)}")
+            size = sum(int(np.prod(observation_space.spaces[k].shape)) for k in keys)
+            super().__init__(observation_space, features_dim=size)
+            self.keys, self.clip = keys, clip
+            for k in keys:
+                shape = observation_space.spaces[k].shape
+                mean = torch.as_tensor(statistics[k]["mean"], dtype=torch.float32).reshape(shape)
+                std = torch.as_tensor(statistics[k]["std"], dtype=torch.float32).reshape(shape).clamp(min=1e-6)
+                self.register_buffer(f"mean_{k}", mean)
+                self.register_buffer(f"std_{k}", std)
+
+        def forward(self, observations):
+            parts = []
+            for k in self.keys:
+                x = (observations[k] - getattr(self, f"mean_{k}")) / getattr(self, f"std_{k}")
+                parts.append(x.clamp(-self.clip, self.clip).flatten(1))
+            return torch.cat(parts, dim=1)
+
+    return NormalisedCombinedExtractor
+
+
+def td3_bc_class(torch, sb3):
+    """SB3's TD3 with TD3+BC's actor loss (Fujimoto & Gu 2021) inside its own ``train``:
+    ``-lambda * Q1(s, pi(s)) + (pi(s) - a_demo)^2`` with ``lambda = alpha / mean|Q1|`` (the batch's,
+    no gradient through it), the BC term (mean squared error, as the paper's) on the batch's
+    demonstration rows. The demonstrations live in a replay buffer of their own (SB3's
+    ``DictReplayBuffer``, ``model.demo_buffer``, never overwritten); each batch takes
+    ``demo_fraction`` of its transitions from it and the rest from SB3's own buffer (the online
+    transitions; DDPGfD's and our learner's split), all of it from the demonstrations while SB3's buffer
+    is empty (the offline phase: TD3+BC as the paper's). Everything else is ``TD3.train`` as SB3 2.9
+    writes it: twin critics with clipped target-policy noise, the delayed actor update, Polyak targets."""
+    from stable_baselines3.common.type_aliases import DictReplayBufferSamples
+
+    functional = torch.nn.functional
+
+    def concatenate(a, b):
+        if a is None:
+            return None
+        if isinstance(a, dict):
+            return {k: torch.cat([a[k], b[k]]) for k in a}
+        return torch.cat([a, b])
+
+    class TD3BC(sb3.TD3):
+        bc_alpha: float = 2.5
+        demo_fraction: float = 0.25
+        demo_buffer = None
+        last_stats: dict = {}
+
+        def sample_batch(self, batch_size: int):
+            """(samples, rows from the demonstrations: the first ones)."""
+            online = self.replay_buffer.size() if self.replay_buffer is not None else 0
+            n_demo = batch_size if online == 0 else int(round(self.demo_fraction * batch_size))
+            demo = self.demo_buffer.sample(n_demo, env=self._vec_normalize_env) if n_demo else None
+            if n_demo == batch_size:
+                return demo, n_demo
+            own = self.replay_buffer.sample(batch_size - n_demo, env=self._vec_normalize_env)
+            if demo is None:
+                return own, 0
+            return DictReplayBufferSamples(*(concatenate(a, b) for a, b in zip(demo, own))), n_demo
+
+        def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+            from stable_baselines3.common.utils import polyak_update
+
+            self.policy.set_training_mode(True)
+            self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
+            actor_losses, critic_losses, bc_losses, lambdas, qs = [], [], [], [], []
+            for _ in range(gradient_steps):
+                self._n_updates += 1
+                data, n_demo = self.sample_batch(batch_size)
+                discounts = data.discounts if data.discounts is not None else self.gamma
+                with torch.no_grad():
+                    noise = data.actions.clone().data.normal_(0, self.target_policy_noise)
+                    noise = noise.clamp(-self.target_noise_clip, self.target_noise_clip)
+                    next_actions = (self.actor_target(data.next_observations) + noise).clamp(-1, 1)
+                    next_q = torch.cat(self.critic_target(data.next_observations, next_actions), dim=1)
+                    next_q, _ = torch.min(next_q, dim=1, keepdim=True)
+                    target_q = data.rewards + (1 - data.dones) * discounts * next_q
+                current_q = self.critic(data.observations, data.actions)
+                critic_loss = sum(functional.mse_loss(q, target_q) for q in current_q)
+                critic_losses.append(critic_loss.item())
+                self.critic.optimizer.zero_grad()
+                critic_loss.backward()
+                self.critic.optimizer.step()
+
+                if self._n_updates % self.policy_delay == 0:
+                    pi = self.actor(data.observations)
+                    q = self.critic.q1_forward(data.observations, pi)
+                    lam = self.bc_alpha / q.abs().mean().detach().clamp(min=1e-6)
+                    bc = functional.mse_loss(pi[:n_demo], data.actions[:n_demo]) if n_demo else pi.sum() * 0.0
+                    actor_loss = -lam * q.mean() + bc
+                    actor_losses.append(actor_loss.item())
+                    bc_losses.append(bc.item())
+                    lambdas.append(lam.item())
+                    qs.append(q.mean().item())
+                    self.actor.optimizer.zero_grad()
+                    actor_loss.backward()
+                    self.actor.optimizer.step()
+                    polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+                    polyak_update(self.actor.parameters(), self.actor_target.parameters(), self.tau)
+                    polyak_update(self.critic_batch_norm_stats, self.critic_batch_norm_stats_target, 1.0)
+                    polyak_update(self.actor_batch_norm_stats, self.actor_batch_norm_stats_target, 1.0)
+
+            self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+            self.logger.record("train/critic_loss", np.mean(critic_losses))
+            if actor_losses:
+                self.last_stats = {
+                    "critic_loss": float(np.mean(critic_losses)),
+                    "actor_loss": float(np.mean(actor_losses)),
+                    "bc_loss": float(np.mean(bc_losses)),
+                    "lambda": float(np.mean(lambdas)),
+                    "q": float(np.mean(qs)),
+                }
+                self.logger.record("train/actor_loss", self.last_stats["actor_loss"])
+                self.logger.record("train/bc_loss", self.last_stats["bc_loss"])
+
+    return TD3BC
+
+
+def fill_demo_buffer(model, demos: Demonstrations) -> None:
+    """A ``DictReplayBuffer`` (SB3's) of exactly the demonstrations, as ``model.demo_buffer``."""
+    from stable_baselines3.common.buffers import DictReplayBuffer
+
+    model.demo_buffer = DictReplayBuffer(
+        len(demos), model.observation_space, model.action_space, device=model.device, n_envs=1
+    )
+    real = model.replay_buffer
+    model.replay_buffer = model.demo_buffer
+    try:
+        fill_replay_buffer(model, demos)
+    finally:
+        model.replay_buffer = real
+
+
+def train_offline(model, steps: int, batch: int, chunk: int = 1000, log=print) -> list[dict]:
+    """``steps`` of the model's own gradient steps while SB3's buffer is empty (TD3+BC on the
+    demonstrations alone), in chunks; the statistics of each chunk's last call."""
+    from stable_baselines3.common.logger import Logger
+
+    if getattr(model, "_logger", None) is None:
+        model.set_logger(Logger(folder=None, output_formats=[]))
+    history, t0, done = [], time.perf_counter(), 0
+    while done < steps:
+        n = min(chunk, steps - done)
+        model.train(gradient_steps=n, batch_size=batch)
+        done += n
+        history.append({"step": done, **{k: round(v, 5) for k, v in model.last_stats.items()}})
+        if done % max(steps // 10, 1) < chunk or done == steps:
+            log(f"offline TD3+BC {done:,}/{steps:,} steps, {time.perf_counter() - t0:.0f} s: {history[-1]}")
+    return history
+
+
+def _Progress(total: int, t0: float, sb3, evaluate=None, eval_every: int = 0, curve: list | None = None):
     """A line every 5 % of the budget: steps, rate, ETA and the last episodes' success (SB3's own
-    progress bar draws only on a terminal)."""
+    progress bar draws only on a terminal); with ``evaluate``, its result every ``eval_every`` steps
+    appended to ``curve`` (the time it takes left out of the rate)."""
 
     class Progress(sb3.common.callbacks.BaseCallback):
-        def _on_step(self) -> bool:
-            every = max(total // 20, 1)
-            if self.num_timesteps % every == 0:
-                rate = self.num_timesteps / (time.perf_counter() - t0)
+        eval_s = 0.0
+        next_eval = eval_every
+        next_line = every = max(total // 20, 1)
+
+        def _on_step(self) -> bool:  # num_timesteps grows by the number of environments
+            if evaluate is not None and eval_every and self.num_timesteps >= self.next_eval:
+                self.next_eval += eval_every
+                t = time.perf_counter()
+                curve.append({"env_steps": self.num_timesteps, **evaluate()})
+                self.eval_s += time.perf_counter() - t
+                print(f"{self.num_timesteps:,} steps, judged: {curve[-1]}", flush=True)
+            if self.num_timesteps >= self.next_line:
+                self.next_line += self.every
+                rate = self.num_timesteps / (time.perf_counter() - t0 - self.eval_s)
                 recent = [float(x) for x in self.model.ep_success_buffer]
                 success = f"{np.mean(recent):.2f}" if recent else "n/a"
+                stats = getattr(self.model, "last_stats", None)
                 print(
                     f"{self.num_timesteps:,}/{total:,} steps, {rate:.0f}/s, ETA {(total - self.num_timesteps) / rate / 60:.1f} min, "
-                    f"success of the last {len(recent)} episodes {success}",
+                    f"success of the last {len(recent)} episodes {success}"
+                    + (f"; {', '.join(f'{k} {v:.4g}' for k, v in stats.items())}" if stats else ""),
                     flush=True,
                 )
             return True
@@ -269,6 +454,42 @@ def main(argv: list[str] | None = None) -> None:
     )
     demo.add_argument("--action-noise", type=float, default=0.1, help="TD3's Gaussian exploration noise (sigma)")
     demo.add_argument(
+        "--obs-norm",
+        action="store_true",
+        help="normalise the policy's inputs by the demonstrations' mean and std (fixed; clipped to +-5)",
+    )
+    demo.add_argument(
+        "--net-arch",
+        default=None,
+        metavar="N,N,..",
+        help="hidden layers of actor and critics (SB3's default: TD3 400,300)",
+    )
+    demo.add_argument("--lr", type=float, default=None, help="the RL learning rate (SB3's default: TD3 1e-3)")
+    demo.add_argument(
+        "--bc-alpha",
+        type=float,
+        default=0.0,
+        help="TD3+BC's alpha (Fujimoto & Gu: 2.5): the BC term inside SB3 TD3's updates; 0: SB3's TD3 as is",
+    )
+    demo.add_argument(
+        "--offline-steps",
+        type=int,
+        default=0,
+        help="TD3+BC gradient steps on the demonstrations alone, after the warm-up",
+    )
+    demo.add_argument(
+        "--demo-fraction",
+        type=float,
+        default=0.25,
+        help="TD3+BC online: share of each batch drawn from the demonstrations' buffer (ours: 0.25)",
+    )
+    demo.add_argument(
+        "--eval-every",
+        type=int,
+        default=0,
+        help="judge the validation problems every N env steps of RL training (a curve in the results; 0: never)",
+    )
+    demo.add_argument(
         "--validation",
         type=int,
         default=300,
@@ -279,6 +500,23 @@ def main(argv: list[str] | None = None) -> None:
         p.error("--steps must be >= 1 (>= 0 with --demos) and --n-envs >= 1")
     if min(args.bc_steps, args.critic_warmup, args.validation) < 0 or args.bc_batch < 1 or not args.bc_lr > 0:
         p.error("--bc-steps, --critic-warmup and --validation must be >= 0, --bc-batch >= 1 and --bc-lr > 0")
+    if args.net_arch is not None:
+        try:
+            args.net_arch = [int(n) for n in args.net_arch.split(",")]
+        except ValueError:
+            p.error(f"--net-arch {args.net_arch!r}: hidden layer sizes separated by commas, e.g. 512,512,512")
+        if not args.net_arch or min(args.net_arch) < 1:
+            p.error("--net-arch: hidden layer sizes >= 1")
+    if not (args.bc_alpha >= 0 and args.offline_steps >= 0 and args.eval_every >= 0 and 0 <= args.demo_fraction < 1):
+        p.error("--bc-alpha, --offline-steps and --eval-every must be >= 0 and --demo-fraction in [0, 1)")
+    if (args.bc_alpha > 0 or args.obs_norm) and args.demos is None:
+        p.error("--bc-alpha and --obs-norm need --demos (the demonstrations' actions and statistics)")
+    if args.bc_alpha > 0 and args.algo != "td3":
+        p.error("--bc-alpha is TD3+BC: --algo td3")
+    if args.offline_steps and not args.bc_alpha > 0:
+        p.error("--offline-steps are TD3+BC's: give --bc-alpha > 0")
+    if args.lr is not None and not args.lr > 0:
+        p.error("--lr must be > 0")
     try:  # the optional extras: torch and Stable-Baselines3 (and Minari for --demos)
         import gymnasium
         import stable_baselines3 as sb3
@@ -299,8 +537,19 @@ def main(argv: list[str] | None = None) -> None:
     env = make_vec_env(
         lambda: gymnasium.make(gym_id(name), config_overrides=overrides), n_envs=args.n_envs, seed=args.seed
     )
-    algo = {"sac": sb3.SAC, "td3": sb3.TD3}[args.algo]
+    td3_bc = args.bc_alpha > 0
+    algo = td3_bc_class(torch, sb3) if td3_bc else {"sac": sb3.SAC, "td3": sb3.TD3}[args.algo]
     kwargs = {"seed": args.seed, "learning_starts": 1000, "verbose": 0}
+    policy_kwargs = {}
+    if args.net_arch is not None:
+        policy_kwargs["net_arch"] = args.net_arch
+    if args.obs_norm:
+        policy_kwargs["features_extractor_class"] = normalised_extractor(torch, sb3)
+        policy_kwargs["features_extractor_kwargs"] = {"statistics": demonstration_statistics(demos)}
+    if policy_kwargs:
+        kwargs["policy_kwargs"] = policy_kwargs
+    if args.lr is not None:
+        kwargs["learning_rate"] = args.lr
     if demos is None and not args.no_her:
         kwargs["replay_buffer_class"] = sb3.HerReplayBuffer
     if demos is not None:
@@ -308,6 +557,8 @@ def main(argv: list[str] | None = None) -> None:
         if args.algo == "td3":
             kwargs["action_noise"] = NormalActionNoise(np.zeros(6), np.full(6, args.action_noise))
     model = algo("MultiInputPolicy", env, **kwargs)
+    if td3_bc:
+        model.bc_alpha, model.demo_fraction = args.bc_alpha, args.demo_fraction
 
     def sb3_act(obs):
         return model.predict(obs, deterministic=True)[0]
@@ -326,7 +577,7 @@ def main(argv: list[str] | None = None) -> None:
         config = registry.load(name, config_overrides=overrides).env_config
         validation = make_testset(args.validation, VALIDATION_SEED, config)
 
-    label = f"SB3 {args.algo.upper()}"
+    label = f"SB3 {args.algo.upper()}" + ("+BC" if td3_bc else "")
     rows, stages = {}, {}
     t0 = time.perf_counter()
     if demos is not None:
@@ -335,20 +586,45 @@ def main(argv: list[str] | None = None) -> None:
         stages["bc_wall_s"] = round(time.perf_counter() - t, 1)
         stages["bc_losses"] = losses
         print(f"BC: {args.bc_steps:,} steps in {stages['bc_wall_s']} s, loss {losses}", flush=True)
-        rows[f"{label} actor, BC on the demonstrations"] = judged(sb3_act)
+        rows[f"SB3 {args.algo.upper()} actor, BC on the demonstrations"] = judged(sb3_act)
         print(json.dumps({k: {s: v[s]["success"] for s in v} for k, v in rows.items()}), flush=True)
+    if td3_bc and (args.steps or args.offline_steps):
+        t = time.perf_counter()
+        fill_demo_buffer(model, demos)
+        warm_critic(model, args.critic_warmup, model.batch_size)
+        stages["critic_warmup_wall_s"] = round(time.perf_counter() - t, 1)
+        print(f"demonstration buffer and critic warm-up: {stages['critic_warmup_wall_s']} s", flush=True)
+        if args.offline_steps:
+            t = time.perf_counter()
+            stages["offline_history"] = train_offline(model, args.offline_steps, model.batch_size)
+            stages["offline_wall_s"] = round(time.perf_counter() - t, 1)
+            rows[f"{label}, BC then {args.offline_steps:,} TD3+BC steps on the demonstrations"] = judged(sb3_act)
+            print(json.dumps({k: {s: v[s]["success"] for s in v} for k, v in rows.items()}), flush=True)
     if args.steps:
-        if demos is not None:
+        if demos is not None and not td3_bc:
             t = time.perf_counter()
             fill_replay_buffer(model, demos)
             warm_critic(model, args.critic_warmup, model.batch_size)
             stages["critic_warmup_wall_s"] = round(time.perf_counter() - t, 1)
         t = time.perf_counter()
-        model.learn(total_timesteps=args.steps, callback=_Progress(args.steps, t, sb3))
-        stages["rl_wall_s"] = round(time.perf_counter() - t, 1)
+        curve: list[dict] = []
+
+        def evaluate() -> dict:
+            result = judge(sb3_act, validation, name, overrides)
+            return {k: result[k] for k in ("success", "collision", "time_out")}
+
+        progress = _Progress(args.steps, t, sb3, evaluate if validation is not None else None, args.eval_every, curve)
+        model.learn(total_timesteps=args.steps, callback=progress)
+        stages["rl_wall_s"] = round(time.perf_counter() - t - progress.eval_s, 1)
+        if curve:
+            stages["validation_curve"] = curve
+            stages["validation_curve_wall_s"] = round(progress.eval_s, 1)
         her = "" if demos is not None or args.no_her else " + HER"
+        offline = f", {args.offline_steps:,} TD3+BC steps" if args.offline_steps else ""
         tuned = (
-            f"{label}{her}" if demos is None else f"{label}, BC then {args.steps:,} env steps with the demonstrations"
+            f"{label}{her}"
+            if demos is None
+            else f"{label}, BC{offline} then {args.steps:,} env steps with the demonstrations"
         )
         rows[tuned] = judged(sb3_act)
     train_s = time.perf_counter() - t0  # the judging of the cloned actor included (seconds)
@@ -372,8 +648,9 @@ def main(argv: list[str] | None = None) -> None:
     if demos is None:
         head = f"SB3 trained {args.steps:,} env steps (seed {args.seed}) in {train_s:.0f} s"
     else:
+        offline = f", {args.offline_steps:,} offline TD3+BC steps" if args.offline_steps else ""
         head = (
-            f"SB3 {args.algo.upper()} from {demos.episodes:,} demonstrations ({args.demos}): BC {args.bc_steps:,} steps, "
+            f"{label} from {demos.episodes:,} demonstrations ({args.demos}): BC {args.bc_steps:,} steps{offline}, "
             f"then {args.steps:,} env steps (seed {args.seed}), {train_s:.0f} s"
         )
     sets = ["test"] + (["validation"] if validation is not None else [])
@@ -393,7 +670,15 @@ def main(argv: list[str] | None = None) -> None:
         stem = f"{args.algo}{'' if args.no_her else '_her'}_seed{args.seed}"
     else:
         dataset = args.demos.rsplit("/", 1)[-1]  # the id without its namespace
-        stem = f"{dataset}_{args.algo}_bc{args.bc_steps}_steps{args.steps}_seed{args.seed}"
+        tags = "".join(
+            (
+                "_norm" if args.obs_norm else "",
+                f"_net{'x'.join(map(str, args.net_arch))}" if args.net_arch else "",
+                f"_lr{args.lr:g}" if args.lr is not None else "",
+                f"_td3bc{args.bc_alpha:g}_off{args.offline_steps}_df{args.demo_fraction:g}" if td3_bc else "",
+            )
+        )
+        stem = f"{dataset}_{args.algo}_bc{args.bc_steps}_steps{args.steps}{tags}_seed{args.seed}"
     write_results(args.out, stem, lines, data)
     print("\n".join(lines))
     print(json.dumps({"train_wall_s": data["train_wall_s"], **{k: v["test"]["success"] for k, v in rows.items()}}))

@@ -131,3 +131,70 @@ def test_the_script_refuses_steps_0_without_demonstrations(third_party, capsys):
     with pytest.raises(SystemExit):
         third_party.main(["--steps", "0"])
     assert "--steps must be >= 1" in capsys.readouterr().err
+
+
+@needs_extras
+def test_td3_bc_updates_inside_sb3_with_normalised_inputs(third_party, dataset, monkeypatch):
+    """TD3+BC (``--bc-alpha``) as a subclass of SB3's TD3: its demonstrations in a buffer of their own,
+    its batches all demonstrations while SB3's buffer is empty and ``demo_fraction`` of them after; its
+    actor update moves the actor and reports the BC term and lambda = alpha / mean|Q|. The
+    normalised extractor (``--obs-norm``) maps the demonstrations to mean 0 and std 1 (clipped)."""
+    import gymnasium
+    import stable_baselines3 as sb3
+    import torch
+
+    torch.set_num_threads(1)
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(dataset))
+    demos = third_party.load_demonstrations(DATASET)
+    env = gymnasium.make("regrasp_mjx/NeedleRegrasp-v0", config_overrides=demos.config_overrides)
+    extractor = third_party.normalised_extractor(torch, sb3)
+    policy_kwargs = {
+        "net_arch": [32, 32],
+        "features_extractor_class": extractor,
+        "features_extractor_kwargs": {"statistics": third_party.demonstration_statistics(demos)},
+    }
+    model = third_party.td3_bc_class(torch, sb3)("MultiInputPolicy", env, seed=0, policy_kwargs=policy_kwargs)
+    model.bc_alpha, model.demo_fraction = 2.5, 0.5
+    features = model.actor.features_extractor({k: torch.as_tensor(v) for k, v in demos.obs.items()})
+    varying = np.concatenate([v.std(0) > 1e-3 for v in demos.obs.values()])  # the observation space's key order
+    assert torch.allclose(features.mean(0)[varying], torch.zeros(int(varying.sum())), atol=1e-3)
+    assert features.abs().max() <= 5.0  # clipped (the near-constant components' float noise included)
+    assert torch.allclose(features.std(0, unbiased=False)[varying], torch.ones(int(varying.sum())), atol=1e-2)
+
+    third_party.fill_demo_buffer(model, demos)
+    assert model.demo_buffer.size() == len(demos) and model.replay_buffer.size() == 0
+    assert model.sample_batch(16)[1] == 16  # the offline phase: the demonstrations alone
+    actor = [p.detach().clone() for p in model.actor.parameters()]
+    history = third_party.train_offline(model, steps=6, batch=16, chunk=3, log=lambda _: None)
+    assert [h["step"] for h in history] == [3, 6] and history[-1]["bc_loss"] >= 0
+    assert history[-1]["lambda"] > 0 and np.isfinite(history[-1]["q"])
+    assert not all(torch.equal(a, p) for a, p in zip(actor, model.actor.parameters()))
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):  # online transitions in SB3's own buffer
+        action = env.action_space.sample()
+        nxt, reward, terminated, _, _ = env.step(action)
+        model.replay_buffer.add(
+            {k: v[None] for k, v in obs.items()},
+            {k: v[None] for k, v in nxt.items()},
+            action[None],
+            np.array([reward]),
+            np.array([terminated]),
+            [{}],
+        )
+        obs = nxt
+    batch, n_demo = model.sample_batch(16)
+    assert n_demo == 8 and batch.actions.shape == (16, 6) and batch.observations["observation"].shape == (16, 21)
+
+
+def test_the_script_refuses_td3_bc_options_it_cannot_honour(third_party, capsys):
+    """TD3+BC's options need the demonstrations (and TD3): refused before any extra is imported."""
+    for argv, message in (
+        (["--bc-alpha", "2.5", "--algo", "td3"], "need --demos"),
+        (["--demos", "x/y-v0", "--bc-alpha", "2.5", "--algo", "sac"], "--algo td3"),
+        (["--demos", "x/y-v0", "--algo", "td3", "--offline-steps", "10"], "give --bc-alpha"),
+        (["--demos", "x/y-v0", "--algo", "td3", "--bc-alpha", "1", "--demo-fraction", "1"], "--demo-fraction in"),
+        (["--demos", "x/y-v0", "--net-arch", "64,x"], "hidden layer sizes"),
+    ):
+        with pytest.raises(SystemExit):
+            third_party.main(argv)
+        assert message in capsys.readouterr().err, argv
