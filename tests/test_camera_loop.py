@@ -8,6 +8,7 @@ and poses, for policy_open40 with and without looking."""
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import jax
@@ -17,12 +18,13 @@ import pytest
 
 from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.envs.camera_errors import CameraErrors, Tracking
-from regrasp_mjx.inference import jaw_opening
+from regrasp_mjx.inference import camera_loop, jaw_opening
 from regrasp_mjx.inference.camera_loop import _fused_variance, _inverse, _vector, _view_sd_mm
 from regrasp_mjx.inference.closed_loop import DRIFT_KEY, LOOK_KEY, TOOLS_KEY
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.policy_file import shipped_policies
 from regrasp_mjx.robot import dvrk
+from regrasp_mjx.workflows import pixel_loop
 from regrasp_mjx.world import jaw
 from regrasp_mjx.world.sampling import episode_poses
 from regrasp_mjx.world.scene import load_scene
@@ -107,11 +109,12 @@ def test_the_loop_looks_by_hand_worked_counts(open40, problems):
     assert loop.frames == 1 + loop.t + loop.looked
 
 
-def test_the_loop_opens_the_jaws_where_the_plan_does_and_keeps_its_margin(open40, problems):
+def test_the_loop_opens_the_jaws_where_the_plan_does_and_keeps_its_margin(open40, problems, monkeypatch):
     """Exact frames and no known error: the jaws open before the step the exact plan opens them before
     (the environment's margin; ``opening`` on that step's command, ``jaw_deg`` 40 from it on, 20 before).
     Then, with a camera's known error at the jaws (``view_sd_mm`` after the one frame fused), jaw_sigmas
-    a hair below what the room at that pose allows opens there; a hair above keeps them shut there."""
+    a hair below what the room at that pose allows opens there; a hair above keeps them shut there, on
+    the lean path and on the JAX one (``RegraspEnv.opening_room``, where JAX runs elsewhere) alike."""
     needle, start, goal = problems
     plans = [open40.plan(needle[i], start[i], goal[i], check_grasp=False) for i in range(4)]  # the lean path
     longest = max(p.steps for p in plans) + 1  # one compiled program: each plan's last pose repeated
@@ -137,7 +140,8 @@ def test_the_loop_opens_the_jaws_where_the_plan_does_and_keeps_its_margin(open40
     sd = _view_sd_mm(1.0, p[:5], p[5:10], p[10], jaw.jaw_reach(load_scene()), radius, pose[:3])
     hair = (room - margin) / (sd * 1e-3)  # the sigmas at which the room is exactly the margin
     assert hair > 0.01
-    for sigmas, opens in ((hair * 0.99, True), (hair * 1.01, False)):
+    for (sigmas, opens), engine in itertools.product(((hair * 0.99, True), (hair * 1.01, False)), ("lean", "jax")):
+        monkeypatch.setattr(camera_loop, "auto_engine", lambda *_, engine=engine: engine)
         loop = open40.camera_loop(
             goal_in_needle=_vector(_inverse(_m(needle[i])) @ _m(goal[i])),
             warmup_frames=1,
@@ -147,10 +151,10 @@ def test_the_loop_opens_the_jaws_where_the_plan_does_and_keeps_its_margin(open40
             look_frames=0,
         )
         c = loop.update(IDENTITY, pose, needle[i])  # one frame at the plan's pose k
-        assert c.ready and not c.at_goal and c.opening == opens and c.jaw_deg == (40.0 if opens else 20.0)
+        assert c.ready and not c.at_goal and c.opening == opens and c.jaw_deg == (40.0 if opens else 20.0), engine
 
 
-def test_the_default_keeps_its_jaws_and_the_refusals(problems):
+def test_the_default_keeps_its_jaws_and_the_refusals(problems, monkeypatch):
     """A policy whose jaws stay: every command at the scene's opening, never opening. Refused: looking
     without a camera's sizes (it could never look), a look past the bound, an unknown camera preset."""
     staying = (load_policy(name) for name in shipped_policies())
@@ -169,6 +173,11 @@ def test_the_default_keeps_its_jaws_and_the_refusals(problems):
         default.camera_loop(camera=3)
     with pytest.raises(ValueError, match="jaw_sigmas"):
         default.camera_loop(jaw_sigmas=-1.0)
+    with monkeypatch.context() as m:  # a file whose jaws open once, before the first move (execute's ladder)
+        ladder = {**default.closed_loop_defaults, "jaw_deg": 30.0}
+        m.setattr(type(default), "closed_loop_defaults", property(lambda self: ladder))
+        with pytest.raises(ValueError, match=r"opens its jaws before the first move \(closed_loop.jaw_deg 30.0"):
+            default.camera_loop()
     default.camera_loop(look_frames=0)  # not looking needs no sizes
 
 
@@ -245,8 +254,6 @@ def test_the_camera_loop_is_the_simulated_loop_frame_for_frame(open40, problems,
     and key; the judge carrying the commanded motions and openings out) ends every problem as
     ``Policy.execute`` does, in the same steps, frames and looked frames, opening the jaws before the
     same step, along the same poses (float32's rounding)."""
-    from regrasp_mjx.workflows import pixel_loop
-
     needle, start, goal = problems
     ref = open40.execute(needle, start, goal, camera=CAMERA, seed=SEED, look_frames=look, jaw_sigmas=SIGMAS)
     eyes = ExecutorFrames(open40, needle, CAMERA, SEED, look)

@@ -202,10 +202,19 @@ class CameraLoop:
                 f"camera={camera!r} is not accepted: a CameraErrors, one of {tuple(camera_errors.PRESETS)} or None"
             )
         self.camera = CameraErrors() if camera is None else camera  # None: no error known
-        _, self.jaw_sigmas = jaw_opening.check(policy, None, jaw_sigmas)
+        ladder, self.jaw_sigmas = jaw_opening.check(policy, None, jaw_sigmas)
+        config = policy.env_config
+        if config.jaw_open_deg is None and ladder > config.scene.jaw_angle_deg:
+            # Policy.execute opens such a policy's jaws once, before the first move, to the widest of a ladder
+            # of openings its view allows, each planned in its own scene: not this loop's (it would run with
+            # the jaws at the scene's opening, another loop than the file's)
+            raise ValueError(
+                f"this policy's file opens its jaws before the first move (closed_loop.jaw_deg {ladder}: "
+                "Policy.execute's ladder of openings), which CameraLoop does not choose; accepted: a policy whose "
+                "jaws stay or open on the way (EnvConfig.jaw_open_deg)"
+            )
         self.shield, self.task = shield, task
         self.goal = None if goal_in_needle is None else _matrix(goal_in_needle, "goal_in_needle")
-        config = policy.env_config
         self.horizon = config.horizon
         grasp, radii = policy.task_ranges.resolve(1, TaskSpec.of(task))
         self.radii = np.array(radii[0], np.float64)  # the needle's radius and wire [m]
