@@ -6,8 +6,8 @@
 Sources: success rates from ``experiments/results/continuous/compare.json`` (``python -m
 regrasp_mjx.compare --heldout 3000:2022``), the fused closed loop at sigma 0.25 mm from
 ``experiments/results/robustness/robustness.json`` (``python -m regrasp_mjx.compare --robustness``),
-one-core planning time from ``experiments/results/continuous/directional/bench_plan_after_dev.json``
-(``python experiments/bench_plan.py``) and BIT* (R) from ``experiments/results/planners.csv``
+one-core planning time from ``experiments/results/jaws40_default/bench_plan/bench_plan.json``
+(``python experiments/bench_plan.py --no-rrt --repeats 3 --out ...``) and BIT* (R) from ``experiments/results/planners.csv``
 (``python experiments/planners.py``); the paper's numbers are its Tables I and II.
 """
 
@@ -26,7 +26,7 @@ RESULTS = ROOT / "experiments" / "results"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 # (policy, what it is): the rows of the shipped networks, in this order
 POLICIES = (
-    ("default", "**shipped default** (2x256, trained for needle error)"),
+    ("default", "**shipped default** (3x512, jaws open on the way)"),
     ("general", "`general`: any grasp and needle (general1000 {g})"),
     ("decay", "`decay`: one 3x512 network, exact poses"),
     ("exact", "`exact`: the default until 2026-11-24"),
@@ -48,7 +48,7 @@ def table_lines() -> list[str]:
     """The block's lines: the table and the line under it naming where each number comes from."""
     compare = json.loads((RESULTS / "continuous" / "compare.json").read_text())["rows"]
     tables = json.loads((RESULTS / "robustness" / "robustness.json").read_text())["tables"]
-    bench = json.loads((RESULTS / "continuous" / "directional" / "bench_plan_after_dev.json").read_text())
+    bench = json.loads((RESULTS / "jaws40_default" / "bench_plan" / "bench_plan.json").read_text())
     lean = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, lean path"))
     with open(RESULTS / "planners.csv") as f:
         bit = next(r for r in csv.DictReader(f) if r["algorithm"] == "BIT* (R)" and float(r["jaw_angle_deg"]) == 20.0)
