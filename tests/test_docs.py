@@ -1123,6 +1123,20 @@ def test_the_one_h200_recipe_times_in_the_training_docs_are_their_result_files()
     assert f"started students/t07/s0 on GPU 0, {share:.0%} of its memory" in (folder / "d1" / "call.log").read_text()
 
 
+def test_the_default_recipe_s_run_in_the_training_docs_is_its_result_files():
+    """docs/training.md's run of `recipe default` (teachers only) that made the shipped default: the
+    stages and the wall as the recipe printed them, every job of its recipe.json finished."""
+    folder = ROOT / "experiments" / "results" / "jaws40_default" / "recipe"
+    record = json.loads((folder / "recipe.json").read_text())
+    assert record["recipe"] == "default" and all(j["exit"] == 0 for r in record["runs"] for j in r["jobs"].values())
+    log = (folder / "recipe_log.txt").read_text()
+    stage, wall = _stages(log), int(re.search(r"^recipe wall (\d+) s;", log, re.M).group(1))
+    assert (
+        f"took {wall} s wall: demonstrations {stage['demos']} s, teachers {stage['teachers']} s, selection "
+        f"{stage['selection']} s, the closed loop's choice {stage['choose']} s, report {stage['report']} s"
+    ) in _prose("training.md")
+
+
 def test_the_paper_s_and_bit_star_s_rows_of_the_results_tables_are_their_sources():
     """docs/results.md's rows of the paper (every copy: the shipped networks' table, its 2026-11-24
     history, Table II) are the paper's Table II as the project records it (analysis.PAPER_TABLE2), and

@@ -340,7 +340,7 @@ def test_the_score_is_the_mean_success_over_the_rule_rows_and_the_best_candidate
 
 
 def test_export_writes_the_closed_loop_and_the_recipe_into_a_loadable_policy(tmp_path):
-    source = resolve("default")
+    source = resolve("student_v3")  # jaws kept at the scene's opening (the default's open on the way: below)
     provenance = {"name": "smoke", "overrides": ["iterations=3"], "commit": recipe_cli.commit()}
     loop = {"stop_tolerance": 0.9, "warmup_frames": 5, "look_frames": 60}
     recipe_cli.export(source, tmp_path / "policy", loop, "validation", provenance)
