@@ -162,8 +162,9 @@ class CameraLoop:
     :class:`~regrasp_mjx.envs.camera_errors.CameraErrors` or a preset's name; None: none known), which
     the looking and the jaws' margin are decided by; and the standard deviations of the view's known
     error the jaws' opening sweep must keep beyond the environment's margin. None: the policy's own
-    (``Policy.closed_loop_defaults``); ``look_frames`` above 0 is refused without ``camera`` (it
-    could never look).
+    (``Policy.closed_loop_defaults``). A ``look_frames`` above 0 given without ``camera`` is refused (it
+    could never look); without ``camera`` the policy's own never looks either (as ``Policy.execute``
+    without errors).
     """
 
     def __init__(
@@ -238,7 +239,7 @@ class CameraLoop:
         self.jaw_deg = self.base_deg  # the jaws' opening now
         self.opened_at = -1  # the step the jaws opened before (-1: not yet)
         self.looked = 0  # frames spent looking
-        self.looked_near = self.looked_stop = False  # whether it looked before its last moves, before stopping
+        self.looked_near = self.looked_stop = False  # whether the view came near the goal, said stop (a look each)
         self.look_frame: int | None = None  # frames of the look under way (None: none)
 
     def unsure(self) -> bool:

@@ -17,14 +17,16 @@ the image's blur and gain fixed per episode, the image noise drawn anew each fra
 policy's own closed-loop settings (``Policy.closed_loop_defaults``: the warm-up frames fused before the
 first step, the stop tolerance, the frames a look may take; the fused view is :class:`CameraLoop`'s).
 Looking (holding still to fuse more frames before the last moves while the fused view is too uncertain)
-is decided by the camera's known error sizes, which the loop cannot read off its estimator: the caller
-names them (``camera``: a :class:`~regrasp_mjx.envs.camera_errors.CameraErrors` or a preset's name, such
-as one fitted to the estimator's errors), or a policy that looks is refused (or ``look_frames=0`` asks
-it not to). A policy whose jaws open on the way opens them as :class:`CameraLoop` commands, and the
-judge carries the opening out (its sweep proved on the true poses, the motions tested with the jaws
-where they are); the endoscope draws the regrasping jaws at the scene's opening, so such a policy is
-accepted with the oracle (which reads the true poses), not with a learned estimator (whose images
-would not show the jaws the robot holds once they open).
+and the jaws' margin are decided by the camera's known error sizes, which the loop cannot read off its
+estimator: the caller names them (``camera``: a :class:`~regrasp_mjx.envs.camera_errors.CameraErrors`
+or a preset's name, such as ``rendered``, fitted to the learned estimator's errors); without them the
+loop knows of no error, as :class:`CameraLoop` and ``Policy.execute`` without errors, so it never looks
+(a warning says so where the policy would). A policy whose jaws open on the way opens them as
+:class:`CameraLoop` commands, and the judge carries the opening out (its sweep proved on the true poses,
+the motions tested with the jaws where they are). The endoscope draws the regrasping jaws at the scene's
+opening (its frames, and so a learned estimator's training, alike), so once they open a learned
+estimator's images do not show the jaws the robot holds (a warning says so): its errors there are not
+measured. The oracle reads the true poses.
 
 The judge is the environment's: each commanded motion is carried out on the true state by
 :meth:`regrasp_mjx.envs.env.RegraspEnv.move` (the continuous collision test along the whole motion,
@@ -42,6 +44,7 @@ holding still; after :data:`MAX_REFUSED` refused frames in a row the tool holds 
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -102,30 +105,7 @@ def _judge(policy: Any) -> Callable:
     return policy.program(("pixel_loop_judge",), build)
 
 
-def _check(
-    policy: Any, estimator: Any, needle: Any, start: Any, goal: Any, look_frames: Any, camera: Any
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    # CameraLoop carries jaws that open on the way; the images do not: the endoscope draws the regrasping
-    # jaws at the scene's opening, so a learned estimator, which sees them, would be measured on jaws that
-    # are not the robot's once they open (its errors then unknown either way). The oracle reads the truth.
-    if policy.env_config.jaw_open_deg is not None and isinstance(estimator, Estimator):
-        raise PixelLoopError(
-            f"a policy whose jaws open on the way (to {policy.env_config.jaw_open_deg} deg) is not accepted with a "
-            f"learned estimator: the endoscope draws the regrasping jaws at the scene's "
-            f"{policy.env_config.scene.jaw_angle_deg} deg, so its images would not show the robot's once they "
-            "open; accepted: the oracle, or a policy whose jaws stay"
-        )
-    # Looking is decided by the camera's known error sizes. The loop cannot read them off its estimator (a
-    # learned one's errors are measured elsewhere, `estimator fit`), and not looking would run another loop
-    # than the policy's, so the caller names them or turns the looking off: nothing is assumed.
-    look = policy.closed_loop_defaults.get("look_frames", 0) if look_frames is None else look_frames
-    if look and camera is None:
-        raise PixelLoopError(
-            f"this policy looks before its last moves (look_frames {look}) while its fused view is too "
-            "uncertain by the camera's known error sizes, which the loop from pixels cannot know: pass "
-            "camera= (a CameraErrors or a preset's name, e.g. one fitted to the estimator's errors), or "
-            "look_frames=0 not to look"
-        )
+def _check(policy: Any, needle: Any, start: Any, goal: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     try:
         (needle, start), _ = batch_poses(needle=needle, start=start)
     except ValueError as err:
@@ -302,7 +282,7 @@ def execute_from_pixels(
     with ``batch`` no larger than their number).
 
     Args:
-      policy: a loaded policy (its own closed-loop settings; jaws that open on the way with the oracle only).
+      policy: a loaded policy (its own closed-loop settings, jaws that open on the way carried).
       estimator: a loaded :class:`~regrasp_mjx.vision.estimator_file.Estimator` or an
         :class:`~regrasp_mjx.vision.oracle.OracleEstimator`.
       seed: the episodes' randomisation draws (:func:`episode_seeds`) and so each frame's image noise.
@@ -315,7 +295,7 @@ def execute_from_pixels(
       warmup_frames, stop_tolerance, look_frames: :class:`CameraLoop`'s (None: the policy's own).
       camera: the camera's known error sizes the loop looks by and keeps the jaws' margin by
         (:class:`CameraLoop`'s: a :class:`~regrasp_mjx.envs.camera_errors.CameraErrors` or a preset's
-        name); None: none known, and a policy that looks is refused.
+        name); None: none known, so it never looks (a warning where the policy would).
 
     Returns:
       numpy arrays per row: ``success`` (stopped at the true goal, no collision), ``collision`` (on
@@ -332,7 +312,7 @@ def execute_from_pixels(
       PixelLoopError: a policy, estimator or settings the loop cannot run.
       RenderUnavailable: no OpenGL context can be made here (with ``render``).
     """
-    needle, start, goal = _check(policy, estimator, needle, start, goal, look_frames, camera)
+    needle, start, goal = _check(policy, needle, start, goal)
     rig = rig_of(estimator)
     if not render and not isinstance(estimator, OracleEstimator):
         raise PixelLoopError("render=False is not accepted with a learned estimator: it sees the images")
@@ -352,9 +332,25 @@ def execute_from_pixels(
         "camera": camera,
     }
     try:
-        policy.camera_loop(**settings)
+        loop = policy.camera_loop(**settings)
     except ValueError as err:
         raise PixelLoopError(str(err)) from None
+    # No error sizes named: the loop knows of none and does not look, as CameraLoop and Policy.execute do
+    # without errors (refusing instead would leave the `loop` command, which names none, and every caller of
+    # a policy that looks, the shipped default among them, unable to run it). Said, not silent:
+    if loop.look and camera is None:
+        warnings.warn(
+            f"this policy looks before its last moves (look_frames {loop.look}) by the camera's known error "
+            "sizes, and none were named: the loop from pixels will not look; pass camera= (a CameraErrors or a "
+            "preset's name, e.g. 'rendered', fitted to the estimator's errors) to look by them",
+            stacklevel=2,
+        )
+    if loop.open_deg is not None and isinstance(estimator, Estimator):
+        warnings.warn(
+            f"this policy opens its jaws on the way (to {loop.open_deg:g} deg); the endoscope draws them at the "
+            f"scene's {loop.base_deg:g} deg, so once they open the estimator's images do not show the robot's jaws",
+            stacklevel=2,
+        )
     judge = _judge(policy)
     own = render and renderer is None
     renderer = FrameRenderer(rig=rig) if own else (renderer if render else None)

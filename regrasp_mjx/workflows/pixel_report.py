@@ -128,6 +128,21 @@ def _cell(s: dict[str, float | None], f: str = ".3f") -> str:
     return "-" if s["median"] is None else f"{s['median']:{f}} / {s['p95']:{f}}"
 
 
+def _looking(settings: dict[str, Any]) -> str:
+    """What the report's line says of the looking and the jaws (reports written before either: nothing)."""
+    out = ""
+    if settings.get("look_frames"):
+        out += (
+            f"; it does not look: its file looks up to {settings['look_frames']} frames by a camera's known error "
+            "sizes, and none were named"
+            if settings.get("camera") is None
+            else f"; looking up to {settings['look_frames']} frames by the camera errors {settings['camera']}"
+        )
+    if settings.get("jaw_open_deg") is not None:
+        out += f"; its jaws open on the way to {settings['jaw_open_deg']:g} deg (drawn at the scene's opening)"
+    return out
+
+
 def markdown(rep: dict[str, Any]) -> list[str]:
     """The report as markdown lines."""
     s = rep["summary"]
@@ -137,7 +152,8 @@ def markdown(rep: dict[str, Any]) -> list[str]:
         f"Estimator: {rep['estimator']['name']} ({rep['estimator']['kind']}; frames {rep['frames']['width']} x "
         f"{rep['frames']['height']}{'' if rep['frames']['rendered'] else ', not rendered: the oracle reads the poses'}); "
         f"the policy's own closed loop (warm-up {rep['settings']['warmup_frames']} frames, stop tolerance "
-        f"{rep['settings']['stop_tolerance']}); seed {rep['seed']}; judged on the true poses. {rep['machine']}; "
+        f"{rep['settings']['stop_tolerance']}{_looking(rep['settings'])}); seed {rep['seed']}; judged on the true "
+        f"poses. {rep['machine']}; "
         f"{rep['seconds']:.0f} s, {rep['pairs_per_s']:.1f} stereo pairs/s.",
         "",
         "| problems | success | collision | time-out | stopped short | steps median / p95 | frames median / p95 | refused frames |",
@@ -252,6 +268,10 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
             "settings": {
                 "warmup_frames": defaults["warmup_frames"],
                 "stop_tolerance": defaults["stop_tolerance"],
+                # the policy's looks; the command names no camera error sizes, so the loop does not look
+                "look_frames": defaults["look_frames"],
+                "camera": None,
+                "jaw_open_deg": policy.env_config.jaw_open_deg,
                 "max_refused": MAX_REFUSED,
                 "batch": args.batch,
             },
