@@ -676,6 +676,8 @@ def main(argv: list[str] | None = None) -> None:
                 f"_net{'x'.join(map(str, args.net_arch))}" if args.net_arch else "",
                 f"_lr{args.lr:g}" if args.lr is not None else "",
                 f"_td3bc{args.bc_alpha:g}_off{args.offline_steps}_df{args.demo_fraction:g}" if td3_bc else "",
+                f"_envs{args.n_envs}" if args.n_envs > 1 else "",
+                f"_noise{args.action_noise:g}" if args.action_noise != 0.1 else "",
             )
         )
         stem = f"{dataset}_{args.algo}_bc{args.bc_steps}_steps{args.steps}{tags}_seed{args.seed}"
