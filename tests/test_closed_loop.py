@@ -17,7 +17,9 @@ from regrasp_mjx.world.sampling import episode_poses
 
 @pytest.fixture(scope="module")
 def policy():
-    return load_policy()
+    # a policy whose jaws stay (the default until 2026-11-29): its step takes no opening and returns three
+    # values; the default's, whose jaws open on the way, in tests/test_lean_jaw.py and tests/test_camera_loop.py
+    return load_policy("student_v3")
 
 
 def _angle(q1, q2):

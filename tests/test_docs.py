@@ -84,7 +84,9 @@ def test_the_shipped_networks_table_is_the_comparison_file():
     planning time is the benchmark file's it cites."""
     rows = json.loads((ROOT / "experiments" / "results" / "continuous" / "compare.json").read_text())["rows"]
     success = {(r["policy"], r["testset"].split(" (")[0], r["rollout"]): r["success_rate"] for r in rows}
-    bench = json.loads((ROOT / "experiments" / "results" / "jaws40_default" / "bench_plan" / "bench_plan.json").read_text())
+    bench = json.loads(
+        (ROOT / "experiments" / "results" / "jaws40_default" / "bench_plan" / "bench_plan.json").read_text()
+    )
     lean = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, lean path"))
     jax_path = next(r for r in bench["rows"] if r["method"].startswith("policy `default`, shielded, JAX path"))
     names = {"shipped default": "default"}

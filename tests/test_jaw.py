@@ -21,7 +21,8 @@ from regrasp_mjx.world.scene import load_scene
 
 @pytest.fixture(scope="module")
 def default_policy():
-    return load_policy()
+    # a policy that keeps its jaws on the way (the default until 2026-11-29): the start-time opening's subject
+    return load_policy("student_v3")
 
 
 JAW_LENGTH = math.hypot(0.0016670, 0.0094542)  # the MJCF's regrasp_jaw_a: from the pivot to (0, 1.667, 9.4542) mm

@@ -217,7 +217,7 @@ def test_closed_loop_step_takes_the_jaws_opening_as_state(open40, paper_testset)
         np.stack([needle] * 2), np.stack([start] * 2), np.stack([goal] * 2), jaw_deg=[20.0, 40.0]
     )
     assert len(batch) == 4 and batch[3].shape == (2,) and batch[3][1] == 40.0
-    default = load_policy()
+    default = load_policy("student_v3")  # a policy whose jaws stay (the default until 2026-11-29)
     assert len(default.closed_loop_step(needle, start, goal)) == 3
     assert len(default.closed_loop_step(needle, start, goal, jaw_deg=20.0)) == 3
     with pytest.raises(ConfigError, match=r"jaw_deg=40.0 is not accepted: this policy's jaws stay at its scene's 20.0"):

@@ -453,5 +453,6 @@ def test_one_closed_loop_step_refuses_a_bad_stop_tolerance_step_or_margin():
     ):
         with pytest.raises(ConfigError, match=match):
             policy.closed_loop_step(needle, ee, **kw)
-    action, _, _ = policy.closed_loop_step(needle, ee, t=np.int64(3))  # a numpy step index is an integer too
+    # a numpy step index is an integer too (the default's jaws open on the way: it takes and returns the opening)
+    action, *_ = policy.closed_loop_step(needle, ee, t=np.int64(3), jaw_deg=20.0)
     assert action.shape == (6,)

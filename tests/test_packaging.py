@@ -22,7 +22,7 @@ assert Path(regrasp_mjx.__file__).resolve().is_relative_to(Path(sys.argv[1]).res
 scene = load_scene()
 episodes, _ = load_testset(PAPER300)
 assert episodes.start_pos.shape == (300, 3)
-assert shipped_policies() == ["decay", "default", "ensemble3", "exact", "general", "general_v1", "student_v1", "student_v2"]
+assert shipped_policies() == ["decay", "default", "ensemble3", "exact", "general", "general_v1", "student_v1", "student_v2", "student_v3"]
 load_policy()
 print("ok", scene.model.ngeom)
 """
