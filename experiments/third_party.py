@@ -29,6 +29,21 @@ With our demonstrations (issue 71), ``--demos ID`` names a Minari dataset (what
    actor's learning rate at 0), so that the first actor updates follow a critic that has seen the
    task rather than a random one.
 
+TD3+BC (Fujimoto & Gu 2021) inside SB3's own update loop, ``--bc-alpha A`` > 0 (issue 71's result:
+0.99 on paper300 bare, two seeds; experiments/RESULTS.md, "TD3+BC inside the library"):
+
+    python experiments/third_party.py --demos regrasp_mjx/paper-bitstar9900-v0 --algo td3 --bc-steps 20000 --obs-norm --bc-alpha 2.5 --lr 3e-4 --steps 100000 --n-envs 8 --eval-every 20000 --seed 0 --threads 1 --out experiments/results/third_party
+
+The model is a subclass of SB3's ``TD3`` (``td3_bc_class``) whose ``train`` is SB3's with the actor's
+loss ``-lambda Q1(s, pi(s)) + (pi(s) - a)^2``, ``lambda = A / mean|Q1|``, the BC term on the batch's
+demonstration rows; the demonstrations in an SB3 ``DictReplayBuffer`` of their own, ``--demo-fraction``
+of every batch drawn from it (all of it, ``--offline-steps`` of offline TD3+BC, while SB3's buffer
+is empty). Step 2 then runs it from the cloned actor after the critic warm-up, SB3's ``learn`` over
+``--n-envs`` environments; ``--no-bc-term`` keeps all of it but the BC term (the ablation). ``--obs-norm`` fixes the demonstrations' mean and standard deviation in
+front of the actor and critics (``normalised_extractor``); ``--net-arch`` and ``--lr`` set SB3's
+``net_arch`` and ``learning_rate``; ``--eval-every N`` judges the validation problems every N
+environment steps (the curve in the results).
+
 Why this learner: ``imitation`` (BC on SB3 policies, the library the issue names) pins
 ``gymnasium~=0.29`` and ``stable-baselines3~=2.2.1`` in its latest release (1.0.1), and ``d3rlpy``
 2.8.1 pins ``gymnasium==1.0.0``: neither installs beside this project's gymnasium 1.2.2. SB3 2.9.2
@@ -286,6 +301,7 @@ def td3_bc_class(torch, sb3):
 
     class TD3BC(sb3.TD3):
         bc_alpha: float = 2.5
+        bc_weight: float = 1.0  # 0: the BC term dropped (the ablation, --no-bc-term)
         demo_fraction: float = 0.25
         demo_buffer = None
         last_stats: dict = {}
@@ -331,7 +347,7 @@ def td3_bc_class(torch, sb3):
                     q = self.critic.q1_forward(data.observations, pi)
                     lam = self.bc_alpha / q.abs().mean().detach().clamp(min=1e-6)
                     bc = functional.mse_loss(pi[:n_demo], data.actions[:n_demo]) if n_demo else pi.sum() * 0.0
-                    actor_loss = -lam * q.mean() + bc
+                    actor_loss = -lam * q.mean() + self.bc_weight * bc
                     actor_losses.append(actor_loss.item())
                     bc_losses.append(bc.item())
                     lambdas.append(lam.item())
@@ -484,6 +500,11 @@ def main(argv: list[str] | None = None) -> None:
         help="TD3+BC online: share of each batch drawn from the demonstrations' buffer (ours: 0.25)",
     )
     demo.add_argument(
+        "--no-bc-term",
+        action="store_true",
+        help="with --bc-alpha: TD3+BC's buffers, batches and warm-up, its actor loss without the BC term (an ablation)",
+    )
+    demo.add_argument(
         "--eval-every",
         type=int,
         default=0,
@@ -513,8 +534,12 @@ def main(argv: list[str] | None = None) -> None:
         p.error("--bc-alpha and --obs-norm need --demos (the demonstrations' actions and statistics)")
     if args.bc_alpha > 0 and args.algo != "td3":
         p.error("--bc-alpha is TD3+BC: --algo td3")
-    if args.offline_steps and not args.bc_alpha > 0:
-        p.error("--offline-steps are TD3+BC's: give --bc-alpha > 0")
+    if (args.offline_steps or args.no_bc_term) and not args.bc_alpha > 0:
+        p.error("--offline-steps and --no-bc-term are TD3+BC's: give --bc-alpha > 0")
+    if args.demos is not None and args.steps and args.n_envs > 1 and not args.bc_alpha > 0:
+        p.error(
+            "--demos with --steps > 0 and --n-envs > 1 needs --bc-alpha: without it the demonstrations go into SB3's one buffer, which takes a row per environment"
+        )
     if args.lr is not None and not args.lr > 0:
         p.error("--lr must be > 0")
     try:  # the optional extras: torch and Stable-Baselines3 (and Minari for --demos)
@@ -559,6 +584,7 @@ def main(argv: list[str] | None = None) -> None:
     model = algo("MultiInputPolicy", env, **kwargs)
     if td3_bc:
         model.bc_alpha, model.demo_fraction = args.bc_alpha, args.demo_fraction
+        model.bc_weight = 0.0 if args.no_bc_term else 1.0
 
     def sb3_act(obs):
         return model.predict(obs, deterministic=True)[0]
@@ -577,7 +603,9 @@ def main(argv: list[str] | None = None) -> None:
         config = registry.load(name, config_overrides=overrides).env_config
         validation = make_testset(args.validation, VALIDATION_SEED, config)
 
-    label = f"SB3 {args.algo.upper()}" + ("+BC" if td3_bc else "")
+    label = f"SB3 {args.algo.upper()}" + ("+BC" if td3_bc and not args.no_bc_term else "")
+    if args.no_bc_term:
+        label += " (TD3+BC's buffers and batches, no BC term)"
     rows, stages = {}, {}
     t0 = time.perf_counter()
     if demos is not None:
@@ -676,6 +704,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"_net{'x'.join(map(str, args.net_arch))}" if args.net_arch else "",
                 f"_lr{args.lr:g}" if args.lr is not None else "",
                 f"_td3bc{args.bc_alpha:g}_off{args.offline_steps}_df{args.demo_fraction:g}" if td3_bc else "",
+                "_nobc" if args.no_bc_term else "",
                 f"_envs{args.n_envs}" if args.n_envs > 1 else "",
                 f"_noise{args.action_noise:g}" if args.action_noise != 0.1 else "",
             )

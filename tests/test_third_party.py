@@ -94,10 +94,11 @@ def test_demonstrations_load_and_behaviour_cloning_fits_them(third_party, datase
 
 
 @needs_extras
-@pytest.mark.slow  # 75-120 s on the 2-core VM, most of it compiling the env's programs
+@pytest.mark.slow  # 90-140 s on the 2-core VM, most of it compiling the env's programs
 def test_the_script_clones_fine_tunes_and_judges(third_party, dataset, tmp_path, monkeypatch, capsys):
     """The command end to end on the tiny set: BC, a few environment steps, judged on 4 problems of the
-    set's own environment; the table and JSON written, each row a verdict for every problem."""
+    set's own environment; the table and JSON written, each row a verdict for every problem. Then
+    TD3+BC's path with its options (its rows, file name, validation curve and offline history)."""
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(dataset))
     config = EnvConfig(scene=SceneConfig(jaw_angle_deg=60.0), task=TASKS["paper"], horizon=40)
     testset = tmp_path / "tiny4.npz"
@@ -124,6 +125,24 @@ def test_the_script_clones_fine_tunes_and_judges(third_party, dataset, tmp_path,
         for judged in row.values():
             assert judged["success"] + judged["collision"] + judged["time_out"] == pytest.approx(1.0)
         assert printed[name] == row["test"]["success"]
+
+    # TD3+BC inside SB3 (the recorded result's path): normalised inputs, its own net, offline steps,
+    # two environments, a validation curve
+    argv = ["--demos", DATASET, "--algo", "td3", "--bc-steps", "20", "--bc-batch", "32", "--critic-warmup", "2"]
+    argv += ["--obs-norm", "--net-arch", "16,16", "--bc-alpha", "2.5", "--lr", "3e-4", "--offline-steps", "4"]
+    argv += ["--steps", "40", "--n-envs", "2", "--eval-every", "20", "--validation", "4", "--threads", "1"]
+    third_party.main([*argv, "--testset", str(testset), "--out", str(tmp_path)])
+    capsys.readouterr()
+    stem = "tiny-third-party-v0_td3_bc20_steps40_norm_net16x16_lr0.0003_td3bc2.5_off4_df0.25_envs2_seed0"
+    data = json.loads((tmp_path / f"{stem}.json").read_text())
+    assert list(data["rows"]) == [
+        "SB3 TD3 actor, BC on the demonstrations",
+        "SB3 TD3+BC, BC then 4 TD3+BC steps on the demonstrations",
+        "SB3 TD3+BC, BC, 4 TD3+BC steps then 40 env steps with the demonstrations",
+        "regrasp_mjx default (shipped)",
+    ]
+    assert [c["env_steps"] for c in data["validation_curve"]] == [20, 40]
+    assert [h["step"] for h in data["offline_history"]] == [4] and data["args"]["net_arch"] == [16, 16]
 
 
 def test_the_script_refuses_steps_0_without_demonstrations(third_party, capsys):
@@ -194,6 +213,8 @@ def test_the_script_refuses_td3_bc_options_it_cannot_honour(third_party, capsys)
         (["--demos", "x/y-v0", "--algo", "td3", "--offline-steps", "10"], "give --bc-alpha"),
         (["--demos", "x/y-v0", "--algo", "td3", "--bc-alpha", "1", "--demo-fraction", "1"], "--demo-fraction in"),
         (["--demos", "x/y-v0", "--net-arch", "64,x"], "hidden layer sizes"),
+        (["--demos", "x/y-v0", "--algo", "td3", "--no-bc-term"], "give --bc-alpha"),
+        (["--demos", "x/y-v0", "--algo", "td3", "--steps", "10", "--n-envs", "2"], "needs --bc-alpha"),
     ):
         with pytest.raises(SystemExit):
             third_party.main(argv)
