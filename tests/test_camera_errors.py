@@ -140,6 +140,7 @@ def test_execute_refuses_a_camera_beside_other_noise_and_bad_looks(policy, paper
             policy.execute(needle, start, goal, **kw)
 
 
+@pytest.mark.slow  # 210 s on the 2-core VM (the quick tier's 20 minutes; CI runs the long tier too)
 def test_todays_model_through_the_camera_and_looking_before_the_last_moves(policy, paper_testset):
     needle, start, goal = (x[:16] for x in episode_poses(paper_testset[0]))
     robot = RobotErrors(0.0, 0.0, 0.0, 0.5)

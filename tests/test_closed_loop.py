@@ -26,6 +26,7 @@ def _angle(q1, q2):
     return 2 * np.arccos(np.clip(np.abs(np.sum(np.asarray(q1) * np.asarray(q2), -1)), 0, 1))
 
 
+@pytest.mark.slow  # 89 s on the 2-core VM (the quick tier's 20 minutes; CI runs the long tier too)
 def test_zero_noise_closed_loop_equals_plan(policy, paper_testset):
     episodes, _ = paper_testset
     needle, start, goal = (x[:24] for x in episode_poses(episodes))

@@ -129,6 +129,7 @@ def test_bad_jaw_settings_are_refused(default_policy):
     assert jaw_opening.check(default_policy, None, None) == (20.0, 2.0)  # the policy's own: kept
 
 
+@pytest.mark.slow  # 124 s on the 2-core VM (the quick tier's 20 minutes; CI runs the long tier too)
 def test_execute_opens_where_the_view_allows_and_each_row_is_its_openings_pass(default_policy, paper_testset):
     """Exact views: the decision is the truth's, so no sweep collides; a row opened to 30 degrees
     has the outcome of the 30 degree policy's own pass, the others the 20 degree one's."""
