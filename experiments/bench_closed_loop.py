@@ -6,7 +6,7 @@ The states are every pose along the policy's plans (``--policy``, default the sh
 first ``--queries`` paper300 problems (the start, each step, the goal), visited in rounds; each round
 rotates which method goes first. A policy whose jaws open on the way steps each state with its jaws
 where its plan has them there (``jaw_opening.opening_steps``) and has no ``CameraLoop`` row (the
-camera loop does not carry the opening). Prints each method's median, mean and 90th percentile in
+camera loop carries the opening since 2026-11-29, but this benchmark does not feed it one yet). Prints each method's median, mean and 90th percentile in
 milliseconds.
 
     python experiments/bench_closed_loop.py --core 0 --out experiments/results/robot_errors
