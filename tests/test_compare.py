@@ -32,7 +32,8 @@ def test_compare_plans_each_policy_bare_and_shielded_as_policy_plan_does(tmp_pat
         plan = plan_testset(policy, episodes, r["rollout"] == "shielded")
         assert r["testset"] == "held-out 6 (seed 5)" and r["problems"] == 6
         assert r["success_rate"] == pytest.approx(float(np.mean(plan.success)))
-    assert "| again | 256x256 | held-out 6 (seed 5) | shielded |" in (tmp_path / "compare.md").read_text()
+    shape = "x".join(map(str, policy.hidden))
+    assert f"| again | {shape} | held-out 6 (seed 5) | shielded |" in (tmp_path / "compare.md").read_text()
     assert "breakdown" not in data  # no general policy on general1000
 
 
