@@ -273,10 +273,11 @@ class CameraLoop:
         room = jaw_opening.opening_room(self.policy, self.needle[None], self.ee[None, None], self.radii[None])
         return bool(room[0, 0] >= margin)
 
-    def _hold(self, looking: bool) -> Command:
+    def _hold(self, looking: bool, ready: bool = False, done: bool = False) -> Command:
+        """No motion this frame: warming up or looking (``ready`` False), or at the goal (both True)."""
         return Command(
-            False,
-            False,
+            ready,
+            done,
             np.eye(4),
             np.zeros(6),
             self.needle,
@@ -343,19 +344,7 @@ class CameraLoop:
             self.needle, self.ee, goal, t=self.t, shield=self.shield, stop_tolerance=self.stop, **jaws, **self.task
         )
         if at_goal:
-            return Command(
-                True,
-                True,
-                np.eye(4),
-                np.zeros(6),
-                self.needle,
-                self.ee,
-                self.t,
-                self.jaw_deg,
-                False,
-                False,
-                self.looked,
-            )
+            return self._hold(False, ready=True, done=True)
         # the jaws: opened before this motion where the view leaves their sweep its margin (the action was
         # chosen with them as the environment's own rule has them on the view, as in the simulated loop)
         opening = self._opens()
