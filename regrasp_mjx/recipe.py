@@ -3,13 +3,15 @@
     python -m regrasp_mjx.recipe default --out runs/default                 # the shipped default
     python -m regrasp_mjx.recipe default --out runs/r4 --set env.scene.needle_radius_mm=4.0
     python -m regrasp_mjx.recipe general --out runs/general --gpus 0,1
+    python -m regrasp_mjx.recipe default --out /shared/runs/default --address head:6379  # a Ray cluster
     python -m regrasp_mjx.recipe --list                                      # the recipes, as data
 
 Every stage of the recipe (:mod:`regrasp_mjx.workflows.recipes`: demonstrations, teachers, students, the
 choice on validation problems of their own seed, the closed loop's settings, the exported policy's
-robustness table) is a job, a command of this package run as its own process; the jobs run over
-every local GPU (side by side on one where their memory shares fit, :mod:`regrasp_mjx.core.jobs`), one at
-a time without a GPU. A finished job is skipped and an unfinished one resumes (a teacher run from
+robustness table) is a job, a command of this package run as its own process, submitted as a Ray
+task (:mod:`regrasp_mjx.core.jobs`): over every local GPU with Ray started here (side by side on one
+where their memory shares fit), one at a time without a GPU, or over a cluster's nodes with
+``--address`` (or ``RAY_ADDRESS``; the folder on a filesystem every node sees). A finished job is skipped and an unfinished one resumes (a teacher run from
 its checkpoint, the demonstrations from the plans made so far, a student or a table anew), so a
 killed recipe started again with the same arguments goes on; other arguments in the same folder are
 refused. Writes ``DIR/policy`` (the chosen network, its closed-loop settings, and the recipe, its
@@ -39,9 +41,10 @@ from pathlib import Path
 from typing import Any
 
 from regrasp_mjx.core.atomic import dumps, output_folder_problem, write_json, write_results
+from regrasp_mjx.core.cluster import check_options, connect, local_gpus
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
-from regrasp_mjx.core.jobs import gpu_slots, run_jobs
+from regrasp_mjx.core.jobs import run_jobs
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.selection import closed_loop_markdown, closed_loop_settings, parse_noises, score
 from regrasp_mjx.workflows import recipes
@@ -162,7 +165,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("name", nargs="?", help=f"the recipe: one of {', '.join(RECIPES)}")
     p.add_argument("--out", help="recipe folder (resumed when it holds this recipe)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a setting for every stage with it")
-    p.add_argument("--gpus", default=None, help="GPU indices, comma-separated (default: every one nvidia-smi lists)")
+    p.add_argument(
+        "--gpus", default=None, help="local GPU indices, comma-separated (default: every one nvidia-smi lists)"
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="a Ray cluster's head HOST:PORT to run the jobs on (default: RAY_ADDRESS, else Ray started here)",
+    )
     p.add_argument(
         "--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="planner processes for demonstrations"
     )
@@ -187,23 +197,25 @@ def main(argv: list[str] | None = None) -> int:
     if problem := output_folder_problem(out):
         p.error(problem)
     try:
-        slots = gpu_slots(args.gpus)
-        plan = Plan(RECIPES[args.name], out, args.set, args.workers, gpus=slots != [None])
+        address = check_options(args.address, args.gpus)
         if args.step == "choose":
-            choose(plan, log)
+            choose(Plan(RECIPES[args.name], out, args.set, args.workers), log)
             return 0
-        jobs = plan.jobs()
-        if args.until:
-            jobs = [j for j in jobs if STAGES.index(j.stage) <= STAGES.index(args.until)]
-            kept = {j.name for j in jobs}  # a precompile job whose jobs are cut runs for the next call
-            jobs = [dataclasses.replace(j, helps=tuple(h for h in j.helps if h in kept)) for j in jobs]
-        if args.dry_run:
-            for j in jobs:
+        if args.dry_run:  # on this machine: its GPUs as nvidia-smi lists them (Ray not started)
+            if address:
+                with connect(address) as cluster:
+                    gpus = cluster.gpus > 0
+            else:
+                gpus = bool(local_gpus(args.gpus))
+            for j in jobs_until(Plan(RECIPES[args.name], out, args.set, args.workers, gpus=gpus), args.until):
                 log(f"[{'finished' if j.done() else 'to run'}] {j.name}: python {shlex.join(j.argv())}")
             return 0
-        with folder_lock(out):
+        Plan(RECIPES[args.name], out, args.set, args.workers)  # the recipe and --set checked before Ray starts
+        with folder_lock(out), connect(address, args.gpus) as cluster:
+            plan = Plan(RECIPES[args.name], out, args.set, args.workers, gpus=cluster.gpus > 0)
+            jobs = jobs_until(plan, args.until)
             record = check_manifest(out, {"recipe": args.name, "set": args.set})
-            run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "gpus": slots, "jobs": {}}
+            run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "cluster": cluster.describe(), "jobs": {}}
             record["runs"].append(run)
             write_json(out / "recipe.json", record)
             plan.prepare()
@@ -213,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
                 run["jobs"], run["wall_s"] = dict(jobs_so_far), time.perf_counter() - t0
                 write_json(out / "recipe.json", record)
 
-            keep(run_jobs(jobs, slots, log, on_end=keep))
+            keep(run_jobs(jobs, cluster, log, on_end=keep))
     except (ConfigError, FolderInUse) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -221,6 +233,17 @@ def main(argv: list[str] | None = None) -> int:
     if code == 0 and args.until and args.until != STAGES[-1]:
         log(f"the stages up to {args.until} have finished; the same command without --until goes on from there")
     return code
+
+
+def jobs_until(plan: Plan, until: str | None) -> list:
+    """The plan's jobs up to the stage ``until`` (all for None); a precompile job whose jobs are
+    cut runs for the next call."""
+    jobs = plan.jobs()
+    if until:
+        jobs = [j for j in jobs if STAGES.index(j.stage) <= STAGES.index(until)]
+        kept = {j.name for j in jobs}
+        jobs = [dataclasses.replace(j, helps=tuple(h for h in j.helps if h in kept)) for j in jobs]
+    return jobs
 
 
 def summary(out: Path, run: dict[str, Any], log) -> int:

@@ -1,9 +1,12 @@
-"""``python -m regrasp_mjx.sweep``: a grid of training runs over the local GPUs, resumable, one table.
+"""``python -m regrasp_mjx.sweep``: a grid of training runs over the GPUs of a Ray cluster, resumable, one table.
 
 Each grid point is one ``python -m regrasp_mjx.train`` run in ``OUT/<point>``, its Table I settings
 (``--exploration a,b,c``) and seeds (``--seeds N``) trained side by side as one vmapped program
 (learners in one program share a GPU far better than processes do; experiments/RESULTS.md). The
-points run one per GPU at a time (``CUDA_VISIBLE_DEVICES``), or one at a time without a GPU. A
+points are Ray tasks (:mod:`regrasp_mjx.core.jobs`), one per GPU at a time, or one per node at a time
+without GPUs: on this machine's GPUs (Ray started here), or over a cluster's nodes with ``--address``
+(or ``RAY_ADDRESS``; the sweep folder on a filesystem every node sees). A point whose node dies runs
+again on another from its last checkpoint. A
 point whose folder holds ``final_eval.json`` is done and skipped; one with a checkpoint resumes from
 it; so a killed sweep started again with the same arguments goes on where it stopped (a different
 grid in the same folder is refused). At the end, or with ``--report``, it writes ``sweep.md``,
@@ -17,6 +20,9 @@ shielded), the collision rate and path length at the last epoch, mean ± std ove
         --seeds 3 --demos runs/demos
     # a grid: 2 x 2 points, each 3 seeds, over the GPUs this machine has:
     python -m regrasp_mjx.sweep --out runs/bc --preset fast --seeds 3 \\
+        --grid "bc_decay_epochs=0|30" --grid "critic_layer_norm=False|True"
+    # the same over a Ray cluster's GPUs (docs/training.md: a cluster on SLURM)
+    python -m regrasp_mjx.sweep --out /shared/runs/bc --preset fast --seeds 3 --address head:6379 \\
         --grid "bc_decay_epochs=0|30" --grid "critic_layer_norm=False|True"
 """
 
@@ -35,10 +41,11 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.core.atomic import output_folder_problem, write_figure, write_json, write_text
+from regrasp_mjx.core.cluster import Cluster, check_options, connect
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.config_text import parse_overrides
-from regrasp_mjx.core.host_loop import run_command
-from regrasp_mjx.core.jobs import Job, gpu_slots, run_jobs
+from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
+from regrasp_mjx.core.jobs import Job, run_jobs
 from regrasp_mjx.workflows import analysis
 from regrasp_mjx.workflows.preflight import before_the_work, restart_args
 from regrasp_mjx.world.sampling import DEFAULT_TESTSET
@@ -120,8 +127,9 @@ def check_manifest(out: Path, manifest: dict[str, Any]) -> None:
             )
 
 
-def run_all(out: Path, names: list[str], argvs: list[list[str]], slots: list[str | None], log) -> dict[str, int]:
-    """Runs the points not done yet, one per GPU at a time; returns each started point's exit code."""
+def run_all(out: Path, names: list[str], argvs: list[list[str]], cluster: Cluster, log) -> dict[str, dict]:
+    """Runs the points not done yet, one per GPU at a time; returns each started point's record
+    (:func:`regrasp_mjx.core.jobs.run_jobs`: exit code, wall time, node)."""
     jobs = [
         Job(
             name,
@@ -132,7 +140,7 @@ def run_all(out: Path, names: list[str], argvs: list[list[str]], slots: list[str
         )
         for name, argv in zip(names, argvs)
     ]
-    return {name: r["exit"] for name, r in run_jobs(jobs, slots, log).items()}
+    return run_jobs(jobs, cluster, log)
 
 
 def report(out: Path, names: list[str], grid_points: list[dict[str, Any]]) -> tuple[list[str], list[dict]]:
@@ -212,7 +220,14 @@ def main(argv: list[str] | None = None) -> int:
         "--demos", default=None, help="a demonstration folder every point shares (default: each builds its own)"
     )
     p.add_argument("--testset", default=None, help="test set .npz (default paper300)")
-    p.add_argument("--gpus", default=None, help="GPU indices to use, comma-separated (default: all nvidia-smi lists)")
+    p.add_argument(
+        "--gpus", default=None, help="local GPU indices to use, comma-separated (default: all nvidia-smi lists)"
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="a Ray cluster's head HOST:PORT to run the points on (default: RAY_ADDRESS, else Ray started here)",
+    )
     p.add_argument("--report", action="store_true", help="only write the table and figure from what has run")
     p.add_argument("--dry-run", action="store_true", help="print each point's command and status, run nothing")
     args = p.parse_args(argv)
@@ -223,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.seeds < 1:
             raise ConfigError(f"--seeds {args.seeds} is not accepted: at least 1")
-        slots = gpu_slots(args.gpus)
+        check_options(args.address, args.gpus)  # before anything runs
         grid = parse_grid(args.grid)
         grid_points = points(grid)
         fixed = parse_overrides(args.set)
@@ -259,13 +274,21 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     out.mkdir(parents=True, exist_ok=True)
     record = {"format": FORMAT, "manifest": manifest, "points": dict(zip(names, grid_points))}
-    write_json(out / "sweep.json", record, indent=2)
-    codes = {}
-    if not args.report:
-        codes = run_all(out, names, argvs, slots, log)
+    runs = {}
+    try:
+        with folder_lock(out):  # a second sweep into this folder is refused while this one lives
+            write_json(out / "sweep.json", record, indent=2)
+            if not args.report:
+                with connect(args.address, args.gpus) as cluster:
+                    runs = run_all(out, names, argvs, cluster, log)
+    except (ConfigError, FolderInUse) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    codes = {name: r["exit"] for name, r in runs.items()}
     lines, rows = report(out, names, grid_points)
     record["results"] = rows
     record["exit_codes"] = codes
+    record["nodes"] = {name: r["node"] for name, r in runs.items()}  # where each point ran (Ray's node id)
     write_json(out / "sweep.json", json.loads(json.dumps(record, default=_jsonable)), indent=2)
     log("\n".join(lines))
     failed = [n for n, c in codes.items() if c != 0]

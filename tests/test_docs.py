@@ -1116,7 +1116,7 @@ def test_the_one_h200_recipe_times_in_the_training_docs_are_their_result_files()
         f"{both('report')} s, the recipe's wall {both('wall')} s" in _prose("training.md")
     )
     # the shares as fractions of the H200 the runs had: the fraction the docs give, and the one the runs used
-    from regrasp_mjx.core.jobs import REFERENCE_MIB
+    from regrasp_mjx.core.cluster import REFERENCE_MIB
     from regrasp_mjx.workflows.recipes import RECIPES
 
     mib = float(re.search(r"NVIDIA H200, (\d+) MiB", (folder / "README.md").read_text()).group(1))

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from regrasp_mjx import compare, demos, distill, export_onnx, grasps, recipe, sweep, testset, train
-from regrasp_mjx.core import distributed, jobs
+from regrasp_mjx.core import cluster, distributed
 from regrasp_mjx.core.atomic import output_file_problem, output_folder_problem
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
@@ -80,11 +80,11 @@ def test_an_unwritable_out_is_refused_before_any_work(main, argv, capsys, tmp_pa
 @pytest.mark.parametrize("gpus", [",", "abc", "0,,1", "0,x", ""])
 def test_gpus_that_name_no_gpu_are_refused(gpus, capsys, tmp_path):
     with pytest.raises(ConfigError, match=r"--gpus .* is not accepted: GPU indices, comma-separated"):
-        jobs.gpu_slots(gpus)
+        cluster.local_gpus(gpus)
     _refused(recipe.main, ["smoke", "--out", str(tmp_path / "r"), "--gpus", gpus], r"--gpus", capsys, tmp_path)
     argv = ["--out", str(tmp_path / "s"), "--preset", "smoke", "--gpus", gpus, "--dry-run"]
     _refused(sweep.main, argv, r"--gpus", capsys, tmp_path)
-    assert jobs.gpu_slots("0, 2") == ["0", "2"]
+    assert cluster.local_gpus("0, 2") == ["0", "2"]
 
 
 # ---- 3: the multi-process options ----------------------------------------------------------------
@@ -250,7 +250,7 @@ def _raise_interrupt(*args, **kwargs):
         ("demos", ["--n", "2", "--out", "{t}/d"], "regrasp_mjx.core.config_text.parse_overrides"),
         ("distill", ["--teacher", "default", "--out", "{t}/s"], "regrasp_mjx.inference.policy.load_policy"),
         ("compare", ["--no-testset", "--heldout", "2:0"], "regrasp_mjx.inference.policy.load_policy"),
-        ("recipe", ["smoke", "--out", "{t}/rc"], "regrasp_mjx.core.jobs.gpu_slots"),
+        ("recipe", ["smoke", "--out", "{t}/rc"], "regrasp_mjx.core.cluster.connect"),
         ("sweep", ["--out", "{t}/sw", "--preset", "smoke"], "regrasp_mjx.agents.ddpg_bc.config.make_config"),
         ("testset", ["--n", "2", "--out", "{t}/t.npz"], "regrasp_mjx.world.testsets.make_testset"),
         ("grasps", ["--n", "2", "--out", "{t}/g.npz"], "regrasp_mjx.inference.grasps.GraspLibrary.make"),

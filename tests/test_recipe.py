@@ -4,6 +4,7 @@ end, killed mid-way and resumed."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -16,8 +17,9 @@ from pathlib import Path
 import pytest
 
 from regrasp_mjx import recipe as recipe_cli
+from regrasp_mjx.core.cluster import OBJECT_STORE_BYTES, REFERENCE_MIB, connect
 from regrasp_mjx.core.config import ConfigError
-from regrasp_mjx.core.jobs import REFERENCE_MIB, Job, run_jobs
+from regrasp_mjx.core.jobs import Job, JobsStopped, run_jobs
 from regrasp_mjx.inference import robustness
 from regrasp_mjx.inference.policy import load_policy
 from regrasp_mjx.inference.policy_file import resolve
@@ -198,58 +200,85 @@ def test_the_default_recipe_ships_its_best_teacher_and_precompiles_the_report_of
     )
 
 
+@contextlib.contextmanager
+def _ray(gpus: int, cpus: int = 4, memory_mib: float | None = None):
+    """A Ray of its own on this machine with ``gpus`` GPUs as Ray counts them (none need exist: Ray
+    hands out their indices in CUDA_VISIBLE_DEVICES), as ``connect`` sees it."""
+    import ray
+
+    ray.init(num_cpus=cpus, num_gpus=gpus, object_store_memory=OBJECT_STORE_BYTES, log_to_driver=False)
+    try:
+        with connect(memory_mib=memory_mib) as cluster:
+            yield cluster
+    finally:
+        ray.shutdown()
+
+
 def test_a_helper_job_fails_nothing_and_is_not_run_once_what_it_helps_has_finished(tmp_path):
     helper = dataclasses.replace(_job(tmp_path, "h", 0.1, code=1, seconds=1.5), helps=("w",), programs="p")
     first = _job(tmp_path, "x", 0.1, seconds=0.3)  # w is ready while h still runs
     real = dataclasses.replace(_job(tmp_path, "w", 0.1, needs=("x",)), programs="p")
-    lines = []
-    out = run_jobs([helper, first, real], ["0"], lines.append, heartbeat_s=1e9)
-    assert out["h"]["exit"] == 1 and out["w"]["exit"] == 0 and real.done()
-    assert any("h FAILED" in x and "the jobs it helps compile their own programs" in x for x in lines)
-    assert lines.index(next(x for x in lines if x.startswith("started w"))) > lines.index(
-        next(x for x in lines if x.startswith("h FAILED"))
-    )  # w shares h's programs: it waited for h to compile them (here: to end)
-    spared = []
-    assert run_jobs([helper, first, real], ["0"], spared.append, heartbeat_s=1e9) == {}  # w finished: h not needed
+    lines, spared = [], []
+    with _ray(gpus=1) as cluster:
+        out = run_jobs([helper, first, real], cluster, lines.append, heartbeat_s=1e9)
+        assert out["h"]["exit"] == 1 and out["w"]["exit"] == 0 and real.done()
+        assert any("h FAILED" in x and "the jobs it helps compile their own programs" in x for x in lines)
+        assert lines.index(next(x for x in lines if x.startswith("started w"))) > lines.index(
+            next(x for x in lines if x.startswith("h FAILED"))
+        )  # w shares h's programs: it waited for h to compile them (here: to end)
+        assert run_jobs([helper, first, real], cluster, spared.append, heartbeat_s=1e9) == {}  # w finished
     assert spared[0].startswith("3 jobs: 2 finished already, 1 no longer needed")
 
 
 def test_helpers_yield_to_the_jobs_that_do_the_work_and_shares_are_of_an_80_gb_gpu(tmp_path, monkeypatch):
     monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
-    # a and b do not fit side by side; the helper h (listed first, and small enough to fit beside a)
-    # waits while b is ready and waits for memory, then starts beside b, while c, which it helps, is
-    # still to start; g's helped job has started by the time g could: g is not run
+    # a and b do not fit side by side; the helper h (listed first, and small enough to fit beside
+    # either) waits until both have started, then starts while c, which it helps, is still to
+    # start; g's helped job has started by the time g could: g is not run
     a, b = _job(tmp_path, "a", 0.6, seconds=1.5), _job(tmp_path, "b", 0.6, seconds=1.5)
     c = _job(tmp_path, "c", 0.1, needs=("b",))
     h = dataclasses.replace(_job(tmp_path, "h", 0.1), helps=("c",))
     g = dataclasses.replace(_job(tmp_path, "g", 0.1, needs=("a",)), helps=("quick",))
     quick = _job(tmp_path, "quick", 0.1)
     lines = []
-    out = run_jobs([h, g, a, b, c, quick], ["0"], lines.append, heartbeat_s=1e9, memory_mib={})
+    with _ray(gpus=1) as cluster:
+        out = run_jobs([h, g, a, b, c, quick], cluster, lines.append, heartbeat_s=1e9)
     t = {j.name: [float(x) for x in j.finished.read_text().split()[:2]] for j in (a, b, c, h)}
-    assert t["a"][1] <= t["h"][0] < t["b"][1] and t["h"][0] < t["c"][0]
-    assert t["b"][0] >= t["a"][1]  # a's and b's shares with their contexts exceed the GPU
+    first, second = sorted("ab", key=lambda n: t[n][0])
+    assert t[second][0] >= t[first][1]  # a's and b's shares with their contexts exceed the GPU
+    assert t[second][0] <= t["h"][0] < t["c"][0]
     assert not g.done() and "g" not in out and "g not started: the jobs it helps have started" in lines
     # on a GPU of twice the memory the same shares fit side by side, each with half the fraction
     big = [_job(tmp_path / "big", n, 0.6, seconds=1.5) for n in "pq"]
+    whole = _job(tmp_path / "whole", "w", 1.0)  # a whole GPU (a sweep's point, share 1) stays a whole GPU on any
     lines = []
-    run_jobs(big, ["0"], lines.append, heartbeat_s=1e9, memory_mib={"0": 2 * REFERENCE_MIB})
+    with _ray(gpus=1, memory_mib=2 * REFERENCE_MIB) as cluster:
+        run_jobs(big, cluster, lines.append, heartbeat_s=1e9)
+        run_jobs([whole], cluster, lambda _: None, heartbeat_s=1e9)
     p, q = (j.finished.read_text().split() for j in big)
-    assert float(q[0]) < float(p[1]) and p[3] == q[3] == "0.300"
-    assert "started p on GPU 0, 30% of its memory" in lines
-    # a whole GPU (a sweep's point, share 1) stays a whole GPU on any
-    whole = _job(tmp_path / "whole", "w", 1.0)
-    run_jobs([whole], ["0"], lambda _: None, heartbeat_s=1e9, memory_mib={"0": 2 * REFERENCE_MIB})
+    assert max(float(p[0]), float(q[0])) < min(float(p[1]), float(q[1])) and p[3] == q[3] == "0.300"
+    assert any(x.startswith("started p on node ") and x.endswith("GPU 0, 30% of its memory") for x in lines)
     assert whole.finished.read_text().split()[3] == "0.950"
 
 
-def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):
-    """A job that records when it ran and which GPU it was given, then exits with ``code``."""
+def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6, together=()):
+    """A job that records when it ran and which GPU it was given, then exits with ``code``; with
+    ``together``, it first waits (a minute at most, else exit 5) until those jobs have all begun
+    too: it finishes only if they ran side by side (not a matter of timing on a busy machine)."""
     done = tmp_path / f"{name}.done"
+    wait = ""
+    if together:
+        marks = [str(tmp_path / f"{n}.began") for n in together]
+        wait = (
+            f"open({str(tmp_path / f'{name}.began')!r}, 'w').close(); "
+            f"[time.sleep(0.1) for _ in range(600) if not all(os.path.exists(m) for m in {marks!r})]; "
+            f"sys.exit(5) if not all(os.path.exists(m) for m in {marks!r}) else None; "
+        )
     script = (
-        f"import os, sys, time; t0 = time.time(); time.sleep({seconds}); "
+        f"import os, sys, time; t0 = time.time(); {wait}time.sleep({seconds}); "
         f"open({str(done)!r}, 'w').write(f\"{{t0}} {{time.time()}} {{os.environ.get('CUDA_VISIBLE_DEVICES')}} "
-        f"{{os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION')}}\") if {code} == 0 else None; sys.exit({code})"
+        f"{{os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION')}} {{os.environ.get('JAX_PLATFORMS')}}\") "
+        f"if {code} == 0 else None; sys.exit({code})"
     )
     return Job(name, "stage", lambda: ["-c", script], done, tmp_path / "logs" / f"{name}.txt", share, needs)
 
@@ -257,44 +286,44 @@ def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6):
 def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp_path, monkeypatch):
     monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)  # another test's process may have set it
     jobs = [
-        _job(tmp_path, "a", 0.45),
-        _job(tmp_path, "b", 0.45),
-        _job(tmp_path, "c", 0.45),  # a and b fill GPU 0 and 1 under half each: c fits beside one of them
+        # two fill one GPU under half each, the third runs on the other: all three side by side
+        *(_job(tmp_path, n, 0.45, together="abc") for n in "abc"),
         _job(tmp_path, "d", 0.9, needs=("a", "b", "c")),
         _job(tmp_path, "e", 0.1, needs=("d",), code=3),
         _job(tmp_path, "f", 0.1, needs=("e",)),
     ]
-    lines = []
-    out = run_jobs(jobs, ["0", "1"], lines.append, heartbeat_s=1e9)
-    ran = {j.name: j.finished.read_text().split() for j in jobs if j.done()}
-    assert set(ran) == {"a", "b", "c", "d"}
-    start, end = {n: float(v[0]) for n, v in ran.items()}, {n: float(v[1]) for n, v in ran.items()}
-    assert start["d"] >= max(end["a"], end["b"], end["c"])  # its needs first
-    assert max(start["a"], start["b"], start["c"]) < min(end["a"], end["b"], end["c"])  # three side by side
-    assert ran["d"][3] == "0.900" and {ran[n][2] for n in "abc"} == {"0", "1"}
-    assert out["e"]["exit"] == 3 and out["f"]["exit"] is None  # a failed need: never started
-    assert any("f not started: a job it needs failed" in x for x in lines)
-    # started again: the finished ones are skipped, the failed one runs again
-    again = []
-    out = run_jobs(jobs, ["0"], again.append, heartbeat_s=1e9)
-    assert set(out) == {"e", "f"} and again[0].startswith("6 jobs: 4 finished already, 2 to run")
-    # a job whose dependents have all finished is not run again (demonstrations deleted after training)
+    lines, again, spared = [], [], []
     made = _job(tmp_path, "made", 0.1)
     uses = _job(tmp_path, "uses", 0.1, needs=("made",))
     uses.finished.write_text("done earlier")
-    spared = []
-    assert run_jobs([made, uses], ["0"], spared.append, heartbeat_s=1e9) == {}
-    assert spared[0].startswith("2 jobs: 1 finished already, 1 no longer needed") and not made.done()
-    # each process's CUDA context counts too: two halves do not fit on one GPU, they run in turn
     halves = [_job(tmp_path / "halves", n, 0.5) for n in "pq"]
-    run_jobs(halves, ["0"], lambda _: None, heartbeat_s=1e9)
+    with _ray(gpus=2) as cluster:
+        out = run_jobs(jobs, cluster, lines.append, heartbeat_s=1e9)
+        ran = {j.name: j.finished.read_text().split() for j in jobs if j.done()}
+        # started again: the finished ones are skipped, the failed one runs again
+        out_again = run_jobs(jobs, cluster, again.append, heartbeat_s=1e9)
+        # a job whose dependents have all finished is not run again (demonstrations deleted after training)
+        assert run_jobs([made, uses], cluster, spared.append, heartbeat_s=1e9) == {}
+    with _ray(gpus=1) as cluster:  # each process's CUDA context counts too: two halves do not fit on one GPU
+        run_jobs(halves, cluster, lambda _: None, heartbeat_s=1e9)
+    assert set(ran) == {"a", "b", "c", "d"}
+    start, end = {n: float(v[0]) for n, v in ran.items()}, {n: float(v[1]) for n, v in ran.items()}
+    assert start["d"] >= max(end["a"], end["b"], end["c"])  # its needs first
+    assert ran["d"][3] == "0.900" and {ran[n][2] for n in "abc"} == {"0", "1"}
+    assert out["e"]["exit"] == 3 and out["f"]["exit"] is None  # a failed need: never started
+    assert any("f not started: a job it needs failed" in x for x in lines)
+    assert set(out_again) == {"e", "f"} and again[0].startswith("6 jobs: 4 finished already, 2 to run on Ray")
+    assert spared[0].startswith("2 jobs: 1 finished already, 1 no longer needed") and not made.done()
     p, q = (j.finished.read_text().split() for j in halves)
-    assert float(q[0]) >= float(p[1])
-    # no GPU: one job at a time, no memory fraction set
+    assert min(float(p[0]), float(q[0])) + 0.6 <= max(float(p[0]), float(q[0]))  # in turn
+    # no GPU: one job per node at a time (a job takes the node's CPUs), told to use the CPU
     cpu = [_job(tmp_path / "cpu", n, 0.1) for n in "xy"]
-    run_jobs(cpu, [None], lambda _: None, heartbeat_s=1e9)
+    with _ray(gpus=0, cpus=2) as cluster:
+        assert cluster.describe().endswith("1 node(s), no GPU, 2 CPU(s) per job")
+        run_jobs(cpu, cluster, lambda _: None, heartbeat_s=1e9)
     x, y = (j.finished.read_text().split() for j in cpu)
-    assert float(y[0]) >= float(x[1]) and x[3] == "None"
+    assert min(float(x[1]), float(y[1])) <= max(float(x[0]), float(y[0]))  # one after the other
+    assert x[3] == "None" and x[4] == "cpu"
 
 
 def test_jobs_of_one_program_set_wait_for_the_first_to_compile(tmp_path):
@@ -310,15 +339,47 @@ def test_jobs_of_one_program_set_wait_for_the_first_to_compile(tmp_path):
         log = tmp_path / "logs" / f"{name}.txt"
         return Job(name, "students", lambda: ["-c", script], done, log, 0.1, (), programs, compiled)
 
-    jobs = [job(f"s{i}", "a", "distill 2/20", 2.0) for i in range(3)] + [job(f"q{i}", "b", None, 1.0) for i in range(2)]
+    jobs = [job(f"s{i}", "a", "distill 2/20", 6.0) for i in range(3)] + [job(f"q{i}", "b", None, 1.0) for i in range(2)]
     lines = []
-    run_jobs(jobs, ["0"], lines.append, heartbeat_s=1e9)
+    with _ray(gpus=1) as cluster:
+        run_jobs(jobs, cluster, lines.append, heartbeat_s=1e9)
     t = {j.name: [float(x) for x in j.finished.read_text().split()] for j in jobs}
     # a's followers started after s0 printed its line (0.5 s in) and before it ended: side by side
     assert all(t["s0"][0] + 0.5 <= t[n][0] < t["s0"][1] for n in ("s1", "s2"))
     assert t["q1"][0] >= t["q0"][1]  # b never printed its marker: its second job waited for the first to end
     assert t["q0"][0] < t["s0"][1]  # another key does not wait for this one
     assert any("s0 has compiled its programs" in x for x in lines)
+
+
+def test_ctrl_c_stops_the_running_jobs_processes_and_says_which(tmp_path):
+    """A KeyboardInterrupt while jobs run cancels their tasks; their processes end with them (no
+    job runs on without its task); the record says which were stopped."""
+    pid_file = tmp_path / "pid"
+    script = f"import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(120)"
+    slow = Job("slow", "stage", lambda: ["-c", script], tmp_path / "slow.done", tmp_path / "slow.txt", 0.1)
+    after = _job(tmp_path, "after", 0.1, needs=("slow",))
+    records = []
+
+    def interrupt(line: str) -> None:
+        if line.startswith("started slow"):
+            raise KeyboardInterrupt
+
+    with _ray(gpus=1) as cluster:
+        with pytest.raises(JobsStopped, match=r"stopped 1 running job\(s\) \(slow\)"):
+            run_jobs([slow, after], cluster, interrupt, heartbeat_s=1e9, on_end=lambda out: records.append(out))
+    deadline = time.time() + 30
+    while time.time() < deadline and _alive(int(pid_file.read_text())):
+        time.sleep(0.2)
+    assert not _alive(int(pid_file.read_text())), "the stopped job's process runs on"
+    assert records[-1]["slow"]["exit"] == "stopped" and not after.done()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}").is_dir() and "zombie" not in Path(f"/proc/{pid}/status").read_text().lower()
 
 
 def test_the_score_is_the_mean_success_over_the_rule_rows_and_the_best_candidate_wins():

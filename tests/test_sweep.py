@@ -8,7 +8,7 @@ import json
 import pytest
 
 from regrasp_mjx import sweep
-from regrasp_mjx.core import jobs
+from regrasp_mjx.core import cluster
 from regrasp_mjx.core.config import ConfigError
 
 
@@ -95,10 +95,16 @@ def test_status_resume_report_and_a_changed_grid_refused(tmp_path, capsys):
     assert "gamma=1.5 is not accepted" in capsys.readouterr().err
 
 
-def test_gpu_slots_follow_the_request_and_visible_devices(monkeypatch):
-    assert sweep.gpu_slots("0, 2") == ["0", "2"]
+def test_local_gpus_follow_the_request_and_visible_devices_and_a_cluster_refuses_gpus(monkeypatch):
+    assert cluster.local_gpus("0, 2") == ["0", "2"]
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1,3")
-    assert sweep.gpu_slots(None) == ["1", "3"]
+    assert cluster.local_gpus(None) == ["1", "3"]
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
-    monkeypatch.setattr(jobs.shutil, "which", lambda _: None)
-    assert sweep.gpu_slots(None) == [None]  # no GPU: one run at a time on this machine
+    monkeypatch.setattr(cluster.shutil, "which", lambda _: None)
+    assert cluster.local_gpus(None) == []  # no GPU: Ray started here has none, a job takes the CPUs
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert cluster.check_options(None, "0") is None  # Ray started here, on GPU 0
+    monkeypatch.setenv("RAY_ADDRESS", "head:6379")
+    assert cluster.check_options(None, None) == "head:6379"  # RAY_ADDRESS names the cluster
+    with pytest.raises(ConfigError, match=r"--gpus 0 is not accepted with a cluster \(head:6379\)"):
+        cluster.check_options(None, "0")

@@ -233,10 +233,11 @@ def run_command(main: Callable[[], int], again: str) -> int:
     previous_hook, sys.unraisablehook = sys.unraisablehook, _unraisable(sys.unraisablehook)
     try:
         return main()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         if main_thread:
             signal.signal(signal.SIGINT, signal.SIG_IGN)  # an interrupt raised again late is dropped
-        print(f"interrupted; {again}", file=sys.stderr)
+        done = f"{err}; " if str(err) else ""  # what the command stopped (e.g. the jobs it started)
+        print(f"interrupted; {done}{again}", file=sys.stderr)
         return 130
     finally:
         sys.unraisablehook = previous_hook

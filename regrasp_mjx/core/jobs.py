@@ -1,39 +1,42 @@
-"""Command-line jobs scheduled over the local GPUs: what ``sweep`` and ``recipe`` run.
+"""Command-line jobs run as Ray tasks: what ``sweep`` and ``recipe`` run (on :mod:`regrasp_mjx.core.cluster`).
 
 A job is one process (``python -m regrasp_mjx.train ...``) with the jobs it needs, the share of one
-GPU's memory it takes and the file that says it has finished. :func:`run_jobs` starts every job
-whose needs have finished on the least-loaded GPU where its share still fits (several side by side
-on one GPU where memory allows, ``XLA_PYTHON_CLIENT_MEM_FRACTION`` set to the share), one at a time
-on a machine without a GPU, and never starts a job whose need failed. A job whose finish file exists
-is skipped, and so is one whose dependents have all finished, so a killed schedule started again
-runs only what is left; each job resumes its own work
-as its command does (its arguments are made when it starts, ``Job.argv``).
+GPU's memory it takes and the file that says it has finished. :func:`run_jobs` submits each job not
+finished yet as one Ray task that runs the process and waits for it; Ray places it where its share
+fits, several side by side on one GPU where their shares allow, and never starts one whose need
+failed (the needs are the task's arguments). A job's task asks for ``num_gpus`` = its share scaled
+to the cluster's smallest GPU (a share of 1 or more is a whole GPU) plus a CUDA context; the process
+is given that fraction of the GPU's memory (``XLA_CLIENT_MEM_FRACTION``), as Ray's fractions are only
+counted, not enforced. Without GPUs a job takes a node's CPUs (one at a time per node) and its process
+is told to use the CPU (``JAX_PLATFORMS=cpu``). A job's task runs ``Job.cpus`` CPU cores beside it.
 
-Jobs that compile the same programs (``Job.programs``, e.g. one student variant's seeds) start one
-at a time until one of them has compiled (its log shows ``Job.compiled``, or it ends): the others
-then load the programs from the persistent compilation cache the commands share
-(:func:`regrasp_mjx.core.xla_flags.cache_folder`) instead of compiling them side by side, which
-on the GPU machine's CPU cores took several minutes for six students at once. A key one of whose
-jobs finished in an earlier call counts as compiled (the cache is kept on the same machine).
+Resume rules: a job whose finish file exists is skipped, and so is one whose dependents have all
+finished, so a killed schedule started again runs only what is left; each job resumes its own work
+as its command does (its arguments are made when its task starts, ``Job.argv``). A node that dies
+takes its tasks with it: Ray runs them again on another node (:data:`RETRIES`), where they resume
+from their last checkpoint; a task started again after its job finished returns at once.
+
+Jobs that compile the same programs (``Job.programs``, e.g. one student variant's seeds) wait until
+the first of them in the list has compiled (its log shows ``Job.compiled``, or it ends): they then
+load the programs from the persistent compilation cache the commands share
+(:func:`regrasp_mjx.core.xla_flags.cache_folder`) instead of compiling them side by side, which on
+the GPU machine's CPU cores took several minutes for six students at once. A key one of whose jobs
+finished in an earlier call counts as compiled (the cache is kept on the same machine).
 
 A job that ``helps`` others runs only to save them time (a recipe's precompile jobs compile their
-programs ahead, on an untrained network of their shape, while the teachers train): it is run only
+programs ahead, on an untrained network of their shape, while the teachers train): it runs only
 while a job it helps is still to start, none waits for it to finish, and its failure fails nothing
-(those jobs compile their own programs). It yields to the jobs that do the work: each pass places
-those first, and no helper starts while one of them is ready and waits for GPU memory.
+(those jobs compile their own programs). It yields to the jobs that do the work: it starts only
+after every job that becomes ready with it has started.
 
-A share is of an 80 GB GPU's memory (:data:`REFERENCE_MIB`, the H100 the recipes were sized on), so
-a job takes the same bytes on any GPU: on a 141 GB H200 its fraction is 0.57 of the share, and
-more jobs fit side by side (measured as fractions, the recipe's helpers held 65 % of an H200 while
-two selection candidates ran at a time, 2026-11-28). A share of 1 (a sweep's point) is a whole GPU
-of any size.
+The gates (compiled programs, started jobs) are one small Ray actor per call (:class:`_Board`).
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -41,14 +44,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from regrasp_mjx.core.config import ConfigError
+import ray
+
+from regrasp_mjx.core.cluster import Cluster
 
 HEARTBEAT_S = 60.0  # how often the running jobs' last log lines are shown
 # of a GPU's memory each process takes outside its share (its CUDA context and libraries, about 0.5 GB
 # on an 80 GB H100): fifteen processes whose shares summed to 0.9 ran out of memory starting
 CONTEXT_SHARE = 0.01
-# the memory the shares are of: an 80 GB H100 as nvidia-smi reports it [MiB]
-REFERENCE_MIB = 81_559.0
+RETRIES = 3  # times Ray runs a job's task again after its node or worker died
+MAX_FRACTION = 0.95  # of a GPU's memory one process may take (XLA's own default is 0.75)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,10 +61,10 @@ class Job:
     """One process. ``argv`` makes its ``python -m ...`` arguments when it starts (so a restart
     can add ``--resume``); ``finished`` exists once it has finished; ``needs`` names jobs that must
     finish first; ``share`` is the fraction of an 80 GB GPU's memory it may take (scaled to the
-    GPU it runs on, module docstring); ``stage`` groups jobs
-    for the progress lines; its output goes to ``log``; jobs of one ``programs`` key wait for one of
-    them to print ``compiled`` (see the module's docstring); ``helps`` names the jobs it only saves
-    time for (its failure fails nothing)."""
+    GPU it runs on, module docstring); ``stage`` groups jobs for the progress lines; its output goes
+    to ``log``; jobs of one ``programs`` key wait for the first to print ``compiled`` (see the
+    module's docstring); ``helps`` names the jobs it only saves time for (its failure fails
+    nothing); ``cpus``: the CPU cores it keeps busy beside its GPU share (a planner's workers)."""
 
     name: str
     stage: str
@@ -71,53 +76,22 @@ class Job:
     programs: str | None = None
     compiled: str | None = None
     helps: tuple[str, ...] = ()
+    cpus: int = 0
 
     def done(self) -> bool:
         return self.finished.is_file()
 
 
-def gpu_slots(requested: str | None) -> list[str | None]:
-    """GPU indices to run on; ``[None]`` (one job at a time, no pinning) when the machine shows no
-    NVIDIA GPU. Asked of ``nvidia-smi``, not JAX: this process must not take GPU memory from its
-    jobs."""
-    if requested is not None:
-        gpus = [g.strip() for g in requested.split(",")]
-        if not gpus or not all(g.isdigit() for g in gpus):
-            raise ConfigError(f"--gpus {requested!r} is not accepted: GPU indices, comma-separated (e.g. 0,2)")
-        return gpus
-    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-    if visible is not None:
-        return [g.strip() for g in visible.split(",") if g.strip()] or [None]
-    smi = shutil.which("nvidia-smi")
-    if smi is None:
-        return [None]
-    try:
-        lines = subprocess.run([smi, "-L"], capture_output=True, text=True, timeout=30).stdout.splitlines()
-    except (OSError, subprocess.SubprocessError):
-        return [None]
-    gpus = [str(i) for i, line in enumerate(lines) if line.startswith("GPU ")]
-    return gpus or [None]
+class JobFailed(Exception):
+    """A job's process ended without its finish file (``code``: its exit status)."""
+
+    def __init__(self, name: str, code: int | None, wall_s: float, why: str):
+        super().__init__(name, code, wall_s, why)
+        self.name, self.code, self.wall_s, self.why = name, code, wall_s, why
 
 
-def gpu_memory_mib(slots: list[str | None]) -> dict[str, float]:
-    """Each GPU slot's total memory [MiB] as ``nvidia-smi`` reports it (by index); a slot it does
-    not list, or a machine without it, is left out (its shares are taken as they are)."""
-    smi = shutil.which("nvidia-smi")
-    if smi is None or slots == [None]:
-        return {}
-    query = [smi, "--query-gpu=index,memory.total", "--format=csv,noheader,nounits"]
-    try:
-        lines = subprocess.run(query, capture_output=True, text=True, timeout=30).stdout.splitlines()
-    except (OSError, subprocess.SubprocessError):
-        return {}
-    total = {}
-    for line in lines:
-        index, _, mib = line.partition(",")
-        try:
-            total[index.strip()] = float(mib)
-        except ValueError:
-            continue
-    return {s: total[s] for s in slots if s in total and total[s] > 0}
+class JobsStopped(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM stopped the running jobs (they resume when started again)."""
 
 
 def last_line(path: Path, size: int = 4096) -> str:
@@ -132,150 +106,207 @@ def last_line(path: Path, size: int = 4096) -> str:
     return parts[-1][:160] if parts else ""
 
 
-@dataclasses.dataclass
-class _Running:
-    job: Job
-    slot: str | None
-    proc: subprocess.Popen
-    stdout: object
-    started: float
-    offset: int  # where this start's output begins in the job's log (a resumed job appends)
+def resources(job: Job, cluster: Cluster) -> dict[str, float]:
+    """The Ray resources a job's task asks for (module docstring)."""
+    if not cluster.gpus:
+        return {"num_cpus": max(cluster.node_cpus, 1), "num_gpus": 0}
+    if job.share >= 1.0:
+        gpu = 1.0
+    else:  # Ray counts fractions in steps of 1e-4: rounded up, so shares that fit do not overfill
+        gpu = min(1.0, -(-(job.share + CONTEXT_SHARE) * cluster.scale * 1e4 // 1) / 1e4)
+    return {"num_cpus": min(job.cpus, cluster.node_cpus), "num_gpus": gpu}
+
+
+def memory_fraction(job: Job, cluster: Cluster) -> float | None:
+    """The fraction of its GPU's memory a job's process is given; None without GPUs."""
+    if not cluster.gpus:
+        return None
+    return MAX_FRACTION if job.share >= 1.0 else min(job.share * cluster.scale, MAX_FRACTION)
 
 
 def run_jobs(
     jobs: list[Job],
-    slots: list[str | None],
+    cluster: Cluster,
     log: Callable[[str], None],
     heartbeat_s: float = HEARTBEAT_S,
     on_end: Callable[[dict[str, dict]], None] | None = None,
-    memory_mib: dict[str, float] | None = None,
 ) -> dict[str, dict]:
-    """Runs the jobs not finished yet (see the module's docstring); returns, per job this call
-    started, ``{"exit": code, "wall_s": seconds, "stage": stage}`` (exit None: not started because
-    a job it needs failed; "stopped": running when this call was stopped), and passes the same
-    record to ``on_end`` each time a job ends. A SIGTERM or Ctrl-C stops the running jobs; they
-    resume when started again. ``memory_mib``: each GPU's memory (None: asked of ``nvidia-smi``,
-    :func:`gpu_memory_mib`), which turns shares into fractions of it."""
+    """Runs the jobs not finished yet on ``cluster`` (see the module's docstring); returns, per job
+    this call started, ``{"exit": code, "wall_s": seconds, "stage": stage, "node": node}`` (exit
+    None: not started because a job it needs failed; "stopped": running when this call was
+    stopped), and passes the same record to ``on_end`` each time a job ends. A SIGTERM or Ctrl-C
+    cancels the jobs (their processes are stopped) and raises :class:`JobsStopped`; they resume when
+    started again."""
     by_name = {j.name: j for j in jobs}
     for j in jobs:
         unknown = [n for n in j.needs + j.helps if n not in by_name]
         if unknown:
             raise ValueError(f"job {j.name} needs unknown jobs {unknown}")
     todo = _needed(jobs)
-    finished = {j.name for j in jobs if j not in todo}  # done, or no longer needed by anything
     spared = sum(1 for j in jobs if j not in todo and not j.done())
+    finished_before = len(jobs) - len(todo) - spared
     log(
-        f"{len(jobs)} jobs: {len(finished) - spared} finished already, "
+        f"{len(jobs)} jobs: {finished_before} finished already, "
         + (f"{spared} no longer needed (what needs them has finished), " if spared else "")
-        + f"{len(todo)} to run on {_where(slots)}"
+        + f"{len(todo)} to run on {cluster.describe()}"
     )
-    load = {s: 0.0 for s in slots}
-    mib = gpu_memory_mib(slots) if memory_mib is None else memory_mib
-    scale = {s: REFERENCE_MIB / mib[s] if s in mib else 1.0 for s in slots}
-    running: list[_Running] = []
-    failed: set[str] = set()
-    out: dict[str, dict] = {}
-
-    def stop(signum, frame):  # the jobs resume from their own checkpoints when started again
-        for r in running:
-            r.proc.terminate()
-        raise SystemExit(128 + signum)
-
-    previous = signal.signal(signal.SIGTERM, stop)
+    if not todo:
+        return {}
+    keys = {j.programs for j in todo if j.programs}
+    opened = {j.programs for j in jobs if j.programs and j.done()} | {k for k in keys if _opener(todo, k) is None}
+    board = _Board.remote(sorted(opened))
+    refs = _submit(todo, cluster, board)
+    schedule = _Schedule(todo, refs, board, log, heartbeat_s, on_end)
+    previous = signal.signal(signal.SIGTERM, _sigterm) if _main_thread() else None
     try:
-        # a key one of whose jobs finished in an earlier call is in the cache (on the same machine)
-        warmed = {j.programs for j in jobs if j.programs and j.done()}
-        return _loop(todo, finished, failed, running, out, load, scale, log, heartbeat_s, on_end, warmed)
+        return schedule.follow()
+    except KeyboardInterrupt as err:
+        stopped = schedule.stop()
+        raise JobsStopped(
+            f"stopped {len(stopped)} running job(s)" + (f" ({', '.join(stopped)})" if stopped else "")
+        ) from err
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+        ray.kill(board)
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _sigterm(signum, frame):
+    raise KeyboardInterrupt  # the same way out as Ctrl-C: the jobs are cancelled, then the command ends
+
+
+def _opener(todo: list[Job], key: str) -> Job | None:
+    """The job of a ``programs`` key that compiles them: the first in the list not finished (the
+    others wait for it); None when a job of the key that is not to run (spared) would have been it."""
+    return next((j for j in todo if j.programs == key), None)
+
+
+def _submit(todo: list[Job], cluster: Cluster, board) -> dict[str, ray.ObjectRef]:
+    """Each job's task, its needs' tasks (and for a job that waits, the board's gates) as its arguments."""
+    refs: dict[str, ray.ObjectRef] = {}
+    names = {j.name for j in todo}
+    for job in todo:  # in list order: a job's needs come before it (a recipe's and a sweep's lists are so made)
+        waits = [refs[n] for n in job.needs if n in refs]
+        if job.programs and _opener(todo, job.programs) is not job:
+            waits.append(board.opened.remote(job.programs))
+        if job.helps:  # helpers start after the work that becomes ready with them has started
+            peers = [p.name for p in todo if not p.helps and set(p.needs) <= set(job.needs) and p.name in names]
+            waits.append(board.started.remote(peers))
+        spec = _Spec(job, memory_fraction(job, cluster), cpu_only=not cluster.gpus)
+        refs[job.name] = _run.options(**resources(job, cluster)).remote(spec, board, *waits)
+    return refs
+
+
+@dataclasses.dataclass(frozen=True)
+class _Spec:
+    job: Job
+    fraction: float | None
+    cpu_only: bool
+
+
+class _Schedule:
+    """The driver's view of one call: which jobs started (from the board), ended (from their
+    tasks), and the progress lines."""
+
+    def __init__(self, todo, refs, board, log, heartbeat_s, on_end):
+        self.refs, self.board, self.log, self.heartbeat_s, self.on_end = refs, board, log, heartbeat_s, on_end
+        self.jobs = {j.name: j for j in todo}
+        self.pending = {ref: name for name, ref in refs.items()}
+        self.running: dict[str, float] = {}  # name -> when it started (this process's clock)
+        self.out: dict[str, dict] = {}
+        self.failed: set[str] = set()
+        self.stage_left: dict[str, int] = {}
+        for j in todo:
+            self.stage_left[j.stage] = self.stage_left.get(j.stage, 0) + 1
+        self.stage_t0: dict[str, float] = {}
+        self.t0 = time.perf_counter()
+
+    def follow(self) -> dict[str, dict]:
+        last_beat = time.perf_counter()
+        while self.pending:
+            ready, _ = ray.wait(list(self.pending), num_returns=len(self.pending), timeout=0.5)
+            self._events()
+            for ref in ready:
+                self._ended(self.pending.pop(ref), ref)
+            now = time.perf_counter()
+            if self.running and now - last_beat >= self.heartbeat_s:
+                last_beat = now
+                for name, t in self.running.items():
+                    self.log(f"  {name} ({(now - t) / 60:.1f} min): {last_line(self.jobs[name].log) or '...'}")
+        return self.out
+
+    def _events(self) -> None:
+        for kind, name, where in ray.get(self.board.take.remote()):
+            job = self.jobs[name]
+            if kind == "started":
+                self.running[name] = time.perf_counter()
+                self.stage_t0.setdefault(job.stage, time.perf_counter())
+                self.log(f"started {name} on {where}")
+            elif kind == "compiled":
+                self.log(f"{name} has compiled its programs: the jobs that share them start")
+            elif kind == "spared":
+                self.log(f"{name} not started: the jobs it helps have started")
+
+    def _ended(self, name: str, ref) -> None:
+        job, now = self.jobs[name], time.perf_counter()
+        self.board.ended.remote(name, job.programs)  # a job that dies unseen still opens its gate
+        try:
+            result = ray.get(ref)
+        except ray.exceptions.RayTaskError as err:
+            result = err.cause if isinstance(err.cause, JobFailed) else JobFailed(name, None, 0.0, str(err))
+        except ray.exceptions.RayError as err:  # the task was lost (its node died RETRIES times over)
+            result = JobFailed(name, None, 0.0, f"{type(err).__name__}: {err}")
+        started = self.running.pop(name, None)
+        if result is None:  # a helper not needed any more
+            self._stage_end(job, now)
+            return
+        if isinstance(result, JobFailed) and result.name != name:  # a need failed: the task never ran
+            self.failed.add(name)
+            self.out[name] = {"exit": None, "wall_s": 0.0, "stage": job.stage, "node": None}
+            self.log(f"{name} not started: a job it needs failed")
+        elif isinstance(result, JobFailed):
+            self.failed.add(name)
+            wall = result.wall_s or (now - started if started else 0.0)
+            self.out[name] = {"exit": result.code, "wall_s": wall, "stage": job.stage, "node": None}
+            verdict = f"FAILED ({result.why}; its output: {job.log})"
+            if job.helps:
+                verdict += "; the jobs it helps compile their own programs"
+            self._line(name, verdict, wall, now)
+        else:
+            self.out[name] = {"exit": 0, "wall_s": result["wall_s"], "stage": job.stage, "node": result["node"]}
+            self._line(name, "finished", result["wall_s"], now)
+        self._stage_end(job, now)
+        if self.on_end is not None:
+            self.on_end(self.out)
+
+    def _line(self, name: str, verdict: str, wall: float, now: float) -> None:
+        done, left = len(self.out), len(self.pending)
+        self.log(f"{name} {verdict} after {wall:.0f} s; {done} done, {left} left, {(now - self.t0) / 60:.1f} min in")
+
+    def _stage_end(self, job: Job, now: float) -> None:
+        self.stage_left[job.stage] -= 1
+        if self.stage_left[job.stage] == 0 and job.stage in self.stage_t0:
+            self.log(f"stage {job.stage}: {now - self.stage_t0[job.stage]:.0f} s")
+
+    def stop(self) -> list[str]:
+        """Cancels every task not ended (a running one's worker is killed, and its process with it:
+        :func:`_die_with_parent`); records the running ones as stopped; returns their names."""
+        for ref in self.pending:
+            ray.cancel(ref, force=True)
         now = time.perf_counter()
-        for r in running:  # stopped (SIGTERM, Ctrl-C): recorded with the time they had
-            out[r.job.name] = {"exit": "stopped", "wall_s": now - r.started, "stage": r.job.stage}
-            r.proc.terminate()
-        if running and on_end is not None:
-            on_end(out)
-
-
-def _loop(todo, finished, failed, running, out, load, scale, log, heartbeat_s, on_end, warmed) -> dict[str, dict]:
-    """Starts and reaps jobs until none is left to start or running (``running`` and ``out`` are the
-    caller's, so a stopped loop leaves them as they were); ``scale``: each slot's shares to
-    fractions of its memory; ``warmed``: the programs keys some job has compiled (see Job.programs)."""
-    gpu = list(scale) != [None]
-    stage_left = {s: sum(1 for j in todo if j.stage == s) for s in dict.fromkeys(j.stage for j in todo)}
-    stage_t0: dict[str, float] = {}
-    t0 = last_beat = time.perf_counter()
-
-    def end_of(job: Job, now: float) -> None:
-        stage_left[job.stage] -= 1
-        if stage_left[job.stage] == 0 and job.stage in stage_t0:
-            log(f"stage {job.stage}: {now - stage_t0[job.stage]:.0f} s")
-
-    while todo or running:
-        waiting = False  # a job that does the work is ready and waits for GPU memory: helpers hold off
-        for job in sorted(todo, key=lambda j: bool(j.helps)):  # the real jobs first, each in its order
-            if any(n in failed for n in job.needs):
-                todo.remove(job)
-                failed.add(job.name)
-                out[job.name] = {"exit": None, "wall_s": 0.0, "stage": job.stage}
-                log(f"{job.name} not started: a job it needs failed")
-                end_of(job, time.perf_counter())
-                continue
-            if job.helps and not any(t.name in job.helps for t in todo):  # what it helps has started
-                todo.remove(job)
-                log(f"{job.name} not started: the jobs it helps have started")
-                end_of(job, time.perf_counter())
-                continue
-            if not all(n in finished for n in job.needs):
-                continue
-            if _waits(job, running, warmed) or (job.helps and waiting):
-                continue
-            slot = _place(job, load, scale, running)
-            if slot is False:
-                waiting = waiting or not job.helps
-                continue
-            todo.remove(job)
-            share = _fraction(job.share, scale[slot]) if gpu else 1.0
-            running.append(_start(job, slot, share))
-            load[slot] += share
-            stage_t0.setdefault(job.stage, time.perf_counter())
-            where = f"GPU {slot}, {share:.0%} of its memory" if gpu else "this machine"
-            log(f"started {job.name} on {where}")
-        time.sleep(0.5)
-        now = time.perf_counter()
-        for r in running:
-            if r.job.programs and r.job.programs not in warmed and _printed(r, r.job.compiled):
-                warmed.add(r.job.programs)
-                log(f"{r.job.name} has compiled its programs: the jobs that share them start")
-        if running and now - last_beat >= heartbeat_s:
-            last_beat = now
-            for r in running:
-                log(f"  {r.job.name} ({(now - r.started) / 60:.1f} min): {last_line(r.job.log) or '...'}")
-        for r in [r for r in running if r.proc.poll() is not None]:
-            running.remove(r)
-            r.stdout.close()
-            load[r.slot] -= _fraction(r.job.share, scale[r.slot]) if gpu else 1.0
-            wall = now - r.started
-            code = r.proc.returncode
-            if r.job.programs and code == 0:  # what it compiled is in the cache (failed: the next one compiles)
-                warmed.add(r.job.programs)
-            out[r.job.name] = {"exit": code, "wall_s": wall, "stage": r.job.stage}
-            if code == 0 and r.job.done():
-                finished.add(r.job.name)
-                verdict = "finished"
-            else:
-                failed.add(r.job.name)
-                why = f"exit {code}" if code != 0 else f"exit 0 without {r.job.finished.name}"
-                verdict = f"FAILED ({why}; its output: {r.job.log})"
-                if r.job.helps:
-                    verdict += "; the jobs it helps compile their own programs"
-            left = len(todo) + len(running)
-            log(
-                f"{r.job.name} {verdict} after {wall:.0f} s; {len(out)} done, {left} left, {(now - t0) / 60:.1f} min in"
-            )
-            end_of(r.job, now)
-            if on_end is not None:
-                on_end(out)
-    return out
+        stopped = sorted(self.running)
+        for name in stopped:
+            job = self.jobs[name]
+            self.out[name] = {"exit": "stopped", "wall_s": now - self.running[name], "stage": job.stage, "node": None}
+        if stopped and self.on_end is not None:
+            self.on_end(self.out)
+        return stopped
 
 
 def _needed(jobs: list[Job]) -> list[Job]:
@@ -296,59 +327,125 @@ def _needed(jobs: list[Job]) -> list[Job]:
     return [j for j in jobs if needed(j)]
 
 
-def _where(slots: list[str | None]) -> str:
-    return "this machine (no GPU: one job at a time)" if slots == [None] else f"GPU(s) {', '.join(slots)}"
+@ray.remote(num_cpus=0)
+class _Board:
+    """What the jobs of one call wait for: which ``programs`` keys are compiled, which jobs have
+    started or ended; and the events the driver prints (started, compiled, spared)."""
+
+    def __init__(self, opened: list[str]):
+        self.opened_keys, self.begun, self.events = set(opened), set(), []
+        self.changed = asyncio.Condition()
+
+    async def _wait(self, ready) -> None:
+        async with self.changed:
+            await self.changed.wait_for(ready)
+
+    async def _note(self, event=None) -> None:
+        async with self.changed:
+            if event is not None:
+                self.events.append(event)
+            self.changed.notify_all()
+
+    async def opened(self, key: str) -> bool:
+        await self._wait(lambda: key in self.opened_keys)
+        return True
+
+    async def started(self, names: list[str]) -> bool:
+        await self._wait(lambda: all(n in self.begun for n in names))
+        return True
+
+    async def any_to_start(self, names: list[str]) -> bool:
+        return not all(n in self.begun for n in names)
+
+    async def start(self, name: str, where: str) -> None:
+        self.begun.add(name)
+        await self._note(("started", name, where))
+
+    async def compiled(self, name: str, key: str) -> None:
+        if key not in self.opened_keys:
+            self.opened_keys.add(key)
+            await self._note(("compiled", name, ""))
+
+    async def spared(self, name: str) -> None:
+        self.begun.add(name)
+        await self._note(("spared", name, ""))
+
+    async def ended(self, name: str, key: str | None) -> None:
+        self.begun.add(name)  # a job that ended, run or not, is no longer to start
+        if key:
+            self.opened_keys.add(key)
+        await self._note()
+
+    async def take(self) -> list[tuple[str, str, str]]:
+        events, self.events = self.events, []
+        return events
 
 
-def _place(job: Job, load: dict, scale: dict, running: list[_Running]):
-    """The least-loaded GPU where the job's share fits beside the shares and CUDA contexts
-    (:data:`CONTEXT_SHARE`) of the jobs on it, each scaled to the GPU's memory, else False; a job
-    larger than a whole GPU runs alone on an idle one."""
-    if list(scale) == [None]:
-        return None if not running else False
-    slot = min(load, key=load.get)
-    processes = 1 + sum(r.slot == slot for r in running)
-    need = _fraction(job.share, scale[slot]) + CONTEXT_SHARE * processes * scale[slot]
-    if load[slot] + need <= 1.0 + 1e-9 or load[slot] == 0.0:
-        return slot
-    return False
+@ray.remote(max_retries=RETRIES)
+def _run(spec: _Spec, board, *_waits) -> dict | None:
+    """One job's task: runs its process to the end (the job's arguments made now, so a task run
+    again resumes) and returns ``{"wall_s", "node"}``; raises :class:`JobFailed` when it ends
+    without its finish file. Returns None (a helper not needed any more) or at once (finished)."""
+    job = spec.job
+    node = ray.get_runtime_context().get_node_id()[:8]
+    if job.done():  # run again after its job had finished (its node died after the finish file was written)
+        return {"wall_s": 0.0, "node": node}
+    if job.helps and not ray.get(board.any_to_start.remote(list(job.helps))):
+        ray.get(board.spared.remote(job.name))
+        return None
+    env = dict(os.environ)
+    if spec.cpu_only:
+        env["JAX_PLATFORMS"] = "cpu"  # Ray gave it no GPU: said explicitly (ray#49147)
+        where = f"node {node}, its CPUs"
+    else:
+        gpu_ids = ",".join(str(g) for g in ray.get_gpu_ids())
+        env["XLA_CLIENT_MEM_FRACTION"] = env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
+        where = f"node {node}, GPU {gpu_ids}, {spec.fraction:.0%} of its memory"
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    with open(job.log, "a") as out:
+        out.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started on {where}\n")
+        out.flush()
+        offset = out.tell()
+        t0 = time.perf_counter()
+        ray.get(board.start.remote(job.name, where))
+        proc = subprocess.Popen(
+            [sys.executable, *job.argv()], stdout=out, stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent
+        )
+        try:
+            seen = not (job.programs and job.compiled)
+            while proc.poll() is None:
+                time.sleep(0.5)
+                if not seen and _printed(job.log, offset, job.compiled):
+                    seen = True
+                    board.compiled.remote(job.name, job.programs)
+        finally:
+            if proc.poll() is None:  # the task was cancelled: its process goes with it
+                proc.terminate()
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+    wall, code = time.perf_counter() - t0, proc.returncode
+    if code == 0 and job.done():
+        return {"wall_s": wall, "node": node}
+    why = f"exit {code}" if code != 0 else f"exit 0 without {job.finished.name}"
+    raise JobFailed(job.name, code, wall, why)
 
 
-def _fraction(share: float, scale: float) -> float:
-    """A share of an 80 GB GPU as a fraction of one whose memory is ``1 / scale`` of that; a share
-    of 1 or more is the whole GPU, whatever its size."""
-    return share if share >= 1.0 else share * scale
-
-
-def _waits(job: Job, running: list[_Running], warmed: set[str]) -> bool:
-    """Whether ``job`` waits for a running job of its ``programs`` key to compile them."""
-    if job.programs is None or job.programs in warmed:
-        return False
-    return any(r.job.programs == job.programs for r in running)
-
-
-def _printed(r: _Running, text: str | None) -> bool:
-    """Whether the running job's output since its start holds ``text``."""
-    if not text:
-        return False
+def _printed(log: Path, offset: int, text: str) -> bool:
+    """Whether the log since ``offset`` (where this start's output begins) holds ``text``."""
     try:
-        with open(r.job.log, "rb") as f:
-            f.seek(r.offset)
+        with open(log, "rb") as f:
+            f.seek(offset)
             return text in f.read().decode(errors="replace")
     except OSError:
         return False
 
 
-def _start(job: Job, slot: str | None, fraction: float) -> _Running:
-    """Starts the job's process; on a GPU ``slot`` with ``fraction`` of its memory."""
-    env = dict(os.environ)
-    if slot is not None:
-        env["CUDA_VISIBLE_DEVICES"] = slot
-        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{min(fraction, 0.95):.3f}"
-    job.log.parent.mkdir(parents=True, exist_ok=True)
-    stdout = open(job.log, "a")  # noqa: SIM115 - closed when the job ends
-    stdout.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started\n")
-    stdout.flush()
-    argv = [sys.executable, *job.argv()]
-    proc = subprocess.Popen(argv, stdout=stdout, stderr=subprocess.STDOUT, env=env)
-    return _Running(job, slot, proc, stdout, time.perf_counter(), stdout.tell())
+def _die_with_parent() -> None:
+    """In the job's process before it runs: SIGTERM it when the task's worker dies (a cancelled
+    task, a node that dies), so no job runs on without its task (Linux; elsewhere nothing)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG

@@ -68,7 +68,8 @@ class Plan:
         demos_argv += ["--workers", str(self.workers), "--budget-s", str(cfg.planner_budget_s), "--out", str(demos)]
         demos_argv += ["--checker", "lean"]  # the same verdicts as MuJoCo's, so the same plans, faster
         demos_argv += [x for k, v in env_items for x in ("--env", f"{k}={_value(v)}")]
-        jobs = [job("demos", "demos", lambda: demos_argv, demos / "demos.npz", 0.3)]
+        # its planners keep every worker's core busy: a node with that many free CPUs runs it
+        jobs = [job("demos", "demos", lambda: demos_argv, demos / "demos.npz", 0.3, cpus=self.workers)]
 
         teachers = out / "teachers"
         train_argv = ["-m", "regrasp_mjx.train", "--preset", r.teachers.preset, "--seeds", str(r.teachers.seeds)]
