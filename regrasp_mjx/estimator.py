@@ -23,6 +23,8 @@ import sys
 from regrasp_mjx.core.atomic import dumps, output_file_problem, output_folder_problem, write_json
 from regrasp_mjx.core.config import TASKS, ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, run_command
+from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs.camera_errors import PRESETS
 from regrasp_mjx.inference.policy import PolicyError, load_policy
 from regrasp_mjx.vision import error_fit
 from regrasp_mjx.vision.error_fit import FitError
@@ -37,6 +39,9 @@ from regrasp_mjx.workflows.pixel_eyes import PixelLoopError
 from regrasp_mjx.workflows.render import RenderUnavailable
 from regrasp_mjx.world.endoscope import RESOLUTION, Rig
 from regrasp_mjx.world.sampling import TestsetError
+
+NO_CAMERA = "none"  # loop --camera: no error sizes known (the loop never looks)
+DEFAULT_CAMERA = "rendered"  # loop --camera with a learned estimator: the preset fitted to its errors
 
 
 def _widths(text: str) -> tuple[int, ...]:
@@ -162,6 +167,15 @@ def parser() -> argparse.ArgumentParser:
     lp.add_argument("--height", type=int, help=f"the oracle's image height (default {RESOLUTION[1]})")
     lp.add_argument("--noise-px", type=float, default=0.0, help="the oracle's pixel noise, sd (default 0)")
     lp.add_argument("--no-render", action="store_true", help="the oracle without images (it reads the true poses)")
+    lp.add_argument(
+        "--camera",
+        choices=(*PRESETS, NO_CAMERA),
+        help="the camera's known error sizes by name, which the loop looks by before its last moves and keeps the "
+        "jaws' margin by (a policy's closed_loop look_frames; docs/inference.md); none: no error known, it never "
+        "looks. Default: rendered with a learned estimator (fitted to the learned estimator's own errors on "
+        "held-out rendered frames, regrasp_mjx/data/camera_rendered.json: refit it for an estimator of your own), "
+        "none with the oracle (its errors are --noise-px's, which no preset describes)",
+    )
     lp.add_argument("--quiet", action="store_true", help="no progress lines")
     lines = ["options of each subcommand:"]
     for name, p in sub.choices.items():
@@ -202,6 +216,13 @@ def main(argv: list[str] | None = None) -> int:
             Rig(width=args.width, height=args.height)
         except ValueError as err:
             p.error(f"--width {args.width} --height {args.height}: {err}")
+        if args.camera is None:
+            args.camera = NO_CAMERA if oracle else DEFAULT_CAMERA
+        if args.camera != NO_CAMERA:  # a fitted preset's file read now: a missing one says how to make it
+            try:
+                camera_errors.preset(args.camera)
+            except ConfigError as err:
+                p.error(f"--camera {args.camera}: {err}")
     elif args.command in ("train", "evaluate") and args.out is not None:
         problem = output_folder_problem(args.out)
         if problem:
@@ -253,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.height,
                 args.noise_px,
                 not args.no_render,
+                None if args.camera == NO_CAMERA else args.camera,
             )
             log = (lambda *_: None) if args.quiet else (lambda line: print(line, flush=True))
             rep = pixel_report.run(loop_args, args.out, load_policy(args.policy), log=log)
@@ -261,7 +283,13 @@ def main(argv: list[str] | None = None) -> int:
             needle = s["estimate_per_frame"]["needle_in_e_g"]
             print(
                 dumps(
-                    {"out": args.out, "problems": rep["problems"], **{k: s[k] for k in rates}, "needle_in_e_g": needle}
+                    {
+                        "out": args.out,
+                        "problems": rep["problems"],
+                        "camera": args.camera,
+                        **{k: s[k] for k in rates},
+                        "needle_in_e_g": needle,
+                    }
                 )
             )
     except (

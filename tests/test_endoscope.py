@@ -1,6 +1,7 @@
 """The endoscope's camera model without rendering: its numbers, a hand-worked projection, stereo disparity,
 the rig's jitter, the keypoints, visibility on made-up images, the randomisation draws and the image
-degradation, and that its picture model leaves the collision scene as it was."""
+degradation, that its picture model leaves the collision scene as it was, and that it draws the regrasping
+jaws at the opening asked (where a scene of that opening has them, its tips' keypoints with them)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.envs.camera_errors import depth_axis
 from regrasp_mjx.world import domain_randomisation as dr
 from regrasp_mjx.world import endoscope
@@ -216,3 +218,62 @@ def test_the_picture_model_leaves_the_collision_scene_as_it_was():
         mujoco.mju_quat2Mat(rot, m.cam_quat[cam])
         np.testing.assert_allclose(rot.reshape(3, 3) @ np.diag([1.0, -1.0, -1.0]), pose[:3, :3], atol=1e-9)
         np.testing.assert_allclose(m.cam_pos[cam], pose[:3, 3])
+
+
+def _jaw_opening_deg(model: mujoco.MjModel, data: mujoco.MjData, tool: str) -> float:
+    """The angle between a tool's two jaw meshes as placed in ``data`` (each turned about the hinge)."""
+    a, b = (data.geom_xmat[model.geom(f"{tool}_jaw_{s}_visual").id].reshape(3, 3) for s in ("a", "b"))
+    return math.degrees(math.acos(np.clip((np.trace(a @ b.T) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def test_the_picture_model_draws_the_regrasping_jaws_at_the_opening_asked():
+    """``open_jaws(40)`` on the 20-degree scene's picture model puts each regrasping jaw's mesh and capsule
+    where the 40-degree scene's model has them, at any tool pose; None puts them back exactly; the rest
+    of the model stays. The 40-degree scene's own meshes are drawn at 40 degrees (the MJCF's euler angles
+    no longer override the scene's opening). The keypoints follow: the jaws' tips turned open are the
+    40-degree scene's, the other keypoints unmoved."""
+    base, wide = endoscope_model(), endoscope_model(SceneConfig(jaw_angle_deg=40.0))
+    needle = np.array([0.001, -0.002, 0.003, 1.0, 0.0, 0.0, 0.0])
+    quat = np.array([0.8, 0.3, -0.4, 0.33])
+    ee = np.concatenate([[0.012, 0.004, -0.006], quat / np.linalg.norm(quat)])
+    data = {m: mujoco.MjData(m.model) for m in (base, wide)}
+
+    def place(m, jaw_deg="unset"):
+        if jaw_deg != "unset":
+            m.open_jaws(jaw_deg)
+        data[m].qpos[:] = m.qpos(needle, ee)
+        mujoco.mj_kinematics(m.model, data[m])
+        return data[m].geom_xpos.copy(), data[m].geom_xmat.copy()
+
+    pos20, mat20 = place(base)
+    assert _jaw_opening_deg(base.model, data[base], "regrasp") == pytest.approx(20.0, abs=1e-9)
+    pos40, mat40 = place(wide)
+    assert _jaw_opening_deg(wide.model, data[wide], "regrasp") == pytest.approx(40.0, abs=1e-9)
+    opened_pos, opened_mat = place(base, 40.0)
+    assert _jaw_opening_deg(base.model, data[base], "regrasp") == pytest.approx(40.0, abs=1e-9)
+    jaws = base.jaw_geoms
+    assert sorted(base.model.geom(int(g)).name for g in jaws) == [
+        "regrasp_jaw_a",
+        "regrasp_jaw_a_visual",
+        "regrasp_jaw_b",
+        "regrasp_jaw_b_visual",
+    ]
+    np.testing.assert_allclose(opened_pos[jaws], pos40[jaws], atol=1e-12)
+    np.testing.assert_allclose(opened_mat[jaws], mat40[jaws], atol=1e-12)
+    assert np.linalg.norm(opened_pos[jaws] - pos20[jaws], axis=-1).min() > 7e-4  # the jaws' middles: 0.8 mm
+    rest = np.setdiff1d(np.arange(base.model.ngeom), jaws)
+    np.testing.assert_array_equal(opened_pos[rest], pos20[rest])
+    np.testing.assert_array_equal(opened_mat[rest], mat20[rest])
+    assert _jaw_opening_deg(base.model, data[base], "grasp") == pytest.approx(13.3737, abs=1e-3)  # never opened
+    back_pos, back_mat = place(base, None)
+    np.testing.assert_array_equal(back_pos, pos20)
+    np.testing.assert_array_equal(back_mat, mat20)
+
+    kp20, kp40 = (endoscope.keypoints(m.scene) for m in (base, wide))
+    turn = np.radians([10.0, 0.0])  # the first row opened to 40 degrees, the second at the scene's 20
+    two = (np.stack([needle, needle]), np.stack([ee, ee]))
+    world = kp20.world(*two, turn)
+    np.testing.assert_allclose(world[0], kp40.world(*two)[0], atol=1e-15)
+    np.testing.assert_allclose(world[1], kp20.world(*two)[1], atol=1e-15)
+    moved = np.abs(world[0] - world[1]).max(axis=-1) > 1e-4
+    assert [n for n, m in zip(kp20.names, moved) if m] == ["regrasp_jaw_a_tip", "regrasp_jaw_b_tip"]

@@ -1,7 +1,8 @@
 """Labelled stereo frames rendered for real (MuJoCo's OpenGL renderer; skipped with the reason where no
 OpenGL context can be made): the pictures agree with the camera model (the needle's pixels lie on its
 projected arc and back-project onto its wire, the stereo pair's disparity is f B / depth), the labels
-agree with the pictures, and the same seed gives the same frames. Images are 160 x 90: at 64 px across
+agree with the pictures, the same seed gives the same frames, and the regrasping jaws are drawn at the
+opening asked. Images are 160 x 90: at 64 px across
 the 0.5 mm wire is half a pixel wide and drops out of the picture here and there."""
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import re
 import numpy as np
 import pytest
 
+from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.workflows import frames_mjx
 from regrasp_mjx.workflows.frames import CLASSES, FrameRenderer
 from regrasp_mjx.workflows.render import RenderUnavailable
@@ -161,6 +163,39 @@ def test_the_same_seed_gives_the_same_frames_and_another_seed_others(renderer, b
     clean = renderer.render(needle[:2], start[:2], seeds=[100, 101], degrade=False)
     np.testing.assert_array_equal(clean.segmentation, f.segmentation[:2])
     assert not np.array_equal(clean.rgb, f.rgb[:2])
+
+
+def test_the_jaws_are_drawn_at_the_opening_asked(renderer, batch):
+    """``jaw_deg=40`` on the 20-degree scene draws the regrasping jaws as a renderer of the 40-degree scene
+    draws its own (the same pixels, depth and classes; the jaws' tips' labels with them), per state; None
+    and the scene's own 20 draw them as before; the next frame without ``jaw_deg`` is at the scene's again."""
+    needle, start, f = batch
+    rows, seeds = slice(0, 3), [100, 101, 102]
+    wide = FrameRenderer(SceneConfig(jaw_angle_deg=40.0), rig=RIG)
+    try:
+        ref = wide.render(needle[rows], start[rows], seeds=seeds)
+    finally:
+        wide.close()
+    opened = renderer.render(needle[rows], start[rows], seeds=seeds, jaw_deg=[40.0, 20.0, 40.0])
+    tips = [f.names.index(f"regrasp_jaw_{s}_tip") for s in ("a", "b")]
+    for i, want in ((0, ref), (1, f), (2, ref)):  # the second state at the scene's opening
+        # the same pictures (the jaws' geoms placed alike to 1e-16: a pixel at an edge may go either way)
+        for name in ("rgb", "depth", "segmentation"):
+            differ = (getattr(opened, name)[i] != getattr(want, name)[i]).mean()
+            assert differ <= 1e-3, (name, i, differ)
+        np.testing.assert_allclose(opened.pixels[i], want.pixels[i], atol=1e-9, err_msg=str(i))
+        np.testing.assert_array_equal(opened.visible[i], want.visible[i], err_msg=str(i))
+    moved = opened.segmentation[[0, 2]] != f.segmentation[[0, 2]]
+    assert moved.sum() > 20 and np.isin(opened.segmentation[[0, 2]][moved], [REGRASP]).mean() > 0.2  # the jaws
+    assert np.abs(opened.pixels[[0, 2]][:, :, tips] - f.pixels[[0, 2]][:, :, tips]).max() > 2.0  # tips' labels
+    np.testing.assert_array_equal(np.delete(opened.pixels, tips, axis=2), np.delete(f.pixels[rows], tips, axis=2))
+    again = renderer.render(needle[rows], start[rows], seeds=seeds)  # no opening: the scene's, whatever came before
+    np.testing.assert_array_equal(again.segmentation, f.segmentation[rows])
+    same = renderer.render(needle[rows], start[rows], seeds=seeds, jaw_deg=20.0)
+    np.testing.assert_array_equal(same.rgb, f.rgb[rows])
+    for bad in (0.0, 81.0, np.nan, [40.0, 40.0], "wide"):
+        with pytest.raises(ValueError, match="jaw_deg must be"):
+            renderer.render(needle[rows], start[rows], seeds=seeds, jaw_deg=bad)
 
 
 def test_bad_arguments_and_a_closed_renderer(renderer, batch):

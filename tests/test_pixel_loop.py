@@ -8,6 +8,7 @@ the same rows and refuses bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 
@@ -18,6 +19,7 @@ import pytest
 
 import regrasp_mjx
 from regrasp_mjx import estimator as cli
+from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.vision import stereo
 from regrasp_mjx.vision.estimator_file import load_estimator, save_estimator
 from regrasp_mjx.vision.network import NetConfig, init_params
@@ -166,6 +168,48 @@ def test_the_loop_through_the_oracle_plans_as_the_policy(policy, problems, rende
     assert lines and all(re.match(r"  rows 0-1 of 2 step [48]: \d of 2 rows live, \d+ stereo pairs", x) for x in lines)
 
 
+def test_the_frames_draw_the_jaws_the_loop_commands(policy, problems, renderer, monkeypatch):
+    """The shipped default opens its jaws on the way (to 40 degrees): every stereo pair the loop renders
+    draws each row's regrasping jaws where its loop last commanded them, the scene's 20 degrees up to the
+    step they open before and 40 after it (read off the picture model as each picture is drawn: the angle
+    between the two jaw meshes), the tool where the row's true pose is at that step."""
+    assert policy.env_config.jaw_open_deg == 40.0 and policy.env_config.scene.jaw_angle_deg == 20.0
+    model, data, scene = renderer.model, renderer._data, renderer.endo.scene
+    a, b = (model.geom(f"regrasp_jaw_{s}_visual").id for s in ("a", "b"))
+    drawn = []  # (needle, ee, opening) of each picture
+
+    def shoot(cam, shoot=renderer._shoot):
+        if cam is renderer._cams[0]:  # one record a stereo pair
+            turn = data.geom_xmat[a].reshape(3, 3) @ data.geom_xmat[b].reshape(3, 3).T
+            q = data.qpos.copy()
+            drawn.append(
+                (
+                    q[scene.needle_qpos : scene.needle_qpos + 7],
+                    q[scene.regrasp_qpos : scene.regrasp_qpos + 7],
+                    np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0))),
+                )
+            )
+        return shoot(cam)
+
+    monkeypatch.setattr(renderer, "_shoot", shoot)
+    needle, start, goal = (x[:ROWS] for x in problems)
+    out = execute_from_pixels(
+        policy, OracleEstimator.of(renderer.rig), needle, start, goal, batch=ROWS, renderer=renderer, warmup_frames=1
+    )
+    assert len(drawn) == out["frames"].sum() and (out["opened_at"] >= 0).all(), out["opened_at"]
+    seen = np.zeros((ROWS, 2), np.int64)  # pictures drawn closed and open, per row
+    for n, ee, opening in drawn:
+        i = int(np.argmin(np.linalg.norm(needle[:, :3] - n[:3], axis=1)))
+        gaps = np.linalg.norm(out["poses"][i, :, :3] - ee[:3], axis=1)
+        t = int(np.argmin(gaps))  # the step the picture was drawn at (the first, where a row holds at its end)
+        assert gaps[t] < 1e-7 and np.allclose(n, needle[i])
+        opened = t > out["opened_at"][i]
+        assert opening == pytest.approx(40.0 if opened else 20.0, abs=1e-6), (i, t, out["opened_at"][i])
+        seen[i, int(opened)] += 1
+    assert (seen > 0).all(), seen  # each row drawn both ways
+    np.testing.assert_array_equal(out["jaw_deg"], 40.0)
+
+
 @pytest.mark.slow
 def test_the_loop_through_the_oracle_is_the_simulated_camera_loop(policy, problems, renderer):
     """At the policy's own settings (warm-up frames, stop tolerance) and no error, the loop from pixels
@@ -221,10 +265,14 @@ def test_the_learned_estimator_sees_rendered_frames(renderer, problems, tmp_path
     policy = regrasp_mjx.load_policy()
     with pytest.raises(PixelLoopError, match="render=False"):
         execute_from_pixels(policy, est, needle[:1], start[:1], render=False)
-    # the endoscope draws the jaws at the scene's opening: a learned estimator does not see them open (said)
+    # the frames draw the jaws open, but the estimator was trained and fits them at the scene's opening (said)
     with monkeypatch.context() as m:
         m.setattr(pixel_loop, "_judge", lambda _policy: (_ for _ in ()).throw(RuntimeError("the loop runs")))
-        with pytest.warns(UserWarning, match="opens its jaws on the way .* do not show the robot's jaws"):
+        with pytest.warns(
+            UserWarning,
+            match="opens its jaws on the way .* the frames draw them as the loop opens them, "
+            "but the estimator's fit models the jaws at the scene's 20 deg",
+        ):
             with pytest.raises(RuntimeError, match="the loop runs"):
                 execute_from_pixels(regrasp_mjx.load_policy(OPEN40), est, needle[:1], start[:1], renderer=renderer)
 
@@ -307,6 +355,63 @@ def test_the_command_writes_its_report_and_resumes_a_killed_run(tmp_path, policy
     (tmp_path / "other" / "pixel_loop.parts" / "manifest.json").write_text(json.dumps({"seed": 1}))
     code, _, err = _cli(base + ["--out", str(tmp_path / "other")])
     assert code == 2 and "holds the batches of another run" in err
+
+
+def test_the_command_looks_by_the_camera_named(tmp_path, policy):
+    """``--camera`` reaches the loop: the shipped default looks before its last moves by the preset named
+    (the rows' looked frames, the report's settings and line); ``none`` never looks. Through the oracle
+    without images, 2 problems."""
+    base = ["loop", "--estimator", "oracle", "--n", str(ROWS), "--batch", str(ROWS), "--no-render", "--seed", "5"]
+    code, out, err = _cli(base + ["--camera", "rendered", "--out", str(tmp_path / "rendered")])
+    assert code == 0, err
+    assert json.loads(out.strip().splitlines()[-1])["camera"] == "rendered"
+    rep = json.loads((tmp_path / "rendered" / "pixel_loop.json").read_text())
+    settings = rep["settings"]
+    assert settings["camera"] == "rendered" and settings["look_frames"] == policy.closed_loop_defaults["look_frames"]
+    assert settings["camera_sizes"] == dataclasses.asdict(camera_errors.preset("rendered"))
+    assert settings["jaws_drawn"] == "not drawn" and settings["jaw_open_deg"] == 40.0  # --no-render: no images
+    table = (tmp_path / "rendered" / "pixel_loop.md").read_text()
+    assert "looking up to 60 frames by the camera errors rendered" in table and "40 deg (no images drawn)" in table
+    with np.load(tmp_path / "rendered" / "pixel_loop_rows.npz") as rows:
+        looked = rows["looked"]
+    assert (looked > 0).all(), looked  # the preset's sizes leave the view too uncertain to stop on unlooked
+    code, _, err = _cli(base + ["--camera", "none", "--out", str(tmp_path / "none")])
+    assert code == 0, err
+    assert json.loads((tmp_path / "none" / "pixel_loop.json").read_text())["settings"]["camera"] is None
+    with np.load(tmp_path / "none" / "pixel_loop_rows.npz") as rows:
+        assert (rows["looked"] == 0).all()
+
+
+def test_the_command_s_camera_default_and_bad_names(tmp_path, monkeypatch):
+    """``--camera``'s default: ``rendered`` (fitted to the learned estimator's errors) with a learned
+    estimator, none with the oracle; a name given is passed through; a bad name is refused listing the
+    accepted ones, and a fitted preset without its file says how to make it."""
+    taken = []
+
+    def run(args, *_a, **_k):
+        taken.append(args.camera)
+        raise PixelLoopError("stopped here")
+
+    out = ["--out", str(tmp_path / "o")]
+    with monkeypatch.context() as m:
+        m.setattr(pixel_report, "run", run)
+        for argv in (
+            ["--estimator", str(tmp_path / "est")],
+            ["--estimator", "oracle"],
+            ["--estimator", str(tmp_path / "est"), "--camera", "lab-good"],
+            ["--estimator", "oracle", "--camera", "rendered"],
+            ["--estimator", str(tmp_path / "est"), "--camera", "none"],
+        ):
+            code, _, err = _cli(["loop", *argv, *out])
+            assert code == 2 and "stopped here" in err, err
+    assert taken == ["rendered", None, "lab-good", "rendered", None]
+    code, _, err = _cli(["loop", "--estimator", "oracle", "--camera", "lab-bad", *out])
+    assert code == 2 and "argument --camera: invalid choice: 'lab-bad'" in err
+    assert all(f"'{name}'" in err for name in (*camera_errors.PRESETS, "none")), err
+    monkeypatch.setitem(camera_errors.FITTED, "rendered", tmp_path / "no_fit.json")
+    code, _, err = _cli(["loop", "--estimator", str(tmp_path / "est"), *out])  # the default, without its file
+    assert code == 2 and "--camera rendered: camera errors 'rendered': no fitted file yet" in err, err
+    assert "python -m regrasp_mjx.estimator fit" in err
 
 
 def test_the_command_s_bad_arguments(tmp_path):

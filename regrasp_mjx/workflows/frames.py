@@ -23,7 +23,7 @@ import jax
 import mujoco
 import numpy as np
 
-from regrasp_mjx.core.config import SceneConfig
+from regrasp_mjx.core.config import JAW_MAX_DEG, SceneConfig
 from regrasp_mjx.workflows.render import Offscreen, _gl_context  # the package's one way to make a headless GL context
 from regrasp_mjx.world import domain_randomisation as dr
 from regrasp_mjx.world import endoscope
@@ -87,10 +87,13 @@ def label(
     extrinsics: np.ndarray,
     depth: np.ndarray,
     segmentation: np.ndarray,
+    jaw_deg: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The keypoints' labels for rendered depth and segmentation ``[B, 2, H, W]``: their places in
-    e_g ``[B, K, 3]``, pixels ``[B, 2, K, 2]``, depths ``[B, 2, K]`` and visibility ``[B, 2, K]``."""
-    world = kp.world(needle, ee)
+    e_g ``[B, K, 3]``, pixels ``[B, 2, K, 2]``, depths ``[B, 2, K]`` and visibility ``[B, 2, K]``; the
+    regrasping jaws' tips where jaws opened to ``jaw_deg`` ``[B]`` put them (None: the scene's opening)."""
+    turn = None if jaw_deg is None else np.radians(np.asarray(jaw_deg, np.float64) - endo.base_jaw_deg) / 2.0
+    world = kp.world(needle, ee, turn)
     pixels, z = endoscope.project(world[:, None], extrinsics, endo.rig.intrinsics())
     want = OBJECT_CLASS[kp.obj]
     seen = endoscope.visible(pixels, z, depth, segmentation, want, kp.depth_slack)
@@ -106,11 +109,12 @@ def labelled(
     pictures: tuple[np.ndarray, np.ndarray, np.ndarray],
     seeds: Any,
     draws: Any,
+    jaw_deg: np.ndarray | None = None,
 ) -> LabelledFrames:
     """:class:`LabelledFrames` of rendered ``pictures`` (RGB, depth, segmentation) with their labels
     (:func:`label`), whichever renderer made them."""
     rgb, depth, seg = pictures
-    world, pixels, z, seen = label(endo, kp, needle, ee, extrinsics, depth, seg)
+    world, pixels, z, seen = label(endo, kp, needle, ee, extrinsics, depth, seg, jaw_deg)
     return LabelledFrames(
         rgb=rgb,
         depth=depth,
@@ -184,7 +188,9 @@ class FrameRenderer(Offscreen):
         classes = lookup[np.clip(seg, 0, scn.ngeom)]
         return rgb[::-1], _linear_depth(buf, m)[::-1], classes[::-1]  # OpenGL's rows run bottom-up
 
-    def render(self, needle: Any, ee: Any, seeds: Any, frame: int = 0, degrade: bool = True) -> LabelledFrames:
+    def render(
+        self, needle: Any, ee: Any, seeds: Any, frame: int = 0, degrade: bool = True, jaw_deg: Any = None
+    ) -> LabelledFrames:
         """Labelled frames of ``B`` episode states.
 
         Args:
@@ -194,9 +200,13 @@ class FrameRenderer(Offscreen):
           frame: which frame of its episode each picture is (a new noise draw per frame; the rest is
             the episode's).
           degrade: False leaves out the blur, gain and noise (the rendered pixels as they are).
+          jaw_deg: the regrasping jaws' opening each state draws, degrees (``[B]``, or one number for
+            all; None: the scene's, ``SceneConfig.jaw_angle_deg``): the jaws turned about their hinge
+            as the environment opens them, their tips' labels with them.
 
         Raises:
-          ValueError: poses that are not finite 7-vectors with unit quaternions, or bad seeds.
+          ValueError: poses that are not finite 7-vectors with unit quaternions, bad seeds, or an
+            opening that is not a number of degrees in (0, JAW_MAX_DEG].
           RuntimeError: the renderer is closed.
         """
         if self._ctx is None:
@@ -205,6 +215,7 @@ class FrameRenderer(Offscreen):
         if needle.shape != ee.shape:
             raise ValueError(f"needle and ee must have the same number of poses, got {len(needle)} and {len(ee)}")
         seeds = np.broadcast_to(np.atleast_1d(np.asarray(seeds)), (len(needle),))
+        jaws = None if jaw_deg is None else _openings(jaw_deg, len(needle))
         draws = dr.draws(seeds)
         b, h, w = len(needle), self.rig.height, self.rig.width
         rgb = np.empty((b, 2, h, w, 3), np.uint8)
@@ -215,6 +226,7 @@ class FrameRenderer(Offscreen):
         for i in range(b):
             extrinsics[i] = endoscope.invert(self.endo.apply(draws.row(i)))
             self._data.qpos[:] = self.endo.qpos(needle[i], ee[i])
+            self.endo.open_jaws(None if jaws is None else jaws[i])
             mujoco.mj_kinematics(self.model, self._data)
             mujoco.mj_camlight(self.model, self._data)
             for c, cam in enumerate(self._cams):
@@ -222,7 +234,19 @@ class FrameRenderer(Offscreen):
         if degrade:
             d = draws
             rgb = np.asarray(dr.degrade(rgb, d.blur_px, d.noise, d.gain, dr.noise_keys(seeds, frame)))
-        return labelled(self.endo, self.keypoints, needle, ee, extrinsics, (rgb, depth, seg), seeds, draws)
+        return labelled(self.endo, self.keypoints, needle, ee, extrinsics, (rgb, depth, seg), seeds, draws, jaws)
+
+
+def _openings(jaw_deg: Any, n: int) -> np.ndarray:
+    """``jaw_deg`` (one number or ``[n]``) as ``[n]`` float64 degrees; raises ValueError unless each is in
+    (0, JAW_MAX_DEG]."""
+    try:
+        jaws = np.broadcast_to(np.atleast_1d(np.asarray(jaw_deg, np.float64)), (n,))
+    except (TypeError, ValueError):
+        raise ValueError(f"jaw_deg must be one opening or one per state ({n}) in degrees, got {jaw_deg!r}") from None
+    if not np.all((jaws > 0.0) & (jaws <= JAW_MAX_DEG)):
+        raise ValueError(f"jaw_deg must be in (0, {JAW_MAX_DEG:g}] degrees (the jaw's range), got {jaw_deg!r}")
+    return jaws.copy()
 
 
 def _linear_depth(buf: np.ndarray, model: mujoco.MjModel) -> np.ndarray:

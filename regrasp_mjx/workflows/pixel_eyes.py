@@ -83,16 +83,22 @@ class Eyes:
         self.next_frame = np.zeros(len(seeds), np.int64)
         self.pairs = 0
 
-    def look(self, rows: np.ndarray, ee: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """The estimate of one frame of each of ``rows`` (the regrasping tool truly at ``ee`` ``[n, 7]``)
-        and the true camera-frame poses ``[n, 3, 4, 4]``; each row's frame count advanced."""
+    def look(
+        self, rows: np.ndarray, ee: np.ndarray, jaw_deg: np.ndarray | None = None
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The estimate of one frame of each of ``rows`` (the regrasping tool truly at ``ee`` ``[n, 7]``,
+        its jaws drawn opened to ``jaw_deg`` ``[n]`` degrees; None: the scene's opening) and the true
+        camera-frame poses ``[n, 3, 4, 4]``; each row's frame count advanced."""
         poses = endoscope.object_poses(self.needle[rows], ee)
         extrinsics = self.extrinsics[rows]
         rgb = None
         if self.renderer is not None:  # one row a call: one compiled randomisation for any count of rows
             rgb = np.empty((len(rows), 2, self.rig.height, self.rig.width, 3), np.uint8)
             for j, i in enumerate(rows):  # the image noise's draw: the episode's seed and the row's frame
-                fr = self.renderer.render(self.needle[i], ee[j], self.seeds[i], frame=int(self.next_frame[i]))
+                jaw = None if jaw_deg is None else jaw_deg[j]
+                fr = self.renderer.render(
+                    self.needle[i], ee[j], self.seeds[i], frame=int(self.next_frame[i]), jaw_deg=jaw
+                )
                 rgb[j], extrinsics[j] = fr.rgb[0], fr.extrinsics[0]
         self.next_frame[rows] += 1
         self.pairs += len(rows)

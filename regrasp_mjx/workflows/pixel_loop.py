@@ -23,10 +23,12 @@ or a preset's name, such as ``rendered``, fitted to the learned estimator's erro
 loop knows of no error, as :class:`CameraLoop` and ``Policy.execute`` without errors, so it never looks
 (a warning says so where the policy would). A policy whose jaws open on the way opens them as
 :class:`CameraLoop` commands, and the judge carries the opening out (its sweep proved on the true poses,
-the motions tested with the jaws where they are). The endoscope draws the regrasping jaws at the scene's
-opening (its frames, and so a learned estimator's training, alike), so once they open a learned
-estimator's images do not show the jaws the robot holds (a warning says so): its errors there are not
-measured. The oracle reads the true poses.
+the motions tested with the jaws where they are). The frames draw each row's regrasping jaws where its
+loop last commanded them (:meth:`FrameRenderer.render`'s ``jaw_deg``: the scene's opening until they open),
+what the robot holds. A learned estimator was trained on frames with the jaws at the scene's opening and
+its fit models them there, so once they open its errors are not those it was measured at (a warning says
+so). The oracle reads the true poses (its keypoints the estimator's model's: the jaws at the scene's
+opening).
 
 The judge is the environment's: each commanded motion is carried out on the true state by
 :meth:`regrasp_mjx.envs.env.RegraspEnv.move` (the continuous collision test along the whole motion,
@@ -146,10 +148,13 @@ class _Batch:
         need, tries = live.copy(), np.zeros(b, np.int64)
         stopping, motion = np.zeros(b, bool), np.tile(np.eye(4), (b, 1, 1))
         self.jaw_deg = np.array([loop.jaw_deg for loop in self.loops])  # the opening each row commands
+        # the frames draw each row's jaws where its loop last commanded them (carried out by the judge before
+        # that motion: the true jaws); a policy whose jaws stay, at the scene's opening
+        drawn = self.jaw_deg.copy() if self.policy.env_config.jaw_open_deg is not None else None
         g_true = matrices(ee)
         while need.any():
             rows = np.nonzero(need)[0]
-            est, truth = self.eyes.look(rows, ee[rows])
+            est, truth = self.eyes.look(rows, ee[rows], None if drawn is None else drawn[rows])
             mm, deg = frame_errors(est["poses"], truth)
             for j, i in enumerate(rows):
                 self.seen[i].append((mm[j], deg[j]))
@@ -347,8 +352,9 @@ def execute_from_pixels(
         )
     if loop.open_deg is not None and isinstance(estimator, Estimator):
         warnings.warn(
-            f"this policy opens its jaws on the way (to {loop.open_deg:g} deg); the endoscope draws them at the "
-            f"scene's {loop.base_deg:g} deg, so once they open the estimator's images do not show the robot's jaws",
+            f"this policy opens its jaws on the way (to {loop.open_deg:g} deg): the frames draw them as the loop "
+            f"opens them, but the estimator's fit models the jaws at the scene's {loop.base_deg:g} deg (and its "
+            "training frames drew them there), so its errors with the jaws open are not the ones it was measured at",
             stacklevel=2,
         )
     judge = _judge(policy)

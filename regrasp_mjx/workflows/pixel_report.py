@@ -19,6 +19,8 @@ import numpy as np
 
 from regrasp_mjx.core.atomic import atomic_write, machine, write_json, write_results
 from regrasp_mjx.core.host_loop import eta, folder_lock
+from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs.camera_errors import CameraErrors
 from regrasp_mjx.inference.robustness import policy_hash
 from regrasp_mjx.vision.estimator_file import Estimator, load_estimator
 from regrasp_mjx.vision.oracle import OracleEstimator
@@ -30,6 +32,7 @@ from regrasp_mjx.world.sampling import episode_poses, load_testset
 from regrasp_mjx.world.testsets import make_testset, versions
 
 REPORT = "pixel_loop"
+JAWS_DRAWN = {"as commanded": "drawn as commanded", "not drawn": "no images drawn"}  # the report's line
 ORACLE = "oracle"  # the --estimator that names the oracle
 
 
@@ -48,6 +51,7 @@ class LoopArgs:
     height: int = Rig().height
     noise_px: float = 0.0  # the oracle's pixel noise
     render: bool = True
+    camera: str | None = None  # the camera-error preset the loop looks by (None: none known, it never looks)
 
 
 def problems(policy: Any, args: LoopArgs) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
@@ -72,6 +76,13 @@ def problems(policy: Any, args: LoopArgs) -> tuple[str, np.ndarray, np.ndarray, 
             raise PixelLoopError(f"n={args.n} is not accepted: 1 to the {len(needle)} problems of {name}")
         needle, start, goal, name = needle[: args.n], start[: args.n], goal[: args.n], f"{name}[:{args.n}]"
     return name, needle, start, goal
+
+
+def camera_of(args: LoopArgs) -> CameraErrors | None:
+    """The camera's known error sizes ``args`` names (a preset of :data:`camera_errors.PRESETS`; None:
+    none). Raises :class:`ConfigError` on an unknown name or, for a fitted preset, a missing or broken
+    file (it says how to make one)."""
+    return None if args.camera is None else camera_errors.preset(args.camera)
 
 
 def estimator_of(args: LoopArgs) -> Estimator | OracleEstimator:
@@ -139,7 +150,8 @@ def _looking(settings: dict[str, Any]) -> str:
             else f"; looking up to {settings['look_frames']} frames by the camera errors {settings['camera']}"
         )
     if settings.get("jaw_open_deg") is not None:
-        out += f"; its jaws open on the way to {settings['jaw_open_deg']:g} deg (drawn at the scene's opening)"
+        drawn = JAWS_DRAWN.get(settings.get("jaws_drawn"), "drawn at the scene's opening")  # earlier reports: there
+        out += f"; its jaws open on the way to {settings['jaw_open_deg']:g} deg ({drawn})"
     return out
 
 
@@ -189,12 +201,14 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
 
     Raises:
       PixelLoopError: problems, an estimator or settings the loop cannot run; ``OUT``'s parts of another run.
-      EstimatorError, TestsetError, ConfigError: an unreadable estimator or test set, bad problem counts.
+      EstimatorError, TestsetError, ConfigError: an unreadable estimator or test set, bad problem counts, a
+        camera preset that is not one (or a fitted one without its file).
       FolderInUse: another run writes into ``out``.
       RenderUnavailable: no OpenGL context can be made here.
     """
     out = Path(out)
     name, needle, start, goal = problems(policy, args)
+    camera = camera_of(args)
     estimator = estimator_of(args)
     rig = rig_of(estimator)
     seeds = episode_seeds(len(needle), args.seed)
@@ -212,7 +226,7 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
         log(
             f"pixels: {args.policy} on {name}, {len(needle)} problems in "
             f"{len(chunks)} batches ({len(chunks) - len(todo)} done before), estimator {args.estimator}, "
-            f"{rig.width} x {rig.height}, seed {args.seed}"
+            f"{rig.width} x {rig.height}, seed {args.seed}, camera errors {args.camera or 'none'}"
         )
         renderer = FrameRenderer(rig=rig) if args.render else None
         t0, pairs = time.perf_counter(), 0
@@ -229,6 +243,7 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
                     renderer=renderer,
                     log=log,
                     seeds=seeds[a:b],
+                    camera=camera,
                 )
                 atomic_write(parts / f"rows_{a:06d}.npz", lambda f, rows=rows: np.savez(f, **rows))
                 pairs += int(rows["frames"].sum())
@@ -268,10 +283,13 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
             "settings": {
                 "warmup_frames": defaults["warmup_frames"],
                 "stop_tolerance": defaults["stop_tolerance"],
-                # the policy's looks; the command names no camera error sizes, so the loop does not look
+                # the policy's looks, by the camera error sizes named (none: it does not look)
                 "look_frames": defaults["look_frames"],
-                "camera": None,
+                "camera": args.camera,
+                "camera_sizes": None if camera is None else dataclasses.asdict(camera),
                 "jaw_open_deg": policy.env_config.jaw_open_deg,
+                # the frames draw the regrasping jaws where the loop commanded them (none drawn without images)
+                "jaws_drawn": "as commanded" if args.render else "not drawn",
                 "max_refused": MAX_REFUSED,
                 "batch": args.batch,
             },

@@ -47,6 +47,7 @@ import math
 
 import numpy as np
 
+from regrasp_mjx.world.distances import turn_jaws
 from regrasp_mjx.world.scene import Scene
 
 BASELINE_M = 0.005
@@ -214,12 +215,33 @@ class Keypoints:
     local: np.ndarray
     depth_slack: np.ndarray
 
-    def world(self, needle, ee) -> np.ndarray:
+    def world(self, needle, ee, jaw_turn=None) -> np.ndarray:
         """The keypoints ``[B, K, 3]`` in e_g for needle and regrasping end-effector poses ``[B, 7]``
-        (the grasping tool is e_g itself)."""
+        (the grasping tool is e_g itself). ``jaw_turn`` ``[B]`` (rad; None: none): how far each
+        regrasping jaw is turned open about the hinge beyond the opening the keypoints were made at
+        (half the opening's change): the regrasping jaws' tips turned with it (:func:`turn_open`)."""
         poses = object_poses(needle, ee)
         rot = quat_matrix(poses[:, self.obj, 3:])
-        return poses[:, self.obj, :3] + np.einsum("bkij,kj->bki", rot, self.local)
+        if jaw_turn is None:
+            return poses[:, self.obj, :3] + np.einsum("bkij,kj->bki", rot, self.local)
+        local = np.repeat(self.local[None], len(poses), axis=0)
+        tips = np.array([n.startswith(REGRASP_JAW_PREFIX) for n in self.names])
+        local[:, tips] = turn_open(self.local[tips], np.broadcast_to(np.asarray(jaw_turn, np.float64), len(poses)))
+        return poses[:, self.obj, :3] + np.einsum("bkij,bkj->bki", rot, local)
+
+
+REGRASP_JAW_PREFIX = "regrasp_jaw_"  # the regrasping jaws' keypoints (their tips) and geoms
+
+
+def turn_open(points: np.ndarray, turn) -> np.ndarray:
+    """Points fixed on the regrasping jaws ``[n, 3]`` (e_r; each on the side of its jaw: ``+y`` jaw a,
+    ``-y`` jaw b) with each jaw turned open about the hinge, the end-effector's x axis, by ``turn``
+    ``[B]`` rad (negative: closed), as the environment turns the jaws' capsules
+    (:func:`regrasp_mjx.world.distances.turn_jaws`): ``[B, n, 3]``."""
+    points = np.asarray(points, np.float64)
+    turn = np.atleast_1d(np.asarray(turn, np.float64))[:, None]
+    ends = np.broadcast_to(points, (len(turn),) + points.shape)
+    return turn_jaws(ends, np.sign(points[:, 1]), turn, np)
 
 
 def object_poses(needle, ee) -> np.ndarray:

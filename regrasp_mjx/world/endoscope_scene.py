@@ -25,7 +25,15 @@ import numpy as np
 from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.world import endoscope
 from regrasp_mjx.world.domain_randomisation import Draws, nominal
-from regrasp_mjx.world.scene import MJCF_PATH, NEEDLE_BODY, REGRASP_BODY, Scene, _apply_config, load_scene
+from regrasp_mjx.world.scene import (
+    MJCF_PATH,
+    NEEDLE_BODY,
+    REGRASP_BODY,
+    REGRASP_JAWS,
+    Scene,
+    _apply_config,
+    load_scene,
+)
 
 CAMERAS = ("endoscope_left", "endoscope_right")
 CLASSES = ("background", "tissue", "needle", "grasping_tool", "regrasping_tool")
@@ -67,6 +75,9 @@ class EndoscopeModel:
       rig: the stereo pair; the cameras' ``fovy`` matches its size.
       cameras: the two camera ids (left, right).
       classes: the segmentation class of each geom (an index into :data:`CLASSES`).
+      jaw_geoms: the regrasping jaws' geoms (their meshes and capsules); jaw_sides ``[n]``: +1 jaw a
+        (towards +y), -1 jaw b; jaw_poses ``[n, 7]``: their ``geom_pos`` and ``geom_quat`` at the
+        scene's opening, what :meth:`open_jaws` turns about the hinge.
     """
 
     model: mujoco.MjModel
@@ -74,6 +85,31 @@ class EndoscopeModel:
     rig: endoscope.Rig
     cameras: tuple[int, int]
     classes: np.ndarray
+    jaw_geoms: np.ndarray
+    jaw_sides: np.ndarray
+    jaw_poses: np.ndarray
+
+    @property
+    def base_jaw_deg(self) -> float:
+        """The scene's opening of the regrasping jaws [deg] (``SceneConfig.jaw_angle_deg``)."""
+        return float(self.scene.config.jaw_angle_deg)
+
+    def open_jaws(self, jaw_deg: float | None = None) -> None:
+        """Draws the regrasping jaws at an opening of ``jaw_deg`` [deg] (None: the scene's): each jaw's
+        geoms turned about the hinge (the end-effector's x axis) by half the change from the scene's
+        opening, away from the other, as the environment turns their capsules; written into the model's
+        ``geom_pos`` and ``geom_quat`` (the next kinematics places them)."""
+        m = self.model
+        pos, quat = self.jaw_poses[:, :3], self.jaw_poses[:, 3:]
+        turn = 0.0 if jaw_deg is None else np.radians(float(jaw_deg) - self.base_jaw_deg) / 2.0
+        if turn == 0.0:
+            m.geom_pos[self.jaw_geoms], m.geom_quat[self.jaw_geoms] = pos, quat
+            return
+        for g, side, p, q in zip(self.jaw_geoms, self.jaw_sides, pos, quat):
+            angle = -side * turn  # about +x: the jaw on +y turns towards +y
+            c, s = np.cos(angle), np.sin(angle)
+            m.geom_pos[g] = [p[0], c * p[1] - s * p[2], s * p[1] + c * p[2]]
+            mujoco.mju_mulQuat(m.geom_quat[g], np.array([np.cos(angle / 2), np.sin(angle / 2), 0.0, 0.0]), q)
 
     def qpos(self, needle: np.ndarray, ee: np.ndarray) -> np.ndarray:
         """``qpos`` for a needle pose and a regrasping end-effector pose (7-vectors, e_g)."""
@@ -180,12 +216,21 @@ def endoscope_model(scene: Scene | SceneConfig | None = None, rig: endoscope.Rig
     body_class = {NEEDLE_BODY: 2, GRASP_BODY: 3, REGRASP_BODY: 4}
     classes = np.array([body_class.get(model.body(int(b)).name, 0) for b in model.geom_bodyid], np.int8)
     classes[model.geom("tissue").id] = 1
+    jaws = [
+        (model.geom(name + suffix).id, side)
+        for name, side in zip(REGRASP_JAWS, (1.0, -1.0))  # as _apply_config opens them
+        for suffix in ("", "_visual")
+    ]
+    ids = np.array([g for g, _ in jaws], np.int64)
     out = EndoscopeModel(
         model=model,
         scene=scene,
         rig=rig,
         cameras=(model.camera(CAMERAS[0]).id, model.camera(CAMERAS[1]).id),
         classes=classes,
+        jaw_geoms=ids,
+        jaw_sides=np.array([side for _, side in jaws]),
+        jaw_poses=np.concatenate([model.geom_pos[ids], model.geom_quat[ids]], axis=1),
     )
     out.apply(nominal().row(0))
     return out

@@ -237,8 +237,11 @@ def _apply_config(spec: mujoco.MjSpec, config: SceneConfig) -> None:
         length = float(np.linalg.norm(tip))
         geom.fromto = [0.0, 0.0, 0.0, 0.0, sign * length * math.sin(half), length * math.cos(half)]
         visual = spec.geom(name + "_visual")
-        # The jaw mesh points along +z; a rotation of -sign*half about x opens it to this jaw.
+        # The jaw mesh points along +z; a rotation of -sign*half about x opens it to this jaw. The MJCF
+        # gives its orientation as euler angles, which the compiler would take over the quaternion: the
+        # quaternion is made the orientation used (else the meshes stay at the file's opening).
         visual.quat = [math.cos(-sign * half / 2), math.sin(-sign * half / 2), 0.0, 0.0]
+        visual.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
     radius = config.needle_radius_mm * 1e-3
     scale = radius / _DEFAULT_NEEDLE_RADIUS
     for geom in spec.geoms:
