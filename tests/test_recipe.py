@@ -277,7 +277,8 @@ def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6, together=()):
     script = (
         f"import os, sys, time; t0 = time.time(); {wait}time.sleep({seconds}); "
         f"open({str(done)!r}, 'w').write(f\"{{t0}} {{time.time()}} {{os.environ.get('CUDA_VISIBLE_DEVICES')}} "
-        f"{{os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION')}} {{os.environ.get('JAX_PLATFORMS')}}\") "
+        f"{{os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION')}} {{os.environ.get('JAX_PLATFORMS')}} "
+        f"{{os.environ.get('XLA_CLIENT_MEM_FRACTION')}}\") "
         f"if {code} == 0 else None; sys.exit({code})"
     )
     return Job(name, "stage", lambda: ["-c", script], done, tmp_path / "logs" / f"{name}.txt", share, needs)
@@ -285,6 +286,7 @@ def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6, together=()):
 
 def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp_path, monkeypatch):
     monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)  # another test's process may have set it
+    monkeypatch.setenv("XLA_CLIENT_MEM_FRACTION", "0.5")  # a user's, in the environment Ray's workers inherit
     jobs = [
         # two fill one GPU under half each, the third runs on the other: all three side by side
         *(_job(tmp_path, n, 0.45, together="abc") for n in "abc"),
@@ -310,6 +312,7 @@ def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp
     start, end = {n: float(v[0]) for n, v in ran.items()}, {n: float(v[1]) for n, v in ran.items()}
     assert start["d"] >= max(end["a"], end["b"], end["c"])  # its needs first
     assert ran["d"][3] == "0.900" and {ran[n][2] for n in "abc"} == {"0", "1"}
+    assert ran["d"][5] == "None"  # one spelling of the fraction: both make JAX's CUDA plugin fall back to the CPU
     assert out["e"]["exit"] == 3 and out["f"]["exit"] is None  # a failed need: never started
     assert any("f not started: a job it needs failed" in x for x in lines)
     assert set(out_again) == {"e", "f"} and again[0].startswith("6 jobs: 4 finished already, 2 to run on Ray")

@@ -6,7 +6,7 @@ finished yet as one Ray task that runs the process and waits for it; Ray places 
 fits, several side by side on one GPU where their shares allow, and never starts one whose need
 failed (the needs are the task's arguments). A job's task asks for ``num_gpus`` = its share scaled
 to the cluster's smallest GPU (a share of 1 or more is a whole GPU) plus a CUDA context; the process
-is given that fraction of the GPU's memory (``XLA_CLIENT_MEM_FRACTION``), as Ray's fractions are only
+is given that fraction of the GPU's memory (``XLA_PYTHON_CLIENT_MEM_FRACTION``), as Ray's fractions are only
 counted, not enforced. Without GPUs a job takes a node's CPUs (one at a time per node) and its process
 is told to use the CPU (``JAX_PLATFORMS=cpu``). A job's task runs ``Job.cpus`` CPU cores beside it.
 
@@ -399,7 +399,11 @@ def _run(spec: _Spec, board, *_waits) -> dict | None:
         where = f"node {node}, its CPUs"
     else:
         gpu_ids = ",".join(str(g) for g in ray.get_gpu_ids())
-        env["XLA_CLIENT_MEM_FRACTION"] = env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
+        # one spelling only: with both XLA_CLIENT_MEM_FRACTION and the older XLA_PYTHON_CLIENT_MEM_FRACTION
+        # set, the CUDA plugin fails to start and JAX runs on the CPU (seen on the H200, jaxlib 0.11, where the
+        # older one is read; regrasp_mjx.core.gpu_memory reads it too)
+        env.pop("XLA_CLIENT_MEM_FRACTION", None)
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
         where = f"node {node}, GPU {gpu_ids}, {spec.fraction:.0%} of its memory"
     job.log.parent.mkdir(parents=True, exist_ok=True)
     with open(job.log, "a") as out:
