@@ -45,6 +45,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from regrasp_mjx.core.cluster import Cluster
 
@@ -154,7 +155,9 @@ def run_jobs(
         return {}
     keys = {j.programs for j in todo if j.programs}
     opened = {j.programs for j in jobs if j.programs and j.done()} | {k for k in keys if _opener(todo, k) is None}
-    board = _Board.remote(sorted(opened))
+    # on this process's node: the board must outlive any other node (a dead node's jobs run again elsewhere)
+    here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+    board = _Board.options(scheduling_strategy=here).remote(sorted(opened))
     refs = _submit(todo, cluster, board)
     schedule = _Schedule(todo, refs, board, log, heartbeat_s, on_end)
     previous = signal.signal(signal.SIGTERM, _sigterm) if _main_thread() else None
