@@ -206,7 +206,8 @@ def _ray(gpus: int, cpus: int = 4, memory_mib: float | None = None):
     hands out their indices in CUDA_VISIBLE_DEVICES), as ``connect`` sees it."""
     import ray
 
-    ray.init(num_cpus=cpus, num_gpus=gpus, object_store_memory=OBJECT_STORE_BYTES, log_to_driver=False)
+    # "local": its own, not the Ray of another test running beside it on this machine
+    ray.init("local", num_cpus=cpus, num_gpus=gpus, object_store_memory=OBJECT_STORE_BYTES, log_to_driver=False)
     try:
         with connect(memory_mib=memory_mib) as cluster:
             yield cluster
@@ -333,22 +334,30 @@ def test_jobs_of_one_program_set_wait_for_the_first_to_compile(tmp_path):
     """The first job of a ``programs`` key runs alone until its log shows ``compiled`` (then the
     others start beside it); a key whose first job prints nothing waits for it to end."""
 
-    def job(name, programs, compiled, seconds):
-        done = tmp_path / f"{name}.done"
+    def job(name, programs, compiled, seconds, wait_for=()):
+        done, began = tmp_path / f"{name}.done", tmp_path / f"{name}.began"
+        marks = [str(tmp_path / f"{n}.began") for n in wait_for]
         script = (
-            "import time, sys; t0 = time.time(); time.sleep(0.5); print('distill 2/20', flush=True); "
-            f"time.sleep({seconds}); open({str(done)!r}, 'w').write(f'{{t0}} {{time.time()}}')"
+            f"import os, time, sys; t0 = time.time(); open({str(began)!r}, 'w').close(); time.sleep(0.5); "
+            "t1 = time.time(); print('distill 2/20', flush=True); "
+            # the first waits (a minute at most, else exit 5) for the others to begin: it finishes only
+            # if they started beside it, whatever the machine's load
+            f"[time.sleep(0.1) for _ in range(600) if not all(os.path.exists(m) for m in {marks!r})]; "
+            f"sys.exit(5) if not all(os.path.exists(m) for m in {marks!r}) else None; "
+            f"time.sleep({seconds}); open({str(done)!r}, 'w').write(f'{{t0}} {{time.time()}} {{t1}}')"
         )
         log = tmp_path / "logs" / f"{name}.txt"
         return Job(name, "students", lambda: ["-c", script], done, log, 0.1, (), programs, compiled)
 
-    jobs = [job(f"s{i}", "a", "distill 2/20", 6.0) for i in range(3)] + [job(f"q{i}", "b", None, 1.0) for i in range(2)]
+    jobs = [job("s0", "a", "distill 2/20", 0.5, wait_for=("s1", "s2"))]
+    jobs += [job(f"s{i}", "a", "distill 2/20", 0.5) for i in (1, 2)]
+    jobs += [job(f"q{i}", "b", None, 1.0) for i in range(2)]
     lines = []
     with _ray(gpus=1) as cluster:
-        run_jobs(jobs, cluster, lines.append, heartbeat_s=1e9)
+        out = run_jobs(jobs, cluster, lines.append, heartbeat_s=1e9)
+    assert all(r["exit"] == 0 for r in out.values()), lines  # s0 saw s1 and s2 begin beside it
     t = {j.name: [float(x) for x in j.finished.read_text().split()] for j in jobs}
-    # a's followers started after s0 printed its line (0.5 s in) and before it ended: side by side
-    assert all(t["s0"][0] + 0.5 <= t[n][0] < t["s0"][1] for n in ("s1", "s2"))
+    assert all(t[n][0] >= t["s0"][2] for n in ("s1", "s2"))  # after s0 printed its line
     assert t["q1"][0] >= t["q0"][1]  # b never printed its marker: its second job waited for the first to end
     assert t["q0"][0] < t["s0"][1]  # another key does not wait for this one
     assert any("s0 has compiled its programs" in x for x in lines)

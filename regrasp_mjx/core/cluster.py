@@ -128,7 +128,9 @@ def connect(address: str | None = None, gpus: str | None = None, memory_mib: flo
             visible = local_gpus(gpus)
             env = {"CUDA_VISIBLE_DEVICES": ",".join(visible)} if visible else {}
             with _environ(env):  # Ray hands out the GPUs it was started with
-                ctx = ray.init(num_gpus=len(visible), object_store_memory=OBJECT_STORE_BYTES, **opts)
+                # "local": a Ray of its own, even where another runs on this machine (ray.init's default
+                # would join the latest one started here, /tmp/ray/ray_current_cluster)
+                ctx = ray.init(address="local", num_gpus=len(visible), object_store_memory=OBJECT_STORE_BYTES, **opts)
         dashboard = getattr(ctx, "dashboard_url", None) or None
     else:
         dashboard = None

@@ -13,7 +13,7 @@ is told to use the CPU (``JAX_PLATFORMS=cpu``). A job's task runs ``Job.cpus`` C
 Resume rules: a job whose finish file exists is skipped, and so is one whose dependents have all
 finished, so a killed schedule started again runs only what is left; each job resumes its own work
 as its command does (its arguments are made when its task starts, ``Job.argv``). A node that dies
-takes its tasks with it: Ray runs them again on another node (:data:`RETRIES`), where they resume
+takes its tasks with it: Ray runs them again on another node (:data:`regrasp_mjx.core.job_task.RETRIES`), where they resume
 from their last checkpoint; a task started again after its job finished returns at once.
 
 Jobs that compile the same programs (``Job.programs``, e.g. one student variant's seeds) wait until
@@ -29,17 +29,14 @@ while a job it helps is still to start, none waits for it to finish, and its fai
 (those jobs compile their own programs). It yields to the jobs that do the work: it starts only
 after every job that becomes ready with it has started.
 
-The gates (compiled programs, started jobs) are one small Ray actor per call (:class:`_Board`).
+The gates (compiled programs, started jobs) are one small Ray actor per call (:class:`regrasp_mjx.core.job_task.Board`).
 """
 
 from __future__ import annotations
 
-import asyncio
 import dataclasses
 import os
 import signal
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -48,12 +45,12 @@ import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from regrasp_mjx.core.cluster import Cluster
+from regrasp_mjx.core.job_task import Board, JobFailed, TaskSpec, run_task
 
 HEARTBEAT_S = 60.0  # how often the running jobs' last log lines are shown
 # of a GPU's memory each process takes outside its share (its CUDA context and libraries, about 0.5 GB
 # on an 80 GB H100): fifteen processes whose shares summed to 0.9 ran out of memory starting
 CONTEXT_SHARE = 0.01
-RETRIES = 3  # times Ray runs a job's task again after its node or worker died
 MAX_FRACTION = 0.95  # of a GPU's memory one process may take (XLA's own default is 0.75)
 
 
@@ -81,14 +78,6 @@ class Job:
 
     def done(self) -> bool:
         return self.finished.is_file()
-
-
-class JobFailed(Exception):
-    """A job's process ended without its finish file (``code``: its exit status)."""
-
-    def __init__(self, name: str, code: int | None, wall_s: float, why: str):
-        super().__init__(name, code, wall_s, why)
-        self.name, self.code, self.wall_s, self.why = name, code, wall_s, why
 
 
 class JobsStopped(KeyboardInterrupt):
@@ -157,7 +146,7 @@ def run_jobs(
     opened = {j.programs for j in jobs if j.programs and j.done()} | {k for k in keys if _opener(todo, k) is None}
     # on this process's node: the board must outlive any other node (a dead node's jobs run again elsewhere)
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
-    board = _Board.options(scheduling_strategy=here).remote(sorted(opened))
+    board = Board.options(scheduling_strategy=here).remote(sorted(opened))
     refs = _submit(todo, cluster, board)
     schedule = _Schedule(todo, refs, board, log, heartbeat_s, on_end)
     previous = signal.signal(signal.SIGTERM, _sigterm) if _main_thread() else None
@@ -201,16 +190,9 @@ def _submit(todo: list[Job], cluster: Cluster, board) -> dict[str, ray.ObjectRef
         if job.helps:  # helpers start after the work that becomes ready with them has started
             peers = [p.name for p in todo if not p.helps and set(p.needs) <= set(job.needs) and p.name in names]
             waits.append(board.started.remote(peers))
-        spec = _Spec(job, memory_fraction(job, cluster), cpu_only=not cluster.gpus)
-        refs[job.name] = _run.options(**resources(job, cluster)).remote(spec, board, *waits)
+        spec = TaskSpec(job, memory_fraction(job, cluster), cpu_only=not cluster.gpus)
+        refs[job.name] = run_task.options(**resources(job, cluster)).remote(spec, board, *waits)
     return refs
-
-
-@dataclasses.dataclass(frozen=True)
-class _Spec:
-    job: Job
-    fraction: float | None
-    cpu_only: bool
 
 
 class _Schedule:
@@ -328,131 +310,3 @@ def _needed(jobs: list[Job]) -> list[Job]:
         return memo[j.name]
 
     return [j for j in jobs if needed(j)]
-
-
-@ray.remote(num_cpus=0)
-class _Board:
-    """What the jobs of one call wait for: which ``programs`` keys are compiled, which jobs have
-    started or ended; and the events the driver prints (started, compiled, spared)."""
-
-    def __init__(self, opened: list[str]):
-        self.opened_keys, self.begun, self.events = set(opened), set(), []
-        self.changed = asyncio.Condition()
-
-    async def _wait(self, ready) -> None:
-        async with self.changed:
-            await self.changed.wait_for(ready)
-
-    async def _note(self, event=None) -> None:
-        async with self.changed:
-            if event is not None:
-                self.events.append(event)
-            self.changed.notify_all()
-
-    async def opened(self, key: str) -> bool:
-        await self._wait(lambda: key in self.opened_keys)
-        return True
-
-    async def started(self, names: list[str]) -> bool:
-        await self._wait(lambda: all(n in self.begun for n in names))
-        return True
-
-    async def any_to_start(self, names: list[str]) -> bool:
-        return not all(n in self.begun for n in names)
-
-    async def start(self, name: str, where: str) -> None:
-        self.begun.add(name)
-        await self._note(("started", name, where))
-
-    async def compiled(self, name: str, key: str) -> None:
-        if key not in self.opened_keys:
-            self.opened_keys.add(key)
-            await self._note(("compiled", name, ""))
-
-    async def spared(self, name: str) -> None:
-        self.begun.add(name)
-        await self._note(("spared", name, ""))
-
-    async def ended(self, name: str, key: str | None) -> None:
-        self.begun.add(name)  # a job that ended, run or not, is no longer to start
-        if key:
-            self.opened_keys.add(key)
-        await self._note()
-
-    async def take(self) -> list[tuple[str, str, str]]:
-        events, self.events = self.events, []
-        return events
-
-
-@ray.remote(max_retries=RETRIES)
-def _run(spec: _Spec, board, *_waits) -> dict | None:
-    """One job's task: runs its process to the end (the job's arguments made now, so a task run
-    again resumes) and returns ``{"wall_s", "node"}``; raises :class:`JobFailed` when it ends
-    without its finish file. Returns None (a helper not needed any more) or at once (finished)."""
-    job = spec.job
-    node = ray.get_runtime_context().get_node_id()[:8]
-    if job.done():  # run again after its job had finished (its node died after the finish file was written)
-        return {"wall_s": 0.0, "node": node}
-    if job.helps and not ray.get(board.any_to_start.remote(list(job.helps))):
-        ray.get(board.spared.remote(job.name))
-        return None
-    env = dict(os.environ)
-    if spec.cpu_only:
-        env["JAX_PLATFORMS"] = "cpu"  # Ray gave it no GPU: said explicitly (ray#49147)
-        where = f"node {node}, its CPUs"
-    else:
-        gpu_ids = ",".join(str(g) for g in ray.get_gpu_ids())
-        # one spelling only: with both XLA_CLIENT_MEM_FRACTION and the older XLA_PYTHON_CLIENT_MEM_FRACTION
-        # set, the CUDA plugin fails to start and JAX runs on the CPU (seen on the H200, jaxlib 0.11, where the
-        # older one is read; regrasp_mjx.core.gpu_memory reads it too)
-        env.pop("XLA_CLIENT_MEM_FRACTION", None)
-        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
-        where = f"node {node}, GPU {gpu_ids}, {spec.fraction:.0%} of its memory"
-    job.log.parent.mkdir(parents=True, exist_ok=True)
-    with open(job.log, "a") as out:
-        out.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started on {where}\n")
-        out.flush()
-        offset = out.tell()
-        t0 = time.perf_counter()
-        ray.get(board.start.remote(job.name, where))
-        proc = subprocess.Popen(
-            [sys.executable, *job.argv()], stdout=out, stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent
-        )
-        try:
-            seen = not (job.programs and job.compiled)
-            while proc.poll() is None:
-                time.sleep(0.5)
-                if not seen and _printed(job.log, offset, job.compiled):
-                    seen = True
-                    board.compiled.remote(job.name, job.programs)
-        finally:
-            if proc.poll() is None:  # the task was cancelled: its process goes with it
-                proc.terminate()
-                try:
-                    proc.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-    wall, code = time.perf_counter() - t0, proc.returncode
-    if code == 0 and job.done():
-        return {"wall_s": wall, "node": node}
-    why = f"exit {code}" if code != 0 else f"exit 0 without {job.finished.name}"
-    raise JobFailed(job.name, code, wall, why)
-
-
-def _printed(log: Path, offset: int, text: str) -> bool:
-    """Whether the log since ``offset`` (where this start's output begins) holds ``text``."""
-    try:
-        with open(log, "rb") as f:
-            f.seek(offset)
-            return text in f.read().decode(errors="replace")
-    except OSError:
-        return False
-
-
-def _die_with_parent() -> None:
-    """In the job's process before it runs: SIGTERM it when the task's worker dies (a cancelled
-    task, a node that dies), so no job runs on without its task (Linux; elsewhere nothing)."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG

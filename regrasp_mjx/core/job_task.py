@@ -1,0 +1,166 @@
+"""What runs on the Ray cluster for :mod:`regrasp_mjx.core.jobs`: one job's task (:func:`run_task`: its
+process, run to the end; the job's arguments made when the task starts, so a task run again after its node
+died resumes) and the :class:`Board` actor the jobs of one call wait on (compiled programs, started jobs).
+The driver's side (which jobs to run, their resources, the progress lines) is in :mod:`regrasp_mjx.core.jobs`."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import ray
+
+if TYPE_CHECKING:
+    pass
+
+RETRIES = 3  # times Ray runs a job's task again after its node or worker died
+
+
+class JobFailed(Exception):
+    """A job's process ended without its finish file (``code``: its exit status)."""
+
+    def __init__(self, name: str, code: int | None, wall_s: float, why: str):
+        super().__init__(name, code, wall_s, why)
+        self.name, self.code, self.wall_s, self.why = name, code, wall_s, why
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskSpec:
+    job: Any  # regrasp_mjx.core.jobs.Job
+    fraction: float | None
+    cpu_only: bool
+
+
+@ray.remote(num_cpus=0)
+class Board:
+    """What the jobs of one call wait for: which ``programs`` keys are compiled, which jobs have
+    started or ended; and the events the driver prints (started, compiled, spared)."""
+
+    def __init__(self, opened: list[str]):
+        self.opened_keys, self.begun, self.events = set(opened), set(), []
+        self.changed = asyncio.Condition()
+
+    async def _wait(self, ready) -> None:
+        async with self.changed:
+            await self.changed.wait_for(ready)
+
+    async def _note(self, event=None) -> None:
+        async with self.changed:
+            if event is not None:
+                self.events.append(event)
+            self.changed.notify_all()
+
+    async def opened(self, key: str) -> bool:
+        await self._wait(lambda: key in self.opened_keys)
+        return True
+
+    async def started(self, names: list[str]) -> bool:
+        await self._wait(lambda: all(n in self.begun for n in names))
+        return True
+
+    async def any_to_start(self, names: list[str]) -> bool:
+        return not all(n in self.begun for n in names)
+
+    async def start(self, name: str, where: str) -> None:
+        self.begun.add(name)
+        await self._note(("started", name, where))
+
+    async def compiled(self, name: str, key: str) -> None:
+        if key not in self.opened_keys:
+            self.opened_keys.add(key)
+            await self._note(("compiled", name, ""))
+
+    async def spared(self, name: str) -> None:
+        self.begun.add(name)
+        await self._note(("spared", name, ""))
+
+    async def ended(self, name: str, key: str | None) -> None:
+        self.begun.add(name)  # a job that ended, run or not, is no longer to start
+        if key:
+            self.opened_keys.add(key)
+        await self._note()
+
+    async def take(self) -> list[tuple[str, str, str]]:
+        events, self.events = self.events, []
+        return events
+
+
+@ray.remote(max_retries=RETRIES)
+def run_task(spec: TaskSpec, board, *_waits) -> dict | None:
+    """One job's task: runs its process to the end (the job's arguments made now, so a task run
+    again resumes) and returns ``{"wall_s", "node"}``; raises :class:`JobFailed` when it ends
+    without its finish file. Returns None (a helper not needed any more) or at once (finished)."""
+    job = spec.job
+    node = ray.get_runtime_context().get_node_id()[:8]
+    if job.done():  # run again after its job had finished (its node died after the finish file was written)
+        return {"wall_s": 0.0, "node": node}
+    if job.helps and not ray.get(board.any_to_start.remote(list(job.helps))):
+        ray.get(board.spared.remote(job.name))
+        return None
+    env = dict(os.environ)
+    if spec.cpu_only:
+        env["JAX_PLATFORMS"] = "cpu"  # Ray gave it no GPU: said explicitly (ray#49147)
+        where = f"node {node}, its CPUs"
+    else:
+        gpu_ids = ",".join(str(g) for g in ray.get_gpu_ids())
+        # one spelling only: with both XLA_CLIENT_MEM_FRACTION and the older XLA_PYTHON_CLIENT_MEM_FRACTION
+        # set, the CUDA plugin fails to start and JAX runs on the CPU (seen on the H200, jaxlib 0.11, where the
+        # older one is read; regrasp_mjx.core.gpu_memory reads it too)
+        env.pop("XLA_CLIENT_MEM_FRACTION", None)
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
+        where = f"node {node}, GPU {gpu_ids}, {spec.fraction:.0%} of its memory"
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    with open(job.log, "a") as out:
+        out.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started on {where}\n")
+        out.flush()
+        offset = out.tell()
+        t0 = time.perf_counter()
+        ray.get(board.start.remote(job.name, where))
+        proc = subprocess.Popen(
+            [sys.executable, *job.argv()], stdout=out, stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent
+        )
+        try:
+            seen = not (job.programs and job.compiled)
+            while proc.poll() is None:
+                time.sleep(0.5)
+                if not seen and _printed(job.log, offset, job.compiled):
+                    seen = True
+                    board.compiled.remote(job.name, job.programs)
+        finally:
+            if proc.poll() is None:  # the task was cancelled: its process goes with it
+                proc.terminate()
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+    wall, code = time.perf_counter() - t0, proc.returncode
+    if code == 0 and job.done():
+        return {"wall_s": wall, "node": node}
+    why = f"exit {code}" if code != 0 else f"exit 0 without {job.finished.name}"
+    raise JobFailed(job.name, code, wall, why)
+
+
+def _printed(log: Path, offset: int, text: str) -> bool:
+    """Whether the log since ``offset`` (where this start's output begins) holds ``text``."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(offset)
+            return text in f.read().decode(errors="replace")
+    except OSError:
+        return False
+
+
+def _die_with_parent() -> None:
+    """In the job's process before it runs: SIGTERM it when the task's worker dies (a cancelled
+    task, a node that dies), so no job runs on without its task (Linux; elsewhere nothing)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
