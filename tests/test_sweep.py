@@ -108,3 +108,13 @@ def test_local_gpus_follow_the_request_and_visible_devices_and_a_cluster_refuses
     assert cluster.check_options(None, None) == "head:6379"  # RAY_ADDRESS names the cluster
     with pytest.raises(ConfigError, match=r"--gpus 0 is not accepted with a cluster \(head:6379\)"):
         cluster.check_options(None, "0")
+
+
+def test_a_second_sweep_into_a_folder_in_use_is_refused_before_ray_starts(tmp_path, capsys, monkeypatch):
+    from regrasp_mjx.core.host_loop import folder_lock
+
+    started = []
+    monkeypatch.setattr(sweep, "connect", lambda *a, **k: started.append(a))  # Ray must not be reached
+    with folder_lock(tmp_path / "s"):  # another sweep (or recipe) writes into it now
+        assert sweep.main(["--out", str(tmp_path / "s"), "--preset", "smoke", "--seeds", "1"]) == 2
+    assert "is in use by another run (pid " in capsys.readouterr().err and not started
