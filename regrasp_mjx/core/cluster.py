@@ -23,6 +23,9 @@ import shutil
 import subprocess
 from collections.abc import Iterator
 
+import ray
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
 from regrasp_mjx.core.config import ConfigError
 
 # the memory the shares are of: an 80 GB H100 as nvidia-smi reports it [MiB]
@@ -110,8 +113,6 @@ def connect(address: str | None = None, gpus: str | None = None, memory_mib: flo
     """Joins the cluster at ``address`` (``RAY_ADDRESS`` when None), or starts Ray here over the
     local GPUs (``gpus``: the ``--gpus`` string) and stops it on leaving; ``memory_mib`` replaces the
     measured smallest GPU memory (tests)."""
-    import ray
-
     address = check_options(address, gpus)
     started = not ray.is_initialized()
     if started:
@@ -157,9 +158,6 @@ def _environ(values: dict[str, str]) -> Iterator[None]:
 
 def _measure(address: str, started_here: bool, dashboard: str | None, memory_mib: float | None) -> Cluster:
     """The cluster's GPUs, smallest GPU memory and fewest node CPUs (module docstring)."""
-    import ray
-    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     gpus = sum(n["Resources"].get("GPU", 0.0) for n in nodes)
     cpus = [int(n["Resources"].get("CPU", 0)) for n in nodes if n["Resources"].get("CPU", 0) >= 1]

@@ -6,8 +6,10 @@ The driver's side (which jobs to run, their resources, the progress lines) is in
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import dataclasses
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -117,14 +119,15 @@ def run_task(spec: TaskSpec, board, *_waits) -> dict | None:
         env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
         where = f"node {node}, GPU {gpu_ids}, {spec.fraction:.0%} of its memory"
     job.log.parent.mkdir(parents=True, exist_ok=True)
+    argv = job.argv()  # made now: a job started again after its node died resumes (e.g. --resume)
     with open(job.log, "a") as out:
-        out.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started on {where}\n")
+        out.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started on {where}: python {shlex.join(argv)}\n")
         out.flush()
         offset = out.tell()
         t0 = time.perf_counter()
         ray.get(board.start.remote(job.name, where))
         proc = subprocess.Popen(
-            [sys.executable, *job.argv()], stdout=out, stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent
+            [sys.executable, *argv], stdout=out, stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent
         )
         try:
             seen = not (job.programs and job.compiled)
@@ -161,6 +164,4 @@ def _die_with_parent() -> None:
     """In the job's process before it runs: SIGTERM it when the task's worker dies (a cancelled
     task, a node that dies), so no job runs on without its task (Linux; elsewhere nothing)."""
     if sys.platform.startswith("linux"):
-        import ctypes
-
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
