@@ -1139,6 +1139,21 @@ def test_the_default_recipe_s_run_in_the_training_docs_is_its_result_files():
     ) in _prose("training.md")
 
 
+def test_the_default_recipe_s_run_through_ray_in_the_training_docs_is_its_result_files():
+    """docs/training.md's run of `recipe default` through Ray on one H200: the stages and the wall as
+    the recipe printed them, every job of its recipe.json finished, the commit its docs name."""
+    folder = ROOT / "experiments" / "results" / "ray" / "recipe_h200"
+    record = json.loads((folder / "recipe.json").read_text())
+    assert record["recipe"] == "default" and all(j["exit"] == 0 for r in record["runs"] for j in r["jobs"].values())
+    log = (folder / "call.log").read_text()
+    assert "38 jobs: 0 finished already, 38 to run on Ray started on this machine: 1 node(s), 1 GPU(s)" in log
+    stage, wall = _stages(log), int(re.search(r"^recipe wall (\d+) s;", log, re.M).group(1))
+    assert (
+        f"the same recipe took {wall} s wall: demonstrations {stage['demos']} s, teachers {stage['teachers']} s, "
+        f"selection {stage['selection']} s, the closed loop's choice {stage['choose']} s, report {stage['report']} s"
+    ) in _prose("training.md")
+
+
 def test_the_paper_s_and_bit_star_s_rows_of_the_results_tables_are_their_sources():
     """docs/results.md's rows of the paper (every copy: the shipped networks' table, its 2026-11-24
     history, Table II) are the paper's Table II as the project records it (analysis.PAPER_TABLE2), and
