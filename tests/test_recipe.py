@@ -373,7 +373,10 @@ def test_ctrl_c_stops_the_running_jobs_processes_and_says_which(tmp_path):
     records = []
 
     def interrupt(line: str) -> None:
-        if line.startswith("started slow"):
+        if line.startswith("started slow"):  # its task has begun; Ctrl-C once its process runs
+            deadline = time.time() + 60
+            while not pid_file.is_file() and time.time() < deadline:
+                time.sleep(0.1)
             raise KeyboardInterrupt
 
     with _ray(gpus=1) as cluster:
