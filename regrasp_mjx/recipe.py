@@ -198,6 +198,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(problem)
     try:
         address = check_options(args.address, args.gpus)
+        if address:  # on a cluster the jobs run on other nodes, from other folders: a path that names the same files
+            out = out.resolve()
         if args.step == "choose":
             choose(Plan(RECIPES[args.name], out, args.set, args.workers), log)
             return 0

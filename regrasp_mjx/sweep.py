@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import itertools
 import json
 import re
@@ -238,7 +239,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.seeds < 1:
             raise ConfigError(f"--seeds {args.seeds} is not accepted: at least 1")
-        check_options(args.address, args.gpus)  # before anything runs
+        if check_options(args.address, args.gpus):  # before anything runs
+            # on a cluster the points run on other nodes, from other folders: paths that name the same files
+            out = out.resolve()
+            args.demos, args.testset = (
+                str(Path(x).resolve()) if x and Path(x).exists() else x for x in (args.demos, args.testset)
+            )
         grid = parse_grid(args.grid)
         grid_points = points(grid)
         fixed = parse_overrides(args.set)
@@ -275,21 +281,23 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     record = {"format": FORMAT, "manifest": manifest, "points": dict(zip(names, grid_points))}
     runs = {}
+    # --report reads what has run, also while a sweep runs; a sweep holds the folder until its table is written
+    lock = contextlib.nullcontext() if args.report else folder_lock(out)
     try:
-        with folder_lock(out):  # a second sweep into this folder is refused while this one lives
+        with lock:  # a second sweep into this folder is refused while this one lives
             write_json(out / "sweep.json", record, indent=2)
             if not args.report:
                 with connect(args.address, args.gpus) as cluster:
                     runs = run_all(out, names, argvs, cluster, log)
+            codes = {name: r["exit"] for name, r in runs.items()}
+            lines, rows = report(out, names, grid_points)
+            record["results"] = rows
+            record["exit_codes"] = codes
+            record["nodes"] = {name: r["node"] for name, r in runs.items()}  # where each point ran (Ray's node id)
+            write_json(out / "sweep.json", json.loads(json.dumps(record, default=_jsonable)), indent=2)
     except (ConfigError, FolderInUse) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    codes = {name: r["exit"] for name, r in runs.items()}
-    lines, rows = report(out, names, grid_points)
-    record["results"] = rows
-    record["exit_codes"] = codes
-    record["nodes"] = {name: r["node"] for name, r in runs.items()}  # where each point ran (Ray's node id)
-    write_json(out / "sweep.json", json.loads(json.dumps(record, default=_jsonable)), indent=2)
     log("\n".join(lines))
     failed = [n for n, c in codes.items() if c != 0]
     if failed:

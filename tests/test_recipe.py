@@ -279,7 +279,7 @@ def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6, together=()):
         f"import os, sys, time; t0 = time.time(); {wait}time.sleep({seconds}); "
         f"open({str(done)!r}, 'w').write(f\"{{t0}} {{time.time()}} {{os.environ.get('CUDA_VISIBLE_DEVICES')}} "
         f"{{os.environ.get('XLA_PYTHON_CLIENT_MEM_FRACTION')}} {{os.environ.get('JAX_PLATFORMS')}} "
-        f"{{os.environ.get('XLA_CLIENT_MEM_FRACTION')}}\") "
+        f"{{os.environ.get('XLA_CLIENT_MEM_FRACTION')}} {{os.environ.get('OMP_NUM_THREADS')}}\") "
         f"if {code} == 0 else None; sys.exit({code})"
     )
     return Job(name, "stage", lambda: ["-c", script], done, tmp_path / "logs" / f"{name}.txt", share, needs)
@@ -288,6 +288,7 @@ def _job(tmp_path, name, share, needs=(), code=0, seconds=0.6, together=()):
 def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp_path, monkeypatch):
     monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)  # another test's process may have set it
     monkeypatch.setenv("XLA_CLIENT_MEM_FRACTION", "0.5")  # a user's, in the environment Ray's workers inherit
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)  # Ray sets it in its workers: the jobs must not inherit it
     jobs = [
         # two fill one GPU under half each, the third runs on the other: all three side by side
         *(_job(tmp_path, n, 0.45, together="abc") for n in "abc"),
@@ -314,6 +315,7 @@ def test_the_scheduler_keeps_needs_and_memory_shares_and_skips_what_finished(tmp
     assert start["d"] >= max(end["a"], end["b"], end["c"])  # its needs first
     assert ran["d"][3] == "0.900" and {ran[n][2] for n in "abc"} == {"0", "1"}
     assert ran["d"][5] == "None"  # one spelling of the fraction: both make JAX's CUDA plugin fall back to the CPU
+    assert ran["d"][6] == "None"  # not Ray's OMP_NUM_THREADS=1 (a GPU job's task asks no CPU)
     assert out["e"]["exit"] == 3 and out["f"]["exit"] is None  # a failed need: never started
     assert any("f not started: a job it needs failed" in x for x in lines)
     assert set(out_again) == {"e", "f"} and again[0].startswith("6 jobs: 4 finished already, 2 to run on Ray")
@@ -387,6 +389,25 @@ def test_ctrl_c_stops_the_running_jobs_processes_and_says_which(tmp_path):
         time.sleep(0.2)
     assert not _alive(int(pid_file.read_text())), "the stopped job's process runs on"
     assert records[-1]["slow"]["exit"] == "stopped" and not after.done()
+
+
+def test_a_job_whose_folder_is_still_locked_waits_for_the_lock_then_runs(tmp_path):
+    """A job run again after its node died can find its folder's lock still held (on NFS the server
+    frees it later): its process says so and exits 2; the task starts it again until the lock is free."""
+    flag, done = tmp_path / "tried", tmp_path / "j.done"
+    script = (
+        "import os, sys\n"
+        f"if not os.path.exists({str(flag)!r}):\n"
+        f"    open({str(flag)!r}, 'w').close()\n"
+        "    print('error: --out x is in use by another run (pid 1); accepted: another --out'); sys.exit(2)\n"
+        f"open({str(done)!r}, 'w').write('done')\n"
+    )
+    job = Job("j", "stage", lambda: ["-c", script], done, tmp_path / "j.txt", 0.1)
+    fails = Job("k", "stage", lambda: ["-c", "import sys; sys.exit(2)"], tmp_path / "k.done", tmp_path / "k.txt", 0.1)
+    with _ray(gpus=1) as cluster:
+        out = run_jobs([job, fails], cluster, lambda _: None, heartbeat_s=1e9)
+    assert out["j"]["exit"] == 0 and job.done() and job.log.read_text().count("started on node") == 2
+    assert out["k"]["exit"] == 2 and (tmp_path / "k.txt").read_text().count("started on node") == 1  # no lock: once
 
 
 def _alive(pid: int) -> bool:

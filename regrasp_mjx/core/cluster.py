@@ -127,6 +127,9 @@ def connect(address: str | None = None, gpus: str | None = None, memory_mib: flo
                 ) from err
         else:
             visible = local_gpus(gpus)
+            if memory_mib is None:  # the GPUs it is started over, not every one nvidia-smi lists here
+                sizes = [mib for index, mib in _smi_memory() if index in visible and mib > 0]
+                memory_mib = min(sizes) if sizes else None
             env = {"CUDA_VISIBLE_DEVICES": ",".join(visible)} if visible else {}
             with _environ(env):  # Ray hands out the GPUs it was started with
                 # "local": a Ray of its own, even where another runs on this machine (ray.init's default

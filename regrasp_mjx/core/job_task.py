@@ -28,7 +28,7 @@ RETRIES = 3  # times Ray runs a job's task again after its node or worker died
 class JobFailed(Exception):
     """A job's process ended without its finish file (``code``: its exit status)."""
 
-    def __init__(self, name: str, code: int | None, wall_s: float, why: str):
+    def __init__(self, name: str, code: int | str | None, wall_s: float, why: str):
         super().__init__(name, code, wall_s, why)
         self.name, self.code, self.wall_s, self.why = name, code, wall_s, why
 
@@ -38,6 +38,7 @@ class TaskSpec:
     job: Any  # regrasp_mjx.core.jobs.Job
     fraction: float | None
     cpu_only: bool
+    omp_threads: str | None = None  # the driver's OMP_NUM_THREADS (None: unset)
 
 
 @ray.remote(num_cpus=0)
@@ -94,40 +95,78 @@ class Board:
         return events
 
 
+# a rerun whose folder's lock outlives its dead node (a lock on NFS is freed by the server's lease, not at
+# once) waits for it: every LOCK_WAIT_S until LOCK_PATIENCE_S, then fails as any job does
+IN_USE = "is in use by another run"
+LOCK_WAIT_S, LOCK_PATIENCE_S = 5.0, 300.0
+
+
 @ray.remote(max_retries=RETRIES)
 def run_task(spec: TaskSpec, board, *_waits) -> dict | None:
     """One job's task: runs its process to the end (the job's arguments made now, so a task run
     again resumes) and returns ``{"wall_s", "node"}``; raises :class:`JobFailed` when it ends
-    without its finish file. Returns None (a helper not needed any more) or at once (finished)."""
+    without its finish file. Returns None (a helper not needed any more) or at once (finished).
+
+    It never waits on Ray (``ray.get``) once it runs: a task blocked there gives its CPUs back to
+    Ray, which would start another job on them (a helper's one question comes first, on GPUs)."""
     job = spec.job
     node = ray.get_runtime_context().get_node_id()[:8]
     if job.done():  # run again after its job had finished (its node died after the finish file was written)
         return {"wall_s": 0.0, "node": node}
     if job.helps and not ray.get(board.any_to_start.remote(list(job.helps))):
-        ray.get(board.spared.remote(job.name))
+        board.spared.remote(job.name)
         return None
+    env, where = _environment(spec, node)
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    board.start.remote(job.name, where)
+    t0 = time.perf_counter()
+    while True:
+        code, offset = _run_process(job, env, where, board)
+        if code == 0 or time.perf_counter() - t0 > LOCK_PATIENCE_S or not _printed(job.log, offset, IN_USE):
+            break
+        time.sleep(LOCK_WAIT_S)  # a lock left by this job's dead node: started again once it is freed
+    wall = time.perf_counter() - t0
+    if code == 0 and job.done():
+        return {"wall_s": wall, "node": node}
+    why = f"exit {code}" if code != 0 else f"exit 0 without {job.finished.name}"
+    raise JobFailed(job.name, code, wall, why)
+
+
+def _environment(spec: TaskSpec, node: str) -> tuple[dict[str, str], str]:
+    """The job process's environment, and where it runs (for its log and the progress line)."""
     env = dict(os.environ)
+    if spec.omp_threads is None:  # Ray sets OMP_NUM_THREADS to a task's CPUs (1 for a GPU job's 0): not ours
+        env.pop("OMP_NUM_THREADS", None)
+    else:
+        env["OMP_NUM_THREADS"] = spec.omp_threads
     if spec.cpu_only:
         env["JAX_PLATFORMS"] = "cpu"  # Ray gave it no GPU: said explicitly (ray#49147)
-        where = f"node {node}, its CPUs"
-    else:
-        gpu_ids = ",".join(str(g) for g in ray.get_gpu_ids())
-        # one spelling only: with both XLA_CLIENT_MEM_FRACTION and the older XLA_PYTHON_CLIENT_MEM_FRACTION
-        # set, the CUDA plugin fails to start and JAX runs on the CPU (seen on the H200, jaxlib 0.11, where the
-        # older one is read; regrasp_mjx.core.gpu_memory reads it too)
-        env.pop("XLA_CLIENT_MEM_FRACTION", None)
-        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
-        where = f"node {node}, GPU {gpu_ids}, {spec.fraction:.0%} of its memory"
-    job.log.parent.mkdir(parents=True, exist_ok=True)
+        return env, f"node {node}, its CPUs"
+    gpu_ids = ",".join(str(g) for g in ray.get_gpu_ids())
+    # one spelling only: with both XLA_CLIENT_MEM_FRACTION and the older XLA_PYTHON_CLIENT_MEM_FRACTION
+    # set, the CUDA plugin fails to start and JAX runs on the CPU (seen on the H200, jaxlib 0.11, where the
+    # older one is read; regrasp_mjx.core.gpu_memory reads it too)
+    env.pop("XLA_CLIENT_MEM_FRACTION", None)
+    env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{spec.fraction:.3f}"
+    return env, f"node {node}, GPU {gpu_ids}, {spec.fraction:.0%} of its memory"
+
+
+def _run_process(job, env: dict[str, str], where: str, board) -> tuple[int, int]:
+    """Runs the job's process once to its end, its output appended to its log after a line naming
+    where and what; tells the board when its log shows ``job.compiled``. Returns its exit code and
+    where its output begins in the log."""
     argv = job.argv()  # made now: a job started again after its node died resumes (e.g. --resume)
     with open(job.log, "a") as out:
         out.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} started on {where}: python {shlex.join(argv)}\n")
         out.flush()
         offset = out.tell()
-        t0 = time.perf_counter()
-        ray.get(board.start.remote(job.name, where))
+        parent = os.getpid()
         proc = subprocess.Popen(
-            [sys.executable, *argv], stdout=out, stderr=subprocess.STDOUT, env=env, preexec_fn=_die_with_parent
+            [sys.executable, *argv],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=env,
+            preexec_fn=lambda: _die_with_parent(parent),
         )
         try:
             seen = not (job.programs and job.compiled)
@@ -143,11 +182,7 @@ def run_task(spec: TaskSpec, board, *_waits) -> dict | None:
                     proc.wait(timeout=30)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-    wall, code = time.perf_counter() - t0, proc.returncode
-    if code == 0 and job.done():
-        return {"wall_s": wall, "node": node}
-    why = f"exit {code}" if code != 0 else f"exit 0 without {job.finished.name}"
-    raise JobFailed(job.name, code, wall, why)
+    return proc.returncode, offset
 
 
 def _printed(log: Path, offset: int, text: str) -> bool:
@@ -160,8 +195,16 @@ def _printed(log: Path, offset: int, text: str) -> bool:
         return False
 
 
-def _die_with_parent() -> None:
+# looked up before any fork: the child runs as little Python as it can before exec
+_PRCTL = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(parent: int) -> None:
     """In the job's process before it runs: SIGTERM it when the task's worker dies (a cancelled
-    task, a node that dies), so no job runs on without its task (Linux; elsewhere nothing)."""
-    if sys.platform.startswith("linux"):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    task, a node that dies), so no job runs on without its task (Linux; elsewhere nothing); a worker
+    that died before this was set leaves the process an orphan already: it ends at once."""
+    if _PRCTL is not None:
+        _PRCTL(_PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent:
+            os._exit(1)

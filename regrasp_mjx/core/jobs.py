@@ -125,7 +125,7 @@ def run_jobs(
     """Runs the jobs not finished yet on ``cluster`` (see the module's docstring); returns, per job
     this call started, ``{"exit": code, "wall_s": seconds, "stage": stage, "node": node}`` (exit
     None: not started because a job it needs failed; "stopped": running when this call was
-    stopped), and passes the same record to ``on_end`` each time a job ends. A SIGTERM or Ctrl-C
+    stopped; "lost": its task lost, its node died more often than Ray runs it again), and passes the same record to ``on_end`` each time a job ends. A SIGTERM or Ctrl-C
     cancels the jobs (their processes are stopped) and raises :class:`JobsStopped`; they resume when
     started again."""
     by_name = {j.name: j for j in jobs}
@@ -133,7 +133,7 @@ def run_jobs(
         unknown = [n for n in j.needs + j.helps if n not in by_name]
         if unknown:
             raise ValueError(f"job {j.name} needs unknown jobs {unknown}")
-    todo = _needed(jobs)
+    todo = _needs_first(_needed(jobs))  # a job after its needs: its task takes theirs as arguments
     spared = sum(1 for j in jobs if j not in todo and not j.done())
     finished_before = len(jobs) - len(todo) - spared
     log(
@@ -182,16 +182,32 @@ def _submit(todo: list[Job], cluster: Cluster, board) -> dict[str, ray.ObjectRef
     """Each job's task, its needs' tasks (and for a job that waits, the board's gates) as its arguments."""
     refs: dict[str, ray.ObjectRef] = {}
     names = {j.name for j in todo}
-    for job in todo:  # in list order: a job's needs come before it (a recipe's and a sweep's lists are so made)
+    for job in todo:
         waits = [refs[n] for n in job.needs if n in refs]
         if job.programs and _opener(todo, job.programs) is not job:
             waits.append(board.opened.remote(job.programs))
         if job.helps:  # helpers start after the work that becomes ready with them has started
             peers = [p.name for p in todo if not p.helps and set(p.needs) <= set(job.needs) and p.name in names]
             waits.append(board.started.remote(peers))
-        spec = TaskSpec(job, memory_fraction(job, cluster), cpu_only=not cluster.gpus)
+        spec = TaskSpec(job, memory_fraction(job, cluster), not cluster.gpus, os.environ.get("OMP_NUM_THREADS"))
         refs[job.name] = run_task.options(**resources(job, cluster)).remote(spec, board, *waits)
     return refs
+
+
+def _needs_first(todo: list[Job]) -> list[Job]:
+    """The jobs in list order, except that a job comes after the jobs it needs (its task takes theirs
+    as arguments); jobs that need each other are refused."""
+    names, placed, out = {j.name for j in todo}, set(), []
+    left = list(todo)
+    while left:
+        ready = [j for j in left if all(n in placed or n not in names for n in j.needs)]
+        if not ready:
+            raise ValueError(f"jobs {[j.name for j in left]} need each other: no order runs them")
+        for j in ready:
+            placed.add(j.name)
+            out.append(j)
+        left = [j for j in left if j.name not in placed]
+    return out
 
 
 class _Schedule:
@@ -201,7 +217,10 @@ class _Schedule:
     def __init__(self, todo, refs, board, log, heartbeat_s, on_end):
         self.refs, self.board, self.log, self.heartbeat_s, self.on_end = refs, board, log, heartbeat_s, on_end
         self.jobs = {j.name: j for j in todo}
+        self.order = {j.name: i for i, j in enumerate(todo)}  # needs before their dependents
         self.pending = {ref: name for name, ref in refs.items()}
+        self.began: set[str] = set()  # jobs whose task has started their process
+        self.ended: set[str] = set()
         self.running: dict[str, float] = {}  # name -> when it started (this process's clock)
         self.out: dict[str, dict] = {}
         self.failed: set[str] = set()
@@ -216,7 +235,7 @@ class _Schedule:
         while self.pending:
             ready, _ = ray.wait(list(self.pending), num_returns=len(self.pending), timeout=0.5)
             self._events()
-            for ref in ready:
+            for ref in sorted(ready, key=lambda r: self.order[self.pending[r]]):
                 self._ended(self.pending.pop(ref), ref)
             now = time.perf_counter()
             if self.running and now - last_beat >= self.heartbeat_s:
@@ -228,7 +247,8 @@ class _Schedule:
     def _events(self) -> None:
         for kind, name, where in ray.get(self.board.take.remote()):
             job = self.jobs[name]
-            if kind == "started":
+            if kind == "started" and name not in self.ended:  # a task's start can reach the board after its end
+                self.began.add(name)
                 self.running[name] = time.perf_counter()
                 self.stage_t0.setdefault(job.stage, time.perf_counter())
                 self.log(f"started {name} on {where}")
@@ -240,17 +260,20 @@ class _Schedule:
     def _ended(self, name: str, ref) -> None:
         job, now = self.jobs[name], time.perf_counter()
         self.board.ended.remote(name, job.programs)  # a job that dies unseen still opens its gate
+        self._events()  # its start first, where the board has it by now
+        self.ended.add(name)
         try:
             result = ray.get(ref)
         except ray.exceptions.RayTaskError as err:
             result = err.cause if isinstance(err.cause, JobFailed) else JobFailed(name, None, 0.0, str(err))
         except ray.exceptions.RayError as err:  # the task was lost (its node died RETRIES times over)
-            result = JobFailed(name, None, 0.0, f"{type(err).__name__}: {err}")
+            result = JobFailed(name, "lost", 0.0, f"{type(err).__name__}: {err}")
         started = self.running.pop(name, None)
         if result is None:  # a helper not needed any more
             self._stage_end(job, now)
             return
-        if isinstance(result, JobFailed) and result.name != name:  # a need failed: the task never ran
+        need_failed = any(n in self.failed for n in job.needs)
+        if isinstance(result, JobFailed) and need_failed and name not in self.began:  # its task never ran
             self.failed.add(name)
             self.out[name] = {"exit": None, "wall_s": 0.0, "stage": job.stage, "node": None}
             self.log(f"{name} not started: a job it needs failed")
@@ -283,6 +306,8 @@ class _Schedule:
         :func:`_die_with_parent`); records the running ones as stopped; returns their names."""
         for ref in self.pending:
             ray.cancel(ref, force=True)
+        if self.pending:  # their workers gone, and with them their processes and folder locks
+            ray.wait(list(self.pending), num_returns=len(self.pending), timeout=30)
         now = time.perf_counter()
         stopped = sorted(self.running)
         for name in stopped:
