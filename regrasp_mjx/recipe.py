@@ -29,6 +29,7 @@ compiles were about 5 of the recipe's 18 minutes). They save time only: one that
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -213,10 +214,11 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"[{'finished' if j.done() else 'to run'}] {j.name}: python {shlex.join(j.argv())}")
             return 0
         Plan(RECIPES[args.name], out, args.set, args.workers)  # the recipe and --set checked before Ray starts
-        with folder_lock(out), connect(address, args.gpus) as cluster:
+        with folder_lock(out), contextlib.ExitStack() as stack:
+            record = check_manifest(out, {"recipe": args.name, "set": args.set})  # other arguments: before Ray
+            cluster = stack.enter_context(connect(address, args.gpus))
             plan = Plan(RECIPES[args.name], out, args.set, args.workers, gpus=cluster.gpus > 0)
             jobs = jobs_until(plan, args.until)
-            record = check_manifest(out, {"recipe": args.name, "set": args.set})
             run = {"started": time.strftime("%Y-%m-%dT%H:%M:%S"), "cluster": cluster.describe(), "jobs": {}}
             record["runs"].append(run)
             write_json(out / "recipe.json", record)

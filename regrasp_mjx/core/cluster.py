@@ -131,10 +131,19 @@ def connect(address: str | None = None, gpus: str | None = None, memory_mib: flo
                 sizes = [mib for index, mib in _smi_memory() if index in visible and mib > 0]
                 memory_mib = min(sizes) if sizes else None
             env = {"CUDA_VISIBLE_DEVICES": ",".join(visible)} if visible else {}
-            with _environ(env):  # Ray hands out the GPUs it was started with
-                # "local": a Ray of its own, even where another runs on this machine (ray.init's default
-                # would join the latest one started here, /tmp/ray/ray_current_cluster)
-                ctx = ray.init(address="local", num_gpus=len(visible), object_store_memory=OBJECT_STORE_BYTES, **opts)
+            # Ray's notice that it turned token authentication on by default (it stays on) is not ours to print
+            notice = logging.getLogger("ray._private.authentication.authentication_token_setup")
+            level = notice.level
+            notice.setLevel(logging.ERROR)
+            try:
+                with _environ(env):  # Ray hands out the GPUs it was started with
+                    # "local": a Ray of its own, even where another runs on this machine (ray.init's default
+                    # would join the latest one started here, /tmp/ray/ray_current_cluster)
+                    ctx = ray.init(
+                        address="local", num_gpus=len(visible), object_store_memory=OBJECT_STORE_BYTES, **opts
+                    )
+            finally:
+                notice.setLevel(level)
         dashboard = getattr(ctx, "dashboard_url", None) or None
     else:
         dashboard = None
