@@ -231,7 +231,7 @@ class ExecutorFrames:
             return LOOK_KEY + loop.t * self.look_frames + loop.look_frame
         return loop.t
 
-    def look(self, rows, ee):
+    def look(self, rows, ee, jaw_deg=None):  # the executor's frames: no picture, the jaws drawn nowhere
         est = np.empty((len(rows), 3, 7))
         truth = np.empty((len(rows), 3, 4, 4))
         for j, r in enumerate(rows):
