@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from regrasp_mjx.core.atomic import dumps, output_folder_problem, write_json, write_results
-from regrasp_mjx.core.cluster import check_options, connect, local_gpus
+from regrasp_mjx.core.cluster import add_options, check_options, connect, local_gpus
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
 from regrasp_mjx.core.jobs import run_jobs
@@ -166,14 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("name", nargs="?", help=f"the recipe: one of {', '.join(RECIPES)}")
     p.add_argument("--out", help="recipe folder (resumed when it holds this recipe)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a setting for every stage with it")
-    p.add_argument(
-        "--gpus", default=None, help="local GPU indices, comma-separated (default: every one nvidia-smi lists)"
-    )
-    p.add_argument(
-        "--address",
-        default=None,
-        help="a Ray cluster's head HOST:PORT to run the jobs on (default: RAY_ADDRESS, else Ray started here)",
-    )
+    add_options(p, "jobs")
     p.add_argument(
         "--workers", type=int, default=max(1, (os.cpu_count() or 2) - 1), help="planner processes for demonstrations"
     )

@@ -42,7 +42,7 @@ import numpy as np
 
 from regrasp_mjx.agents.ddpg_bc.config import make_config
 from regrasp_mjx.core.atomic import output_folder_problem, write_figure, write_json, write_text
-from regrasp_mjx.core.cluster import Cluster, check_options, connect
+from regrasp_mjx.core.cluster import Cluster, add_options, check_options, connect
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.config_text import parse_overrides
 from regrasp_mjx.core.host_loop import FolderInUse, folder_lock, run_command
@@ -221,14 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         "--demos", default=None, help="a demonstration folder every point shares (default: each builds its own)"
     )
     p.add_argument("--testset", default=None, help="test set .npz (default paper300)")
-    p.add_argument(
-        "--gpus", default=None, help="local GPU indices to use, comma-separated (default: all nvidia-smi lists)"
-    )
-    p.add_argument(
-        "--address",
-        default=None,
-        help="a Ray cluster's head HOST:PORT to run the points on (default: RAY_ADDRESS, else Ray started here)",
-    )
+    add_options(p, "points")
     p.add_argument("--report", action="store_true", help="only write the table and figure from what has run")
     p.add_argument("--dry-run", action="store_true", help="print each point's command and status, run nothing")
     args = p.parse_args(argv)

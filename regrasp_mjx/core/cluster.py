@@ -94,6 +94,18 @@ def _smi_memory() -> list[tuple[str, float]]:
     return out
 
 
+def add_options(parser, what: str) -> None:
+    """``--gpus`` and ``--address``, as ``sweep`` and ``recipe`` take them (``what``: what they run)."""
+    parser.add_argument(
+        "--gpus", default=None, help="local GPU indices, comma-separated (default: every one nvidia-smi lists)"
+    )
+    parser.add_argument(
+        "--address",
+        default=None,
+        help=f"a Ray cluster's head HOST:PORT to run the {what} on (default: RAY_ADDRESS, else Ray started here)",
+    )
+
+
 def check_options(address: str | None, gpus: str | None) -> str | None:
     """The cluster's address (``RAY_ADDRESS`` when None; None: Ray started here) once ``--gpus`` is
     checked: GPU indices, and only where Ray is started here."""

@@ -15,12 +15,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import ray
-
-if TYPE_CHECKING:
-    pass
 
 RETRIES = 3  # times Ray runs a job's task again after its node or worker died
 

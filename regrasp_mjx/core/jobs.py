@@ -143,8 +143,7 @@ def run_jobs(
     )
     if not todo:
         return {}
-    keys = {j.programs for j in todo if j.programs}
-    opened = {j.programs for j in jobs if j.programs and j.done()} | {k for k in keys if _opener(todo, k) is None}
+    opened = {j.programs for j in jobs if j.programs and j.done()}  # compiled by a finished job: in the cache
     # on this process's node: the board must outlive any other node (a dead node's jobs run again elsewhere)
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
     board = Board.options(scheduling_strategy=here).remote(sorted(opened))
@@ -174,20 +173,19 @@ def _sigterm(signum, frame):
 
 def _opener(todo: list[Job], key: str) -> Job | None:
     """The job of a ``programs`` key that compiles them: the first in the list not finished (the
-    others wait for it); None when a job of the key that is not to run (spared) would have been it."""
+    others wait for it)."""
     return next((j for j in todo if j.programs == key), None)
 
 
 def _submit(todo: list[Job], cluster: Cluster, board) -> dict[str, ray.ObjectRef]:
     """Each job's task, its needs' tasks (and for a job that waits, the board's gates) as its arguments."""
     refs: dict[str, ray.ObjectRef] = {}
-    names = {j.name for j in todo}
     for job in todo:
         waits = [refs[n] for n in job.needs if n in refs]
         if job.programs and _opener(todo, job.programs) is not job:
             waits.append(board.opened.remote(job.programs))
         if job.helps:  # helpers start after the work that becomes ready with them has started
-            peers = [p.name for p in todo if not p.helps and set(p.needs) <= set(job.needs) and p.name in names]
+            peers = [p.name for p in todo if not p.helps and set(p.needs) <= set(job.needs)]
             waits.append(board.started.remote(peers))
         spec = TaskSpec(job, memory_fraction(job, cluster), not cluster.gpus, os.environ.get("OMP_NUM_THREADS"))
         refs[job.name] = run_task.options(**resources(job, cluster)).remote(spec, board, *waits)
