@@ -111,7 +111,7 @@ def run_task(spec: TaskSpec, board, *_waits) -> dict | None:
     if job.done():  # run again after its job had finished (its node died after the finish file was written)
         return {"wall_s": 0.0, "node": node}
     if job.helps and not ray.get(board.any_to_start.remote(list(job.helps))):
-        board.spared.remote(job.name)
+        ray.get(board.spared.remote(job.name))  # before it returns (nothing runs: blocking costs nothing)
         return None
     env, where = _environment(spec, node)
     job.log.parent.mkdir(parents=True, exist_ok=True)

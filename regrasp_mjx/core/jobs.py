@@ -240,6 +240,7 @@ class _Schedule:
                 last_beat = now
                 for name, t in self.running.items():
                     self.log(f"  {name} ({(now - t) / 60:.1f} min): {last_line(self.jobs[name].log) or '...'}")
+        self._events()  # what the board heard after the last task ended
         return self.out
 
     def _events(self) -> None:
