@@ -2,9 +2,9 @@
 one batch, ``--repeats`` times after a first, untimed batch (contexts, compiles, caches), by MuJoCo's
 OpenGL renderer (``--backend mujoco``: one picture at a time; EGL on a GPU machine with
 ``MUJOCO_GL=egl``) or by MJX's batched MuJoCo Warp ray tracer (``--backend mjx``: one world per
-state; needs ``pip install warp-lang mujoco-warp`` and a CUDA GPU). A stereo pair is both cameras'
-RGB, depth and segmentation of one state, with its labels (poses, cameras, keypoints, visibility)
-and its randomisation (draws, blur, gain, noise).
+state, one jitted program; needs ``pip install -e ".[render-gpu]"`` and, to be fast, a CUDA GPU). A
+stereo pair is both cameras' RGB, depth and segmentation of one state, with its labels (poses, cameras,
+keypoints, visibility) and its randomisation (draws, blur, gain, noise).
 
     python experiments/bench_render.py --backend mjx --n 4096 --width 320 --height 180
 

@@ -242,6 +242,40 @@ def test_the_docs_pixel_loop_snippet_runs(renderer):
 
 def test_the_batched_renderer_says_what_it_needs():
     if frames_mjx.mjxw.WARP_INSTALLED:
-        pytest.skip("Warp is installed here: the batched renderer is benchmarked by experiments/bench_render.py")
-    with pytest.raises(RenderUnavailable, match=re.escape("pip install warp-lang mujoco-warp")):
+        pytest.skip("Warp is installed here: the next test runs the batched renderer")
+    with pytest.raises(RenderUnavailable, match=re.escape('pip install -e ".[render-gpu]"')):
         frames_mjx.MjxFrameRenderer(2, rig=RIG)
+
+
+def test_the_batched_renderer_draws_what_the_opengl_one_draws(paper_testset):
+    """MuJoCo Warp's ray tracer (on Warp's CPU device here; CI does not install Warp) against the OpenGL
+    renderer on the same states, seed and jaw openings (one world's jaws opened, the other's at the
+    scene's): the same labels, bit for bit; the same classes and depth but at a few edge pixels; the
+    RGB close (two shaders of one scene); one compiled program for calls that differ in openings and
+    frame."""
+    if not frames_mjx.mjxw.WARP_INSTALLED:
+        pytest.skip(f"Warp is not installed here ({frames_mjx.INSTALL})")
+    rig = endoscope.Rig(width=64, height=36)
+    try:
+        gl = FrameRenderer(rig=rig)
+    except RenderUnavailable as err:
+        pytest.skip(f"no OpenGL to compare with ({err})")
+    needle, start, _ = (np.asarray(x)[[0, 7]] for x in episode_poses(paper_testset[0]))
+    mjx = frames_mjx.MjxFrameRenderer(2, rig=rig, seed=3)
+    try:
+        ref = gl.render(needle, start, seeds=3, jaw_deg=[40.0, 20.0])
+    finally:
+        gl.close()
+    f = mjx.render(needle, start, seeds=3, jaw_deg=[40.0, 20.0])
+    assert f.rgb.shape == (2, 2, 36, 64, 3) and f.rgb.dtype == np.uint8
+    assert f.depth.shape == f.segmentation.shape == (2, 2, 36, 64)
+    assert f.depth.dtype == np.float32 and f.segmentation.dtype == np.int8
+    for name in ("keypoints", "pixels", "keypoint_depth", "visible", "extrinsics", "poses"):
+        np.testing.assert_array_equal(getattr(f, name), getattr(ref, name), err_msg=name)
+    assert (f.segmentation == ref.segmentation).mean() > 0.995  # measured 0.9995 at 64 x 36
+    assert (np.abs(f.depth - ref.depth) < 5e-4).mean() > 0.995
+    assert np.abs(f.rgb.astype(int) - ref.rgb).mean() < 8.0  # measured 2.7 of 255
+    closed = mjx.render(needle, start, seeds=3, frame=1)  # the scene's opening: world 0's jaws move back
+    assert (closed.segmentation[0] != f.segmentation[0]).sum() > 5
+    np.testing.assert_array_equal(closed.segmentation[1], f.segmentation[1])
+    assert mjx._program._cache_size() == 1
