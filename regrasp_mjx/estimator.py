@@ -74,6 +74,24 @@ def _heldout(text: str) -> tuple[int, int]:
     return n, seed
 
 
+def _camera(text: str) -> str:
+    """A camera preset's name, ``none``, or a fit file (``.json``)."""
+    if text in (*PRESETS, NO_CAMERA) or text.endswith(".json"):
+        return text
+    raise argparse.ArgumentTypeError(f"{text!r} is not accepted: one of {(*PRESETS, NO_CAMERA)} or a fit file (.json)")
+
+
+def _shard(text: str) -> tuple[int, int]:
+    """``I/N``: shard I of N (0 <= I < N)."""
+    try:
+        i, n = (int(x) for x in text.split("/"))
+        if 0 <= i < n:
+            return i, n
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"{text!r} is not accepted: I/N with 0 <= I < N, e.g. 0/4")
+
+
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(
         prog="python -m regrasp_mjx.estimator",
@@ -95,6 +113,15 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--task", choices=sorted(TASKS), default="paper", help="problem distribution (default paper)")
     r.add_argument(
         "--workers", type=_positive, default=1, help="rendering processes (default 1; one OpenGL context each)"
+    )
+    r.add_argument(
+        "--jaw-open",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="the regrasping jaws open on the way: each episode draws an opening in [LO, HI] degrees and its "
+        "second half of frames draws the jaws there (default: they stay at the scene's 20; the shipped default "
+        "opens them to 40)",
     )
     t = sub.add_parser("train", help="train the estimator; resumes from OUT's checkpoint")
     t.add_argument("--data", required=True, help="training frames (an npz from render)")
@@ -169,12 +196,20 @@ def parser() -> argparse.ArgumentParser:
     lp.add_argument("--no-render", action="store_true", help="the oracle without images (it reads the true poses)")
     lp.add_argument(
         "--camera",
-        choices=(*PRESETS, NO_CAMERA),
-        help="the camera's known error sizes by name, which the loop looks by before its last moves and keeps the "
+        type=_camera,
+        metavar="{" + ",".join((*PRESETS, NO_CAMERA)) + "} or FIT.json",
+        help="the camera's known error sizes by name (or a fit file `estimator fit` wrote), which the loop looks by before its last moves and keeps the "
         "jaws' margin by (a policy's closed_loop look_frames; docs/inference.md); none: no error known, it never "
         "looks. Default: rendered with a learned estimator (fitted to the learned estimator's own errors on "
         "held-out rendered frames, regrasp_mjx/data/camera_rendered.json: refit it for an estimator of your own), "
         "none with the oracle (its errors are --noise-px's, which no preset describes)",
+    )
+    lp.add_argument(
+        "--shard",
+        type=_shard,
+        metavar="I/N",
+        help="run only every N-th batch from the I-th (N processes side by side, e.g. 0/4 .. 3/4: the renderer "
+        "draws one picture at a time), then the same command without --shard writes the report",
     )
     lp.add_argument("--quiet", action="store_true", help="no progress lines")
     lines = ["options of each subcommand:"]
@@ -220,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             args.camera = NO_CAMERA if oracle else DEFAULT_CAMERA
         if args.camera != NO_CAMERA:  # a fitted preset's file read now: a missing one says how to make it
             try:
-                camera_errors.preset(args.camera)
+                camera_errors.named(args.camera)
             except ConfigError as err:
                 p.error(f"--camera {args.camera}: {err}")
     elif args.command in ("train", "evaluate") and args.out is not None:
@@ -243,7 +278,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "render":
             path = render_dataset(
-                args.out, args.episodes, args.frames, args.seed, args.width, args.height, args.task, args.workers
+                args.out,
+                args.episodes,
+                args.frames,
+                args.seed,
+                args.width,
+                args.height,
+                args.task,
+                args.workers,
+                jaw_open=args.jaw_open,
             )
             print(dumps({"out": str(path), "pairs": args.episodes * args.frames, "seed": args.seed}))
         elif args.command == "train":
@@ -277,7 +320,11 @@ def main(argv: list[str] | None = None) -> int:
                 None if args.camera == NO_CAMERA else args.camera,
             )
             log = (lambda *_: None) if args.quiet else (lambda line: print(line, flush=True))
-            rep = pixel_report.run(loop_args, args.out, load_policy(args.policy), log=log)
+            shard = args.shard or (0, 1)
+            rep = pixel_report.run(loop_args, args.out, load_policy(args.policy), log=log, shard=shard)
+            if rep is None:
+                print(dumps({"out": args.out, "shard": list(shard), "done": True}))
+                return 0
             s = rep["summary"]
             rates = ("success_rate", "collision_rate", "time_out_rate", "stopped_short_rate")
             needle = s["estimate_per_frame"]["needle_in_e_g"]

@@ -292,6 +292,33 @@ def test_the_dataset_writer_renders_labelled_episodes(frames, kp):
     assert not np.array_equal(load_dataset(frames / "val.npz").poses[0], d.poses[0])
 
 
+def test_the_dataset_draws_jaws_that_open_on_the_way(frames, kp, tmp_path):
+    """With ``jaw_open`` each episode's later frames draw the regrasping jaws at an opening drawn in the
+    range, their tips' labels turned with them; the earlier frames, the problems and the cameras are
+    the seed's as without it. A file written before the jaws could open reads as all at 20 degrees."""
+    render_dataset(tmp_path / "o.npz", 2, 2, 0, W, H, log=lambda *_: None, jaw_open=(30.0, 50.0))
+    d, plain = load_dataset(tmp_path / "o.npz"), load_dataset(frames / "train.npz")
+    assert d.jaw_deg[0] == d.jaw_deg[2] == 20.0 and np.all((d.jaw_deg[[1, 3]] >= 30) & (d.jaw_deg[[1, 3]] <= 50))
+    assert d.jaw_deg[1] != d.jaw_deg[3] and d.meta["jaws"]["open_deg"] == [30.0, 50.0]
+    np.testing.assert_array_equal(plain.jaw_deg, 20.0)
+    turn = np.radians(d.jaw_deg.astype(np.float64) - 20.0) / 2.0
+    uv, _ = endoscope.project(kp.world(d.poses[:, 0], d.poses[:, 2], turn)[:, None], d.extrinsics, d.intrinsics)
+    np.testing.assert_allclose(d.pixels, uv, atol=1e-3)
+    tips = [i for i, n in enumerate(kp.names) if n.startswith("regrasp_jaw_")]
+    moved = np.abs(d.pixels[:, :, tips] - plain.pixels[:4, :, tips]).max(axis=(1, 2, 3))
+    assert moved[0] < 1e-6 and moved[1] > 0.3, moved  # frame 0 as without opening; frame 1 opened
+    np.testing.assert_array_equal(d.rgb[0], plain.rgb[0])
+    assert not np.array_equal(d.rgb[1], plain.rgb[1])
+    # a file written before the jaws could open: no jaw_deg array; read as the scene's opening
+    with np.load(frames / "train.npz", allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files if k != "jaw_deg"}
+    np.savez(tmp_path / "old.npz", **arrays)
+    np.testing.assert_array_equal(load_dataset(tmp_path / "old.npz").jaw_deg, 20.0)
+    for bad in ((10.0, 30.0), (50.0, 30.0), (30.0, 95.0)):
+        with pytest.raises(DatasetError, match="jaw_open=.* is not accepted"):
+            render_dataset(tmp_path / "b.npz", 2, 2, 0, W, H, log=lambda *_: None, jaw_open=bad)
+
+
 def test_the_dataset_refusals(frames, tmp_path):
     with pytest.raises(DatasetError, match="not found"):
         load_dataset(tmp_path / "none.npz")

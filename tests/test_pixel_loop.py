@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +20,8 @@ import pytest
 
 import regrasp_mjx
 from regrasp_mjx import estimator as cli
+from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.host_loop import folder_lock
 from regrasp_mjx.envs import camera_errors
 from regrasp_mjx.vision import stereo
 from regrasp_mjx.vision.estimator_file import load_estimator, save_estimator
@@ -77,6 +80,29 @@ def test_the_oracle_returns_the_true_poses(problems):
     assert out["poses"].shape == (8, 3, 7) and out["pixels"].shape == (8, 2, len(oracle.keypoints.names), 2)
     assert mm.max() < 1e-3 and deg.max() < 1e-3, (mm.max(), deg.max())  # micrometres, millidegrees: float32's fit
     assert np.all(out["rms_px"] < 1e-3)
+
+
+def test_the_fit_told_the_jaws_opening_returns_the_true_tool(problems):
+    """Jaws opened to 40 degrees (their tips 10 degrees further out each, as the frames draw them): a fit
+    told the opening gives the true regrasping tool; one that models them at the layout's 20 does not
+    (the tips' mismatch turns the tool); the needle and the grasping tool are alike in both."""
+    needle, start, _ = problems
+    rig = endoscope.Rig()
+    oracle = OracleEstimator.of(rig)
+    poses, extrinsics = endoscope.object_poses(needle[:6], start[:6]), _cameras(rig, range(6))
+    truth = extrinsics[:, 0, None] @ matrices(poses)
+    told = oracle.estimate(poses, extrinsics, jaw_deg=40.0)
+    mm, deg = frame_errors(told["poses"], truth)
+    assert mm[:, :3].max() < 1e-3 and deg[:, :3].max() < 1e-3, (mm.max(), deg.max())
+    uv_open = oracle.pixels(poses, extrinsics, jaw_deg=40.0)
+    tips = list(oracle.fit.tips)
+    assert len(tips) == 2 and np.abs(uv_open - oracle.pixels(poses, extrinsics))[:, :, tips].max() > 1.0
+    conf = jnp.ones(uv_open.shape[:-1])
+    untold = np.asarray(jax.vmap(oracle.fit)(jnp.asarray(uv_open, jnp.float32), conf)[0], np.float64)
+    mm_u, deg_u = frame_errors(untold, truth)
+    assert mm_u[:, :2].max() < 1e-3 and np.median(deg_u[:, 2]) > 1.0, (mm_u, deg_u)
+    with pytest.raises(OracleError, match="jaw_deg is not accepted"):
+        oracle.estimate(poses, extrinsics, jaw_deg=95.0)
 
 
 def test_a_biased_oracle_moves_the_needle_by_what_the_projection_says(problems):
@@ -265,16 +291,42 @@ def test_the_learned_estimator_sees_rendered_frames(renderer, problems, tmp_path
     policy = regrasp_mjx.load_policy()
     with pytest.raises(PixelLoopError, match="render=False"):
         execute_from_pixels(policy, est, needle[:1], start[:1], render=False)
-    # the frames draw the jaws open, but the estimator was trained and fits them at the scene's opening (said)
+    # the frames draw the jaws open, but the estimator's training frames never did (said); one trained on
+    # frames whose jaws opened to 20-60 degrees runs without a word
+    opened = save_estimator(
+        tmp_path / "opened",
+        init_params(net, jax.random.PRNGKey(0)),
+        net,
+        kp,
+        rig.intrinsics(),
+        rig.baseline_m,
+        jaws={"layout_deg": 20.0, "trained_deg": [20.0, 60.0]},
+    )
+    assert load_estimator(opened).trained_jaw_deg == (20.0, 60.0) and est.trained_jaw_deg == (20.0, 20.0)
     with monkeypatch.context() as m:
         m.setattr(pixel_loop, "_judge", lambda _policy: (_ for _ in ()).throw(RuntimeError("the loop runs")))
-        with pytest.warns(
-            UserWarning,
-            match="opens its jaws on the way .* the frames draw them as the loop opens them, "
-            "but the estimator's fit models the jaws at the scene's 20 deg",
-        ):
+        with pytest.warns(UserWarning, match="opens its jaws on the way .* training frames drew them at 20-20 deg"):
             with pytest.raises(RuntimeError, match="the loop runs"):
                 execute_from_pixels(regrasp_mjx.load_policy(OPEN40), est, needle[:1], start[:1], renderer=renderer)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(RuntimeError, match="the loop runs"):
+                execute_from_pixels(
+                    regrasp_mjx.load_policy(OPEN40), load_estimator(opened), needle[:1], start[:1], renderer=renderer
+                )
+    # the fit is told each row's opening: a pair seen with its jaws at 40 fits as the estimator says at 40
+    calls = []
+    real_poses = est.poses
+    with monkeypatch.context() as m:
+        m.setattr(
+            type(est),
+            "poses",
+            lambda self, rgb, batch, jaw_deg=None: calls.append(jaw_deg) or real_poses(rgb, batch, jaw_deg),
+        )
+        Eyes(est, rig, renderer, episode_seeds(3, 0), needle[:3], 3).look(
+            np.array([0, 2]), start[[0, 2]], np.array([20.0, 40.0])
+        )
+    np.testing.assert_array_equal(calls[0], [20.0, 40.0, 40.0])  # padded to the batch with its last row
 
 
 def test_the_loop_s_refusals(policy, problems, monkeypatch):
@@ -351,6 +403,29 @@ def test_the_command_writes_its_report_and_resumes_a_killed_run(tmp_path, policy
         for k in a.files:
             np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
+    # two shards side by side, then the report: the rows of the run in one process; no report while a shard runs
+    sharded = tmp_path / "sharded"
+    for i in (1, 0):
+        code, out, err = _cli(base + ["--out", str(sharded), "--shard", f"{i}/2"])
+        assert code == 0 and json.loads(out.strip().splitlines()[-1]) == {
+            "out": str(sharded),
+            "shard": [i, 2],
+            "done": True,
+        }, err
+        assert not (sharded / "pixel_loop.json").exists()
+    with folder_lock(sharded / "pixel_loop.parts" / "shard_1_of_2"):
+        code, _, err = _cli(base + ["--out", str(sharded)])
+        assert code == 2 and "in use" in err, err
+    code, out, err = _cli(base + ["--out", str(sharded)])
+    assert code == 0, err
+    with np.load(tmp_path / "whole" / "pixel_loop_rows.npz") as a, np.load(sharded / "pixel_loop_rows.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert json.loads((sharded / "pixel_loop.json").read_text())["seconds"] > 0
+    code, _, err = _cli(base + ["--out", str(sharded), "--shard", "2/2"])
+    assert code == 2 and "I/N with 0 <= I < N" in err
+
     (tmp_path / "other" / "pixel_loop.parts").mkdir(parents=True)
     (tmp_path / "other" / "pixel_loop.parts" / "manifest.json").write_text(json.dumps({"seed": 1}))
     code, _, err = _cli(base + ["--out", str(tmp_path / "other")])
@@ -393,6 +468,8 @@ def test_the_command_s_camera_default_and_bad_names(tmp_path, monkeypatch):
         raise PixelLoopError("stopped here")
 
     out = ["--out", str(tmp_path / "o")]
+    mine = tmp_path / "mine.json"  # a fit of one's own estimator's errors
+    mine.write_text(camera_errors.FITTED["rendered"].read_text())
     with monkeypatch.context() as m:
         m.setattr(pixel_report, "run", run)
         for argv in (
@@ -401,12 +478,18 @@ def test_the_command_s_camera_default_and_bad_names(tmp_path, monkeypatch):
             ["--estimator", str(tmp_path / "est"), "--camera", "lab-good"],
             ["--estimator", "oracle", "--camera", "rendered"],
             ["--estimator", str(tmp_path / "est"), "--camera", "none"],
+            ["--estimator", str(tmp_path / "est"), "--camera", str(mine)],
         ):
             code, _, err = _cli(["loop", *argv, *out])
             assert code == 2 and "stopped here" in err, err
-    assert taken == ["rendered", None, "lab-good", "rendered", None]
+    assert taken == ["rendered", None, "lab-good", "rendered", None, str(mine)]
+    # a fit file of one's own: its sizes, as the preset fitted to the same file
+    args = pixel_report.LoopArgs("default", "oracle", camera=str(camera_errors.FITTED["rendered"]))
+    assert pixel_report.camera_of(args) == camera_errors.preset("rendered")
+    with pytest.raises(ConfigError, match="no fitted file yet"):
+        pixel_report.camera_of(dataclasses.replace(args, camera=str(tmp_path / "none.json")))
     code, _, err = _cli(["loop", "--estimator", "oracle", "--camera", "lab-bad", *out])
-    assert code == 2 and "argument --camera: invalid choice: 'lab-bad'" in err
+    assert code == 2 and "argument --camera: 'lab-bad' is not accepted" in err
     assert all(f"'{name}'" in err for name in (*camera_errors.PRESETS, "none")), err
     monkeypatch.setitem(camera_errors.FITTED, "rendered", tmp_path / "no_fit.json")
     code, _, err = _cli(["loop", "--estimator", str(tmp_path / "est"), *out])  # the default, without its file

@@ -246,6 +246,14 @@ def preset(name: str) -> CameraErrors:
     return PRESETS[name]
 
 
+def named(name: str | Path) -> CameraErrors:
+    """A preset by its name (:func:`preset`) or the sizes of a fit file (a path ending ``.json``, what
+    ``estimator fit`` wrote: :func:`fitted`); raises :class:`ConfigError` as they do."""
+    if str(name).endswith(".json"):
+        return fitted(name, name=str(name))
+    return preset(name)
+
+
 @functools.lru_cache(maxsize=1)
 def depth_axis() -> np.ndarray:
     """The scene camera's viewing axis in the e_g frame (a unit 3-vector): MuJoCo's cameras look

@@ -21,9 +21,10 @@ import numpy as np
 from flax import traverse_util
 
 from regrasp_mjx.core.atomic import atomic_write, write_json
+from regrasp_mjx.core.config import JAW_MAX_DEG, SceneConfig
 from regrasp_mjx.vision import layout as kp_layout
 from regrasp_mjx.vision.network import STRIDE, NetConfig, decode, init_params, make_network
-from regrasp_mjx.vision.stereo import CAUCHY_PX, ITERATIONS, PoseFit, rectified
+from regrasp_mjx.vision.stereo import CAUCHY_PX, ITERATIONS, PoseFit
 from regrasp_mjx.world.endoscope import OBJECTS, Keypoints
 from regrasp_mjx.world.testsets import versions
 
@@ -35,6 +36,9 @@ OUTPUTS = (
     "the optical axis), [x, y, z (m), qw, qx, qy, qz], qw >= 0; rms_px [B, 3]: each fit's RMS reprojection "
     "error; pixels [B, 2, K, 2] (u, v) and confidence [B, 2, K] of the keypoints, camera 0 the left"
 )
+# Files written before the jaws could open (no "jaws" in the contract) were made and trained at the scene's
+# opening: the default scene's, the only one they were rendered with.
+OLD_JAWS = {"layout_deg": SceneConfig().jaw_angle_deg, "trained_deg": [SceneConfig().jaw_angle_deg] * 2}
 
 
 class EstimatorError(ValueError):
@@ -49,9 +53,13 @@ def save_estimator(
     intrinsics: np.ndarray,
     baseline_m: float,
     extra: dict[str, Any] | None = None,
+    jaws: dict[str, Any] | None = None,
 ) -> Path:
     """Writes ``estimator.npz`` and ``estimator.json`` into ``out_dir``, each atomically (the npz first:
-    a contract never names arrays that are not there)."""
+    a contract never names arrays that are not there). ``jaws``: ``layout_deg``, the regrasping jaws'
+    opening the keypoints' model points have, and ``trained_deg``, the least and most opening the
+    training frames drew (degrees); None: both the default scene's opening."""
+    jaws = OLD_JAWS if jaws is None else jaws
     out = Path(out_dir)
     flat = {
         "/".join(k): np.asarray(v, np.float32) for k, v in traverse_util.flatten_dict(jax.device_get(params)).items()
@@ -74,6 +82,13 @@ def save_estimator(
             "conventions": "a rectified pair; OpenCV axes; pixel centres at integer (u, v); the right camera on +x",
         },
         "fit": {"iterations": ITERATIONS, "cauchy_px": CAUCHY_PX},
+        "jaws": {
+            "layout_deg": float(jaws["layout_deg"]),
+            "trained_deg": [float(d) for d in jaws["trained_deg"]],
+            "meaning": "the regrasping jaws' opening of the keypoints' model points, and the least and most "
+            "opening the training frames drew; poses(jaw_deg=) turns the jaw tips' model points to the commanded "
+            "opening",
+        },
         "outputs": OUTPUTS,
         "arrays": sorted(flat),
         "versions": versions(),
@@ -97,7 +112,7 @@ class Estimator:
 
     def __post_init__(self) -> None:
         net, fit = self.net, self.fit  # one jitted program per loaded estimator
-        object.__setattr__(self, "_program", jax.jit(lambda params, rgb: predict(net, fit, params, rgb)))
+        object.__setattr__(self, "_program", jax.jit(lambda params, rgb, turn: predict(net, fit, params, rgb, turn)))
 
     def check_images(self, rgb: Any) -> np.ndarray:
         """``rgb`` as ``[B, 2, H, W, 3]`` uint8, or a :class:`EstimatorError` saying what it is instead."""
@@ -112,32 +127,66 @@ class Estimator:
             )
         return rgb
 
-    def poses(self, rgb: Any, batch: int = 64) -> dict[str, np.ndarray]:
+    @property
+    def layout_jaw_deg(self) -> float:
+        """The regrasping jaws' opening the keypoints' model points have [deg]."""
+        return float(self.contract.get("jaws", OLD_JAWS)["layout_deg"])
+
+    @property
+    def trained_jaw_deg(self) -> tuple[float, float]:
+        """The least and the most opening of the regrasping jaws its training frames drew [deg]."""
+        lo, hi = self.contract.get("jaws", OLD_JAWS)["trained_deg"]
+        return float(lo), float(hi)
+
+    def jaw_turns(self, jaw_deg: Any, n: int) -> np.ndarray:
+        """``[n]`` turns (rad) of the jaw tips' model points for openings ``jaw_deg`` (None: the layout's;
+        one number or ``[n]``, degrees in (0, JAW_MAX_DEG]); an :class:`EstimatorError` for others."""
+        if jaw_deg is None:
+            return np.zeros(n, np.float32)
+        try:
+            deg = np.broadcast_to(np.asarray(jaw_deg, np.float64), (n,))
+        except (TypeError, ValueError):
+            raise EstimatorError(
+                f"jaw_deg of shape {np.shape(jaw_deg)} is not accepted: one opening or one per stereo pair ({n})"
+            ) from None
+        if not np.all((deg > 0.0) & (deg <= JAW_MAX_DEG)):
+            raise EstimatorError(f"jaw_deg is not accepted: openings in (0, {JAW_MAX_DEG:g}] degrees")
+        return (np.radians(deg - self.layout_jaw_deg) / 2.0).astype(np.float32)
+
+    def poses(self, rgb: Any, batch: int = 64, jaw_deg: Any = None) -> dict[str, np.ndarray]:
         """The poses of stereo pairs ``rgb`` ``[B, 2, H, W, 3]`` (uint8, left then right; one pair
-        ``[2, H, W, 3]``): see :data:`OUTPUTS`. Runs ``batch`` pairs at a time (the last batch
-        padded: one compiled program for any ``B`` above it)."""
+        ``[2, H, W, 3]``): see :data:`OUTPUTS`. ``jaw_deg``: the regrasping jaws' opening in each pair
+        (one number or ``[B]`` degrees; None: the layout's, :attr:`layout_jaw_deg`), what the robot
+        commanded: the fit turns the jaw tips' model points there. Runs ``batch`` pairs at a time (the
+        last batch padded: one compiled program for any ``B`` above it)."""
         rgb = self.check_images(rgb)
         if batch < 1:
             raise EstimatorError(f"batch={batch} is not accepted: a positive number of stereo pairs")
+        turns = self.jaw_turns(jaw_deg, len(rgb))
         parts = []
         for i in range(0, len(rgb), batch):
-            chunk = rgb[i : i + batch]
+            chunk, turn = rgb[i : i + batch], turns[i : i + batch]
             n = len(chunk)
             if n < batch and len(rgb) > batch:
                 chunk = np.concatenate([chunk, np.repeat(chunk[-1:], batch - n, axis=0)])
-            out = self._program(self.params, jnp.asarray(chunk))
+                turn = np.concatenate([turn, np.repeat(turn[-1:], batch - n)])
+            out = self._program(self.params, jnp.asarray(chunk), jnp.asarray(turn))
             parts.append({k: np.asarray(v)[:n] for k, v in out.items()})
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def predict(net: NetConfig, fit: PoseFit, params: Any, rgb: jax.Array) -> dict[str, jax.Array]:
+def predict(
+    net: NetConfig, fit: PoseFit, params: Any, rgb: jax.Array, jaw_turn: jax.Array | None = None
+) -> dict[str, jax.Array]:
     """The device path, a pure function: stereo pairs ``[B, 2, H, W, 3]`` through the network (both
-    images in one batch), decoded to keypoints, then each pair's poses (:class:`PoseFit`)."""
+    images in one batch), decoded to keypoints, then each pair's poses (:class:`PoseFit`), its jaw tips
+    turned by ``jaw_turn`` ``[B]`` (rad; None: none)."""
     b = rgb.shape[0]
     logits, offsets = make_network(net).apply(params, rgb.reshape((2 * b,) + rgb.shape[2:]))
     pixels, confidence = decode(net, logits, offsets)
     pixels, confidence = pixels.reshape(b, 2, net.keypoints, 2), confidence.reshape(b, 2, net.keypoints)
-    poses, rms = jax.vmap(fit)(pixels, confidence)
+    turn = jnp.zeros(b, pixels.dtype) if jaw_turn is None else jaw_turn
+    poses, rms = jax.vmap(fit)(pixels, confidence, turn)
     return {"poses": poses, "rms_px": rms, "pixels": pixels, "confidence": confidence}
 
 
@@ -178,6 +227,11 @@ def load_estimator(path: str | os.PathLike) -> Estimator:
         baseline = float(cam["baseline_m"])
         fit_cfg = contract["fit"]
         iterations, cauchy = int(fit_cfg["iterations"]), float(fit_cfg["cauchy_px"])
+        jaws = contract.get("jaws", OLD_JAWS)
+        lo, hi = (float(d) for d in jaws["trained_deg"])
+        layout_deg = float(jaws["layout_deg"])
+        if not (0 < layout_deg <= JAW_MAX_DEG and 0 < lo <= hi <= JAW_MAX_DEG):
+            raise ValueError(f"jaws: openings in (0, {JAW_MAX_DEG:g}] degrees, least before most, got {jaws!r}")
     except (KeyError, TypeError, ValueError) as err:
         raise EstimatorError(f"{js}: incomplete or invalid contract ({err})") from err
     if len(keypoints.names) != net.keypoints:
@@ -211,9 +265,7 @@ def load_estimator(path: str | os.PathLike) -> Estimator:
         if not np.all(np.isfinite(arrays[name])):
             raise EstimatorError(f"{npz}: {name} holds NaN or inf; accepted: finite weights")
         params[k] = jnp.asarray(arrays[name], jnp.float32)
-    fit = PoseFit(
-        keypoints.local, kp_layout.object_rows(keypoints), intrinsics, rectified(baseline), iterations, cauchy
-    )
+    fit = kp_layout.pose_fit(keypoints, intrinsics, baseline, iterations, cauchy)
     return Estimator(net, traverse_util.unflatten_dict(params), keypoints, fit, contract)
 
 

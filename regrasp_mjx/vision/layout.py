@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from regrasp_mjx.vision.stereo import CAUCHY_PX, ITERATIONS, PoseFit, rectified
 from regrasp_mjx.world import endoscope
-from regrasp_mjx.world.endoscope import OBJECTS, Keypoints
+from regrasp_mjx.world.endoscope import OBJECTS, REGRASP_JAW_PREFIX, Keypoints
 from regrasp_mjx.world.scene import Scene
 
 TOOLS = (("grasp", 1, "grasp_capsules"), ("regrasp", 2, "regrasp_capsules"))
@@ -36,6 +37,19 @@ def layout(scene: Scene, n_arc: int = endoscope.N_ARC) -> Keypoints:
 def object_rows(kp: Keypoints) -> tuple[tuple[int, ...], ...]:
     """The keypoints' indices of each object of :data:`~regrasp_mjx.world.endoscope.OBJECTS`."""
     return tuple(tuple(int(i) for i in np.nonzero(kp.obj == o)[0]) for o in range(len(OBJECTS)))
+
+
+def jaw_tips(kp: Keypoints) -> tuple[int, ...]:
+    """The indices of the keypoints fixed on the regrasping jaws (they turn as the jaws open)."""
+    return tuple(i for i, n in enumerate(kp.names) if n.startswith(REGRASP_JAW_PREFIX))
+
+
+def pose_fit(
+    kp: Keypoints, intrinsics: np.ndarray, baseline_m: float, iterations: int = ITERATIONS, scale_px: float = CAUCHY_PX
+) -> PoseFit:
+    """The pose fit of ``kp`` seen by a rectified stereo pair (``intrinsics``, ``baseline_m`` apart)."""
+    rows = object_rows(kp)
+    return PoseFit(kp.local, rows, intrinsics, rectified(baseline_m), iterations, scale_px, jaw_tips(kp))
 
 
 def to_json(kp: Keypoints) -> dict:

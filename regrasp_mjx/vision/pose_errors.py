@@ -60,10 +60,13 @@ def frame_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, n
     return pos, rot
 
 
-def _stats(values: np.ndarray) -> dict[str, float | None]:
-    if values.size == 0:
+def stats(values: np.ndarray) -> dict[str, float | None]:
+    """Median and 95th percentile of the finite ``values`` (None for both where there are none)."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
         return {"median": None, "p95": None}
-    return {"median": float(np.median(values)), "p95": float(np.percentile(values, 95))}
+    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
 
 
 def summary(err: np.ndarray, scale: float) -> dict[str, dict[str, float | None]]:
@@ -71,9 +74,9 @@ def summary(err: np.ndarray, scale: float) -> dict[str, dict[str, float | None]]
     (``|(x, y)|``) of errors ``[N, 3]``, times ``scale``."""
     e = np.asarray(err, np.float64) * scale
     return {
-        "norm": _stats(np.linalg.norm(e, axis=-1)),
-        "along": _stats(np.abs(e[:, 2])),
-        "across": _stats(np.linalg.norm(e[:, :2], axis=-1)),
+        "norm": stats(np.linalg.norm(e, axis=-1)),
+        "along": stats(np.abs(e[:, 2])),
+        "across": stats(np.linalg.norm(e[:, :2], axis=-1)),
     }
 
 

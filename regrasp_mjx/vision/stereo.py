@@ -26,6 +26,7 @@ import jaxlie
 import numpy as np
 
 from regrasp_mjx.core.geometry import canonical_quat
+from regrasp_mjx.world.distances import turn_jaws
 
 ITERATIONS = 8  # Levenberg-Marquardt steps of the refinement
 CAUCHY_PX = 2.0  # the robust loss's scale: residuals beyond a few pixels count less and less
@@ -156,6 +157,9 @@ class PoseFit:
       intrinsics: both cameras' ``K`` ``[3, 3]``.
       right_from_left: the right camera from the left one ``[4, 4]`` (:func:`rectified`).
       iterations, scale_px: the refinement's steps and its Cauchy scale.
+      tips: the keypoints fixed on the regrasping jaws (their tips), which turn about the hinge as
+        the jaws open (:func:`regrasp_mjx.world.endoscope.turn_open`); ``local`` has them at the
+        opening the layout was made at.
     """
 
     local: np.ndarray
@@ -164,11 +168,17 @@ class PoseFit:
     right_from_left: np.ndarray
     iterations: int = ITERATIONS
     scale_px: float = CAUCHY_PX
+    tips: tuple[int, ...] = ()
 
-    def __call__(self, pixels: jax.Array, confidence: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def __call__(
+        self, pixels: jax.Array, confidence: jax.Array, jaw_turn: jax.Array | float = 0.0
+    ) -> tuple[jax.Array, jax.Array]:
         """One stereo pair's keypoints ``[2, K, 2]`` (left, right) and confidences ``[2, K]`` to each
         object's pose ``[O, 7]`` in the left camera's frame and its RMS reprojection error ``[O]`` (px).
-        Keypoints that do not determine a pose (all on one pixel, no disparity) give NaN.
+        Keypoints that do not determine a pose (all on one pixel, no disparity) give NaN. ``jaw_turn``
+        (rad, traced: one program for every opening): how far each regrasping jaw is turned open beyond
+        the layout's opening (half the opening's change), what the robot commanded: the jaw tips'
+        model points turned with it, so an opened jaw is not fitted as a turned tool.
 
         The objects are fitted as one batch (``vmap``; one compiled fit): each object's keypoints padded
         to the most any object has by repeating its first one with no weight."""
@@ -177,7 +187,12 @@ class PoseFit:
         real = np.array([[1.0] * len(r) + [0.0] * (most - len(r)) for r in self.rows])
         k = jnp.asarray(self.intrinsics, pixels.dtype)
         cams = jnp.asarray(self.right_from_left, pixels.dtype)
-        model = jnp.asarray(self.local[idx], pixels.dtype)  # [O, M, 3]
+        local = jnp.asarray(self.local, pixels.dtype)
+        if self.tips:  # each tip turns with its own jaw: +y jaw a, -y jaw b (as the environment's capsules)
+            tips = np.asarray(self.tips)
+            sides = jnp.asarray(np.sign(self.local[tips, 1]), pixels.dtype)
+            local = local.at[tips].set(turn_jaws(local[tips], sides, jnp.asarray(jaw_turn, pixels.dtype)))
+        model = local[idx]  # [O, M, 3]
         uv = jnp.moveaxis(pixels[:, idx], 0, 1)  # [O, 2, M, 2]
         w = jnp.moveaxis(confidence[:, idx], 0, 1) * jnp.asarray(real, pixels.dtype)[:, None]  # [O, 2, M]
 

@@ -70,6 +70,22 @@ def _relative_errors(estimate: np.ndarray, truth: np.ndarray) -> dict[str, Any]:
     return out
 
 
+def _by_jaws(estimate: np.ndarray, truth: np.ndarray, jaw_deg: np.ndarray, layout_deg: float) -> dict[str, Any]:
+    """The regrasping tool's errors in the frames that draw its jaws at the layout's opening and in those
+    that draw them opened wider (a fit that models the opening keeps both alike)."""
+    pos, rot = pose_errors.frame_errors(np.asarray(estimate, np.float64), truth)
+    mm, deg = np.linalg.norm(pos[:, 2], axis=-1), np.linalg.norm(rot[:, 2], axis=-1)
+    out = {}
+    for key, rows in (("at_layout", jaw_deg <= layout_deg + 0.5), ("opened", jaw_deg > layout_deg + 0.5)):
+        ok = rows
+        out[key] = {
+            "frames": int(rows.sum()),
+            "position_mm": pose_errors.stats(mm[ok]),
+            "orientation_deg": pose_errors.stats(deg[ok]),
+        }
+    return out
+
+
 def _keypoint_errors(est: Estimator, data: FrameDataset, pixels: np.ndarray) -> dict[str, Any]:
     err = np.linalg.norm(pixels - data.pixels, axis=-1)  # [N, 2, K]
     inside = (data.pixels[..., 0] >= -0.5) & (data.pixels[..., 0] < est.net.width - 0.5)
@@ -99,7 +115,9 @@ def evaluate(estimator: str | Path, data_path: str | Path, out: str | Path | Non
     est, data = load_estimator(estimator), load_dataset(data_path)
     check_pairing(est, data)
     t0 = time.perf_counter()
-    result = est.poses(data.rgb, batch=batch)
+    result = est.poses(
+        data.rgb, batch=batch, jaw_deg=data.jaw_deg
+    )  # the fit told the jaws' opening, as the loop tells it
     seconds = time.perf_counter() - t0
     truth = data.camera_poses(0)
     trained_on = est.contract.get("training", {}).get("data", {})
@@ -112,6 +130,7 @@ def evaluate(estimator: str | Path, data_path: str | Path, out: str | Path | Non
         "keypoints_px": _keypoint_errors(est, data, result["pixels"]),
         "relative": _relative_errors(result["poses"], truth),
         "fit_rms_px": {n: float(np.nanmedian(result["rms_px"][:, o])) for o, n in enumerate(OBJECTS)},
+        "regrasping_tool_by_jaws": _by_jaws(result["poses"], truth, data.jaw_deg, est.layout_jaw_deg),
         "estimator": str(estimator_folder(estimator)),
         "data": {
             "path": str(data_path),
@@ -131,6 +150,14 @@ def evaluate(estimator: str | Path, data_path: str | Path, out: str | Path | Non
             f"{k[s]['median']:.2f} / {k[s]['p95']:.2f} ({k[s]['n']})" if k[s]["n"] else "-" for s in ("seen", "hidden")
         ]
         lines.append(f"- {name}: seen {cells[0]}, hidden {cells[1]}")
+    lines += ["", "The regrasping tool by its jaws' opening (position mm, orientation deg; median / p95):", ""]
+    for key, row in rep["regrasping_tool_by_jaws"].items():
+        if row["frames"]:
+            p, o = row["position_mm"], row["orientation_deg"]
+            lines.append(
+                f"- {key.replace('_', ' ')} ({row['frames']} frames): {p['median']:.2f} / {p['p95']:.2f} mm, "
+                f"{o['median']:.2f} / {o['p95']:.2f} deg"
+            )
     if out is not None:
         pos, rot = pose_errors.frame_errors(np.asarray(result["poses"], np.float64), truth)
         meta = {k: rep[k] for k in ("held_out", "estimator", "data", "machine")}

@@ -19,12 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.atomic import dumps, write_text
+from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.core.host_loop import eta, folder_lock
 from regrasp_mjx.vision import layout as kp_layout
 from regrasp_mjx.vision import pose_errors
 from regrasp_mjx.vision.estimator_file import save_estimator
 from regrasp_mjx.vision.network import WIDTHS, NetConfig
-from regrasp_mjx.vision.stereo import PoseFit, rectified
 from regrasp_mjx.vision.training import (
     CheckpointError,
     init_state,
@@ -103,7 +103,10 @@ def validate(run, fit, params: Any, val: FrameDataset, net: NetConfig) -> dict[s
     pixels, conf = keypoints_in_batches(run, params, val.rgb, EVAL_BATCH)
     counted = targets(net, val.pixels) > 0
     err = np.linalg.norm(pixels - val.pixels, axis=-1)[counted]
-    poses = np.concatenate([np.asarray(fit(jnp.asarray(p), jnp.asarray(c))[0]) for p, c in _chunks(pixels, conf)])
+    turns = jaw_turns(val)
+    poses = np.concatenate(
+        [np.asarray(fit(jnp.asarray(p), jnp.asarray(c), jnp.asarray(t))[0]) for p, c, t in _chunks(pixels, conf, turns)]
+    )
     pos, rot = pose_errors.errors(poses, val.camera_poses(0))
     pos_mm, rot_deg = np.linalg.norm(pos, axis=-1) * 1e3, np.degrees(np.linalg.norm(rot, axis=-1))
     return {
@@ -116,9 +119,19 @@ def validate(run, fit, params: Any, val: FrameDataset, net: NetConfig) -> dict[s
     }
 
 
-def _chunks(pixels: np.ndarray, conf: np.ndarray, size: int = 256):
-    for i in range(0, len(pixels), size):
-        yield pixels[i : i + size], conf[i : i + size]
+def _chunks(*arrays: np.ndarray, size: int = 256):
+    for i in range(0, len(arrays[0]), size):
+        yield tuple(a[i : i + size] for a in arrays)
+
+
+def base_jaw_deg(data: FrameDataset) -> float:
+    """The regrasping jaws' opening the frames' keypoint model has [deg]."""
+    return float(data.meta.get("jaws", {}).get("base_deg", SceneConfig().jaw_angle_deg))
+
+
+def jaw_turns(data: FrameDataset) -> np.ndarray:
+    """Each row's jaw-tip turn for the pose fit ``[N]`` (rad): half its opening beyond the model's."""
+    return (np.radians(data.jaw_deg.astype(np.float64) - base_jaw_deg(data)) / 2.0).astype(np.float32)
 
 
 def progress_line(row: dict[str, Any], epochs: int, eta_text: str) -> str:
@@ -131,7 +144,7 @@ def progress_line(row: dict[str, Any], epochs: int, eta_text: str) -> str:
 
 
 def _data_id(d: FrameDataset) -> dict[str, Any]:
-    return {k: d.meta[k] for k in ("seed", "episodes", "frames", "width", "height", "task")}
+    return {k: d.meta.get(k) for k in ("seed", "episodes", "frames", "width", "height", "task", "jaw_open")}
 
 
 def train(
@@ -160,7 +173,7 @@ def train(
     state = init_state(net, tx, init_key)
     header = {"settings": dataclasses.asdict(settings) | {"widths": list(settings.widths)}, "data": _data_id(data)}
     baseline = float(data.meta["rig"]["baseline_m"])
-    fit = PoseFit(keypoints.local, kp_layout.object_rows(keypoints), data.intrinsics, rectified(baseline))
+    fit = kp_layout.pose_fit(keypoints, data.intrinsics, baseline)
     fit_batch = jax.jit(jax.vmap(fit))
     with folder_lock(out):
         history: list[dict[str, Any]] = []
@@ -204,6 +217,7 @@ def train(
                     data.intrinsics,
                     baseline,
                     extra={"training": training | {"epoch": epoch, "of_epochs": settings.epochs, "row": row}},
+                    jaws={"layout_deg": base_jaw_deg(data), "trained_deg": [data.jaw_deg.min(), data.jaw_deg.max()]},
                 )
             save_checkpoint(out, state, {"epoch": epoch, **header, "history": history, "best": best})
             write_text(out / "log.jsonl", "".join(dumps(r) + "\n" for r in history))

@@ -6,7 +6,9 @@ with the dataset's seed) with one randomisation draw (camera jitter, lights, mat
 gain); over its frames the regrasping tool moves from its start to its goal (positions linear,
 rotations slerped) and each frame has its own image noise. Rows are episode-major (row ``e * F + f``),
 so the errors of one episode's frames can be split into the part fixed per episode and the part that
-changes per frame. The keypoints are the estimator's (:func:`regrasp_mjx.vision.layout.layout`), their
+changes per frame. With ``jaw_open`` the regrasping jaws open on the way, as a policy with jaws that open
+does: each episode draws an opening in that range and its later frames (from frame ``F // 2``) draw the
+jaws there, the earlier ones at the scene's opening (``jaw_deg``, one per row). The keypoints are the estimator's (:func:`regrasp_mjx.vision.layout.layout`), their
 visibility from the rendered depth and segmentation, which are not kept (RGB only: 0.35 MB a pair at
 320 x 180).
 
@@ -31,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from regrasp_mjx.core.atomic import atomic_write, dumps, write_json
-from regrasp_mjx.core.config import TASKS, EnvConfig, SceneConfig
+from regrasp_mjx.core.config import JAW_MAX_DEG, TASKS, EnvConfig, SceneConfig
 from regrasp_mjx.core.host_loop import eta
 from regrasp_mjx.vision import layout as kp_layout
 from regrasp_mjx.workflows.frames import FrameRenderer, label
@@ -55,6 +57,11 @@ ARRAYS = {  # name: (dtype, shape after N), K keypoints, H x W images
     "episode": ("int32", ""),
     "frame": ("int32", ""),
     "seeds": ("int64", ""),
+    "jaw_deg": ("float32", ""),
+}
+# arrays a file written before them lacks, with what they were then: the jaws at the scene's opening
+OPTIONAL = {
+    "jaw_deg": lambda meta, n: np.full(n, meta.get("jaws", {}).get("base_deg", SceneConfig().jaw_angle_deg), np.float32)
 }
 
 
@@ -75,6 +82,7 @@ class FrameDataset:
     episode: np.ndarray
     frame: np.ndarray
     seeds: np.ndarray
+    jaw_deg: np.ndarray
     intrinsics: np.ndarray
     meta: dict[str, Any]
 
@@ -111,14 +119,22 @@ def _quat(rot: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
-def episode_states(episodes: int, frames: int, seed: int, task: str = "paper") -> tuple[np.ndarray, ...]:
-    """The needles ``[E, 7]``, the regrasping tool's poses ``[E, F, 7]`` (start to goal) and the
-    episodes' randomisation seeds ``[E]`` of a dataset's ``seed``."""
+def episode_states(
+    episodes: int, frames: int, seed: int, task: str = "paper", jaw_open: tuple[float, float] | None = None
+) -> tuple[np.ndarray, ...]:
+    """The needles ``[E, 7]``, the regrasping tool's poses ``[E, F, 7]`` (start to goal), the episodes'
+    randomisation seeds ``[E]`` and the jaws' opening in each frame ``[E, F]`` of a dataset's ``seed``:
+    the scene's, or with ``jaw_open`` (least, most; degrees) the scene's in the first ``F // 2`` frames
+    and an opening drawn per episode in that range after (the jaws open on the way, near the goal)."""
     problems = make_testset(int(episodes), int(seed), EnvConfig(task=TASKS[task]))
     needle, start, goal = episode_poses(problems)
     ee = np.stack([interpolate(np.stack([s, g]), frames - 1) if frames > 1 else s[None] for s, g in zip(start, goal)])
     render_seeds = np.random.default_rng([int(seed), 68]).integers(0, 2**31 - 1, size=episodes)
-    return needle, ee, render_seeds
+    jaws = np.full((episodes, frames), SceneConfig().jaw_angle_deg)
+    if jaw_open is not None:  # its own stream: the problems and the pictures stay those of the seed without it
+        opened = np.random.default_rng([int(seed), 68, 67]).uniform(*jaw_open, size=episodes)
+        jaws[:, frames // 2 :] = opened[:, None]
+    return needle, ee, render_seeds, jaws
 
 
 # ---- rendering, in this process or in workers ------------------------------------------------------
@@ -133,17 +149,21 @@ def _renderer(width: int, height: int) -> FrameRenderer:
     return _RENDERER[key]
 
 
-def render_chunk(needle: np.ndarray, ee: np.ndarray, seeds: np.ndarray, first: int, width: int, height: int) -> dict:
-    """The rows of episodes ``first ..`` (needles ``[e, 7]``, tool poses ``[e, F, 7]``, seeds ``[e]``)."""
+def render_chunk(
+    needle: np.ndarray, ee: np.ndarray, seeds: np.ndarray, jaws: np.ndarray, first: int, width: int, height: int
+) -> dict:
+    """The rows of episodes ``first ..`` (needles ``[e, 7]``, tool poses ``[e, F, 7]``, seeds ``[e]``, the
+    jaws' openings ``[e, F]``)."""
     r = _renderer(width, height)
     kp = kp_layout.layout(r.endo.scene)
     e, f = ee.shape[:2]
     rows: dict[str, list] = {k: [] for k in ARRAYS}
     for j in range(f):
-        fr = r.render(needle, ee[:, j], seeds=seeds, frame=j)
-        _, pixels, z, seen = label(r.endo, kp, needle, ee[:, j], fr.extrinsics, fr.depth, fr.segmentation)
+        fr = r.render(needle, ee[:, j], seeds=seeds, frame=j, jaw_deg=jaws[:, j])
+        _, pixels, z, seen = label(r.endo, kp, needle, ee[:, j], fr.extrinsics, fr.depth, fr.segmentation, jaws[:, j])
         parts = {"rgb": fr.rgb, "pixels": pixels, "visible": seen, "keypoint_depth": z, "poses": fr.poses}
         parts |= {"extrinsics": fr.extrinsics, "episode": first + np.arange(e), "frame": np.full(e, j), "seeds": seeds}
+        parts |= {"jaw_deg": jaws[:, j]}
         for k, v in parts.items():
             rows[k].append(np.asarray(v).astype(ARRAYS[k][0]))
     # frame-major lists to episode-major rows: [F, e, ...] -> [e, F, ...] -> [e * F, ...]
@@ -181,9 +201,12 @@ def render_dataset(
     task: str = "paper",
     workers: int = 1,
     log=print,
+    jaw_open: tuple[float, float] | None = None,
 ) -> Path:
     """Renders ``episodes`` x ``frames`` labelled stereo pairs of ``seed`` to ``out`` (npz, atomically),
-    resuming from the chunks an earlier run with the same arguments left in ``OUT.parts/``.
+    resuming from the chunks an earlier run with the same arguments left in ``OUT.parts/``. ``jaw_open``
+    (least, most opening, degrees; None: the jaws stay at the scene's): the jaws open on the way
+    (:func:`episode_states`).
 
     Raises:
       DatasetError: bad sizes, or ``OUT.parts/`` holds another dataset's chunks.
@@ -195,10 +218,25 @@ def render_dataset(
         )
     if task not in TASKS or workers < 1:
         raise DatasetError(f"task {task!r}, workers {workers}: accepted a task of {sorted(TASKS)} and workers >= 1")
+    base = SceneConfig().jaw_angle_deg
+    if jaw_open is not None:
+        try:
+            lo, hi = (float(d) for d in jaw_open)
+        except (TypeError, ValueError):
+            raise DatasetError(
+                f"jaw_open={jaw_open!r} is not accepted: two openings (least, most) in degrees"
+            ) from None
+        if not (base <= lo <= hi <= JAW_MAX_DEG):
+            raise DatasetError(
+                f"jaw_open={jaw_open!r} is not accepted: least <= most, within [{base:g}, {JAW_MAX_DEG:g}] degrees "
+                "(from the scene's opening to the jaw's widest)"
+            )
+        jaw_open = (lo, hi)
     rig = endoscope.Rig(width=width, height=height)  # checks the size
     out = Path(out)
     parts = out.with_name(out.name + ".parts")
     args = {"episodes": episodes, "frames": frames, "seed": seed, "width": width, "height": height, "task": task}
+    args |= {"jaw_open": None if jaw_open is None else list(jaw_open)}
     manifest = parts / "manifest.json"
     if manifest.is_file() and json.loads(manifest.read_text()) != args:
         raise DatasetError(
@@ -207,7 +245,7 @@ def render_dataset(
         )
     write_json(manifest, args)
     t0 = time.perf_counter()
-    needle, ee, seeds = episode_states(episodes, frames, seed, task)
+    needle, ee, seeds, jaws = episode_states(episodes, frames, seed, task, jaw_open)
     chunks = [(i, min(i + CHUNK_EPISODES, episodes)) for i in range(0, episodes, CHUNK_EPISODES)]
     todo = [(a, b) for a, b in chunks if not (parts / f"chunk_{a:07d}.npz").is_file()]
     mb = episodes * frames * 6 * width * height / 2**20
@@ -215,7 +253,9 @@ def render_dataset(
         f"render {episodes} episodes x {frames} frames at {width} x {height} ({mb:,.0f} MB of RGB) to {out}; "
         f"{len(chunks) - len(todo)} of {len(chunks)} chunks already rendered; {workers} worker(s)"
     )
-    jobs = [(parts / f"chunk_{a:07d}.npz", needle[a:b], ee[a:b], seeds[a:b], a, width, height) for a, b in todo]
+    jobs = [
+        (parts / f"chunk_{a:07d}.npz", needle[a:b], ee[a:b], seeds[a:b], jaws[a:b], a, width, height) for a, b in todo
+    ]
     done, pairs, t1 = 0, 0, time.perf_counter()
 
     def progress(job_pairs: int) -> None:
@@ -252,6 +292,12 @@ def render_dataset(
         "pairs": episodes * frames,
         "rig": dataclasses.asdict(rig),
         "keypoints": kp_layout.to_json(kp_layout.layout(load_scene(SceneConfig()))),  # the scene FrameRenderer draws
+        "jaws": {
+            "base_deg": base,
+            "open_deg": None if jaw_open is None else list(jaw_open),
+            "rule": "the keypoints' model at base_deg; with open_deg each episode draws an opening in it, its frames "
+            "from frames // 2 on draw the regrasping jaws there (their tips' labels turned with them): jaw_deg",
+        },
         "renderer": f"MuJoCo OpenGL (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'egl by default')})",
         "rows": "episode-major: row e * frames + f; in an episode the regrasping tool moves from its start to its goal",
         "units": "metres, OpenCV camera axes, extrinsics world (e_g) to camera, poses [x, y, z, qw, qx, qy, qz] in e_g",
@@ -272,7 +318,7 @@ def load_dataset(path: str | os.PathLike) -> FrameDataset:
     try:
         with np.load(path, allow_pickle=False) as f:
             meta = json.loads(str(f["meta"]))
-            arrays = {k: f[k] for k in (*ARRAYS, "intrinsics")}
+            arrays = {k: f[k] for k in (*ARRAYS, "intrinsics") if k in f.files or k not in OPTIONAL}
     except Exception as err:  # truncated, foreign, without a key: zipfile, KeyError, ValueError, JSON
         raise DatasetError(f"{path} is not a readable frame dataset ({type(err).__name__}: {err})") from err
     if (meta.get("format"), meta.get("version")) != (DATASET_FORMAT, DATASET_VERSION):
@@ -281,6 +327,9 @@ def load_dataset(path: str | os.PathLike) -> FrameDataset:
             f"{DATASET_FORMAT!r} version {DATASET_VERSION}"
         )
     try:
+        for name, old in OPTIONAL.items():
+            if name not in arrays:
+                arrays[name] = old(meta, int(meta["pairs"]))
         sizes = {"N": int(meta["pairs"]), "K": len(meta["keypoints"]["names"])}
         sizes |= {"H": int(meta["height"]), "W": int(meta["width"])}
         kp_layout.from_json(meta["keypoints"])
@@ -292,6 +341,6 @@ def load_dataset(path: str | os.PathLike) -> FrameDataset:
             raise DatasetError(f"{path}: {name} is {arrays[name].dtype}{arrays[name].shape}, expected {dtype}{want}")
     if arrays["intrinsics"].shape != (3, 3):
         raise DatasetError(f"{path}: intrinsics has shape {arrays['intrinsics'].shape}, expected (3, 3)")
-    if not all(np.all(np.isfinite(arrays[n])) for n in ("pixels", "poses", "extrinsics", "intrinsics")):
-        raise DatasetError(f"{path}: pixels, poses, extrinsics or intrinsics hold NaN or inf")
+    if not all(np.all(np.isfinite(arrays[n])) for n in ("pixels", "poses", "extrinsics", "intrinsics", "jaw_deg")):
+        raise DatasetError(f"{path}: pixels, poses, extrinsics, intrinsics or jaw_deg hold NaN or inf")
     return FrameDataset(**arrays, meta=meta)

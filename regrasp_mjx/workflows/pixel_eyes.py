@@ -105,9 +105,11 @@ class Eyes:
         truth = extrinsics[:, 0, None] @ matrices(poses)
         pad = lambda x: np.concatenate([x, np.repeat(x[-1:], self.size - len(x), 0)])  # noqa: E731
         # padded to the batch's size: one compiled program for every count of rows
+        # the fit told the jaws' opening the loop commanded (what the robot knows), as the frames draw it
+        jaws = None if jaw_deg is None else pad(np.asarray(jaw_deg, np.float64))
         if isinstance(self.estimator, OracleEstimator):  # its noise keyed by the episode and the frame
             keys = np.stack([self.seeds[rows], self.next_frame[rows] - 1], -1)
-            out = self.estimator.estimate(pad(poses), pad(extrinsics), pad(keys))
+            out = self.estimator.estimate(pad(poses), pad(extrinsics), pad(keys), jaw_deg=jaws)
         else:
-            out = self.estimator.poses(pad(rgb), batch=self.size)
+            out = self.estimator.poses(pad(rgb), batch=self.size, jaw_deg=jaws)
         return {k: v[: len(rows)] for k, v in out.items()}, truth

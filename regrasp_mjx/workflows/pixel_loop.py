@@ -25,10 +25,10 @@ loop knows of no error, as :class:`CameraLoop` and ``Policy.execute`` without er
 :class:`CameraLoop` commands, and the judge carries the opening out (its sweep proved on the true poses,
 the motions tested with the jaws where they are). The frames draw each row's regrasping jaws where its
 loop last commanded them (:meth:`FrameRenderer.render`'s ``jaw_deg``: the scene's opening until they open),
-what the robot holds. A learned estimator was trained on frames with the jaws at the scene's opening and
-its fit models them there, so once they open its errors are not those it was measured at (a warning says
-so). The oracle reads the true poses (its keypoints the estimator's model's: the jaws at the scene's
-opening).
+what the robot holds, and the estimator's fit is told that opening (its jaw tips' model points turned
+there); a learned estimator whose training frames never drew the jaws that open gets a warning.
+The oracle reads the true poses (its keypoints the estimator's model's, the jaw tips turned to the
+opening drawn).
 
 The judge is the environment's: each commanded motion is carried out on the true state by
 :meth:`regrasp_mjx.envs.env.RegraspEnv.move` (the continuous collision test along the whole motion,
@@ -351,12 +351,15 @@ def execute_from_pixels(
             stacklevel=2,
         )
     if loop.open_deg is not None and isinstance(estimator, Estimator):
-        warnings.warn(
-            f"this policy opens its jaws on the way (to {loop.open_deg:g} deg): the frames draw them as the loop "
-            f"opens them, but the estimator's fit models the jaws at the scene's {loop.base_deg:g} deg (and its "
-            "training frames drew them there), so its errors with the jaws open are not the ones it was measured at",
-            stacklevel=2,
-        )
+        lo, hi = estimator.trained_jaw_deg
+        if not lo <= loop.open_deg <= hi:
+            warnings.warn(
+                f"this policy opens its jaws on the way (to {loop.open_deg:g} deg), and this estimator's training "
+                f"frames drew them at {lo:g}-{hi:g} deg: its fit is told the opening, but its network never saw "
+                "jaws like these, so its errors with them open are not the ones it was measured at (render its "
+                "frames with `estimator render --jaw-open LO HI`)",
+                stacklevel=2,
+            )
     judge = _judge(policy)
     own = render and renderer is None
     renderer = FrameRenderer(rig=rig) if own else (renderer if render else None)

@@ -8,6 +8,7 @@ each frame's estimate error, the true poses; plain arrays).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import shutil
@@ -24,6 +25,7 @@ from regrasp_mjx.envs.camera_errors import CameraErrors
 from regrasp_mjx.inference.robustness import policy_hash
 from regrasp_mjx.vision.estimator_file import Estimator, load_estimator
 from regrasp_mjx.vision.oracle import OracleEstimator
+from regrasp_mjx.vision.pose_errors import stats
 from regrasp_mjx.workflows.frames import FrameRenderer
 from regrasp_mjx.workflows.pixel_eyes import ERROR_COLUMNS, PixelLoopError, episode_seeds, rig_of
 from regrasp_mjx.workflows.pixel_loop import MAX_REFUSED, execute_from_pixels
@@ -79,10 +81,10 @@ def problems(policy: Any, args: LoopArgs) -> tuple[str, np.ndarray, np.ndarray, 
 
 
 def camera_of(args: LoopArgs) -> CameraErrors | None:
-    """The camera's known error sizes ``args`` names (a preset of :data:`camera_errors.PRESETS`; None:
-    none). Raises :class:`ConfigError` on an unknown name or, for a fitted preset, a missing or broken
-    file (it says how to make one)."""
-    return None if args.camera is None else camera_errors.preset(args.camera)
+    """The camera's known error sizes ``args`` names: a preset of :data:`camera_errors.PRESETS`, or a fit
+    file (``.json``, what ``estimator fit`` wrote: an estimator of one's own); None: none. Raises
+    :class:`ConfigError` on an unknown name or a missing or broken fit file (it says how to make one)."""
+    return None if args.camera is None else camera_errors.named(args.camera)
 
 
 def estimator_of(args: LoopArgs) -> Estimator | OracleEstimator:
@@ -92,14 +94,6 @@ def estimator_of(args: LoopArgs) -> Estimator | OracleEstimator:
     if args.noise_px or not args.render:
         raise PixelLoopError("noise_px and render=False are the oracle's: not accepted with an estimator file")
     return load_estimator(args.estimator)
-
-
-def _stats(values: np.ndarray) -> dict[str, float | None]:
-    v = np.asarray(values, np.float64)
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return {"median": None, "p95": None}
-    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
 
 
 def summary(rows: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -112,8 +106,8 @@ def summary(rows: dict[str, np.ndarray]) -> dict[str, Any]:
     for c, name in enumerate(ERROR_COLUMNS):
         mm, deg = rows["estimate_error_mm"][..., c][taken], rows["estimate_error_deg"][..., c][taken]
         estimate[name] = {
-            "position_mm": _stats(mm),
-            "orientation_deg": _stats(deg),
+            "position_mm": stats(mm),
+            "orientation_deg": stats(deg),
             "failed": int((~np.isfinite(mm)).sum()),
         }
     return {
@@ -123,14 +117,14 @@ def summary(rows: dict[str, np.ndarray]) -> dict[str, Any]:
         "time_out_rate": float(rows["time_out"].mean()),
         "stopped_short_rate": float(short.mean()),
         "invalid_starts": int((~rows["start_valid"]).sum()),
-        "steps": _stats(rows["steps"]),
-        "frames": _stats(rows["frames"]),
+        "steps": stats(rows["steps"]),
+        "frames": stats(rows["frames"]),
         "frames_total": int(rows["frames"].sum()),
         "refused_total": int(rows["refused"].sum()),
         "estimate_per_frame": estimate,
         "view_at_last_decision_mm": {
-            "needle_in_e_g": _stats(rows["view_error_mm"][:, 0]),
-            "regrasping_tool_in_e_g": _stats(rows["view_error_mm"][:, 1]),
+            "needle_in_e_g": stats(rows["view_error_mm"][:, 0]),
+            "regrasping_tool_in_e_g": stats(rows["view_error_mm"][:, 1]),
         },
     }
 
@@ -166,7 +160,7 @@ def markdown(rep: dict[str, Any]) -> list[str]:
         f"the policy's own closed loop (warm-up {rep['settings']['warmup_frames']} frames, stop tolerance "
         f"{rep['settings']['stop_tolerance']}{_looking(rep['settings'])}); seed {rep['seed']}; judged on the true "
         f"poses. {rep['machine']}; "
-        f"{rep['seconds']:.0f} s, {rep['pairs_per_s']:.1f} stereo pairs/s.",
+        f"{rep['seconds']:.0f} s over its batches, {rep['pairs_per_s']:.1f} stereo pairs/s in a process.",
         "",
         "| problems | success | collision | time-out | stopped short | steps median / p95 | frames median / p95 | refused frames |",
         "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
@@ -195,18 +189,28 @@ def _manifest(args: LoopArgs) -> dict[str, Any]:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(args).items()}
 
 
-def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, Any]:
+def run(
+    args: LoopArgs, out: str | Path, policy: Any, log=print, shard: tuple[int, int] = (0, 1)
+) -> dict[str, Any] | None:
     """The loop from pixels on ``args``'s problems with ``policy`` (loaded from ``args.policy``),
     resumable by batches; writes the report and the rows into ``out`` and returns the report.
+
+    ``shard`` ``(i, n)``: with ``n > 1`` this process runs only the batches ``k`` with ``k % n == i`` into
+    ``out``'s parts (``n`` processes side by side: the renderer draws one picture at a time, so a GPU
+    host's cores go further in several processes) and returns None; a run without one afterwards finds
+    every batch done and writes the report (it refuses while a shard still runs).
 
     Raises:
       PixelLoopError: problems, an estimator or settings the loop cannot run; ``OUT``'s parts of another run.
       EstimatorError, TestsetError, ConfigError: an unreadable estimator or test set, bad problem counts, a
         camera preset that is not one (or a fitted one without its file).
-      FolderInUse: another run writes into ``out``.
+      FolderInUse: another run (or, for the report, a shard) writes into ``out``.
       RenderUnavailable: no OpenGL context can be made here.
     """
     out = Path(out)
+    i, n = shard
+    if not (isinstance(i, int) and isinstance(n, int) and 0 <= i < n):
+        raise PixelLoopError(f"shard={shard!r} is not accepted: (i, n) with 0 <= i < n")
     name, needle, start, goal = problems(policy, args)
     camera = camera_of(args)
     estimator = estimator_of(args)
@@ -214,7 +218,14 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
     seeds = episode_seeds(len(needle), args.seed)
     parts = out / f"{REPORT}.parts"
     manifest = _manifest(args)
-    with folder_lock(out):
+    # a shard holds its own lock (its batches are its own); the report's run holds the folder's and each
+    # shard's, so it neither runs beside a shard nor a shard beside it
+    locks = [folder_lock(parts / f"shard_{i}_of_{n}")] if n > 1 else [folder_lock(out)]
+    if n == 1 and parts.is_dir():
+        locks += [folder_lock(d) for d in sorted(parts.glob("shard_*_of_*")) if d.is_dir()]
+    with contextlib.ExitStack() as held:
+        for lock in locks:
+            held.enter_context(lock)
         if (parts / "manifest.json").is_file() and json.loads((parts / "manifest.json").read_text()) != manifest:
             raise PixelLoopError(
                 f"{parts} holds the batches of another run ({(parts / 'manifest.json').read_text().strip()}); "
@@ -222,16 +233,19 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
             )
         write_json(parts / "manifest.json", manifest)
         chunks = [(a, min(a + args.batch, len(needle))) for a in range(0, len(needle), args.batch)]
-        todo = [(a, b) for a, b in chunks if not (parts / f"rows_{a:06d}.npz").is_file()]
+        mine = [c for k, c in enumerate(chunks) if k % n == i]
+        todo = [(a, b) for a, b in mine if not (parts / f"rows_{a:06d}.npz").is_file()]
         log(
             f"pixels: {args.policy} on {name}, {len(needle)} problems in "
-            f"{len(chunks)} batches ({len(chunks) - len(todo)} done before), estimator {args.estimator}, "
+            f"{len(chunks)} batches{f' ({len(mine)} of them shard {i} of {n})' if n > 1 else ''} "
+            f"({len(mine) - len(todo)} done before), estimator {args.estimator}, "
             f"{rig.width} x {rig.height}, seed {args.seed}, camera errors {args.camera or 'none'}"
         )
         renderer = FrameRenderer(rig=rig) if args.render else None
         t0, pairs = time.perf_counter(), 0
         try:
             for k, (a, b) in enumerate(todo):
+                t_batch = time.perf_counter()
                 rows = execute_from_pixels(
                     policy,
                     estimator,
@@ -245,6 +259,9 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
                     seeds=seeds[a:b],
                     camera=camera,
                 )
+                # each row's share of its batch's seconds: the report's time is the batches', whichever
+                # process (or run) ran them
+                rows["seconds"] = np.full(b - a, (time.perf_counter() - t_batch) / (b - a))
                 atomic_write(parts / f"rows_{a:06d}.npz", lambda f, rows=rows: np.savez(f, **rows))
                 pairs += int(rows["frames"].sum())
                 seconds = time.perf_counter() - t0
@@ -255,17 +272,24 @@ def run(args: LoopArgs, out: str | Path, policy: Any, log=print) -> dict[str, An
         finally:
             if renderer is not None:
                 renderer.close()
+        if n > 1:
+            log(f"pixels: shard {i} of {n} done; the report: the same command without --shard once every shard is done")
+            return None
         loaded = []
         for a, _ in chunks:
             with np.load(parts / f"rows_{a:06d}.npz", allow_pickle=False) as f:
                 loaded.append({k: f[k] for k in f.files})
         longest = max(p["estimate_error_mm"].shape[1] for p in loaded)
         pad = lambda x: np.pad(x, ((0, 0), (0, longest - x.shape[1]), (0, 0)), constant_values=np.nan)  # noqa: E731
+        keys = set.intersection(*(set(p) for p in loaded))  # batches written before "seconds" lack it
         rows = {
             k: np.concatenate([pad(p[k]) if k.startswith("estimate_error") else p[k] for p in loaded])
             for k in loaded[0]
+            if k in keys
         }
-        seconds = time.perf_counter() - t0
+        # the batches' own seconds (summed over the processes that ran them); this run's where they lack them
+        seconds = float(rows.pop("seconds").sum()) if "seconds" in rows else time.perf_counter() - t0
+        pairs = int(rows["frames"].sum()) if "seconds" in keys else pairs
         defaults = policy.closed_loop_defaults
         rep = {
             "policy": args.policy,

@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Issue 68's GPU session (2026-11-29, second): frames whose regrasping jaws open on the way, the estimator
+# trained on them, its held-out errors and the camera-error model fitted to them, its time per stereo pair,
+# then the shipped default from pixels on paper300 and on 300 held-out problems, each loop in SHARDS
+# processes side by side (the renderer draws one picture at a time; a GPU host's cores go further so).
+# One H200 host (16 cores), MUJOCO_GL=egl, the package importable. Each step resumes, or is skipped when
+# its output exists: run it again after a time limit.
+#
+#   MUJOCO_GL=egl bash experiments/pixels_gpu.sh OUT
+set -euo pipefail
+out=${1:?"usage: pixels_gpu.sh OUT"}
+workers=${WORKERS:-14}
+shards=${SHARDS:-8}
+jaws=(--jaw-open 25 60)  # the shipped default opens them to 40; the LND to 80
+e() {
+    echo "== $(date +%T) estimator $1"
+    python -m regrasp_mjx.estimator "$@"
+}
+mkdir -p "$out"
+for s in "train 2000 0" "val 100 1" "test 250 2"; do
+    read -r name episodes seed <<<"$s"
+    [ -f "$out/$name.npz" ] || e render --out "$out/$name.npz" --episodes "$episodes" --frames 8 --seed "$seed" \
+        --workers "$workers" "${jaws[@]}"
+done
+[ -f "$out/est/estimator/estimator.json" ] && [ -f "$out/est/done" ] || {
+    e train --data "$out/train.npz" --val "$out/val.npz" --out "$out/est" --epochs 30
+    touch "$out/est/done"
+}
+[ -f "$out/eval/estimator_errors.json" ] || e evaluate --estimator "$out/est/estimator" --data "$out/test.npz" --out "$out/eval"
+[ -f "$out/camera_rendered.json" ] || e fit --errors "$out/eval" --out "$out/camera_rendered.json"
+e bench --estimator "$out/est/estimator" --repeats 200 >"$out/bench_one_pair.json"
+e bench --estimator "$out/est/estimator" --repeats 50 --batch 64 >"$out/bench_batch64.json"
+# the loops: XLA takes GPU memory as it needs it (SHARDS processes share one GPU)
+export XLA_PYTHON_CLIENT_PREALLOCATE=false
+loop() {
+    local name=$1
+    shift
+    local common=(--estimator "$out/est/estimator" --policy default --seed 3 --camera "$out/camera_rendered.json")
+    [ -f "$out/$name/pixel_loop.json" ] && return 0
+    for i in $(seq 0 $((shards - 1))); do
+        e loop "${common[@]}" "$@" --out "$out/$name" --shard "$i/$shards" >"$out/$name.shard$i.log" 2>&1 &
+    done
+    wait || true  # a shard that failed leaves its batches to the report's run, which runs what is missing
+    e loop "${common[@]}" "$@" --out "$out/$name"
+}
+loop paper300 --testset paper300
+loop heldout300 --heldout 300:2022
+echo "== $(date +%T) done"
