@@ -2,10 +2,12 @@
 no GPU, one CPU each, so a job takes a whole node): the jobs spread over both nodes, and when a node
 dies its job runs again on the other from where it stopped, while a finished job never runs again.
 The quick test runs resumable stand-in jobs through :func:`run_jobs`; the slow one runs a real
-``python -m regrasp_mjx.sweep`` of two points with ``--address``."""
+``python -m regrasp_mjx.sweep`` of two points with ``--address``. With nodes of one and two CPUs, a
+job takes the larger node whole (one at a time), and is refused once that node has died."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -17,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from regrasp_mjx.core.cluster import OBJECT_STORE_BYTES, connect
+from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.jobs import Job, run_jobs
 
 # a dead node is noticed in about a second instead of Ray's default half a minute
@@ -25,12 +28,18 @@ FAST_HEALTH = {"health_check_period_ms": 200, "health_check_failure_threshold": 
 
 @pytest.fixture
 def two_nodes():
+    with _two_nodes(head_cpus=1, worker_cpus=1) as nodes:
+        yield nodes
+
+
+@contextlib.contextmanager
+def _two_nodes(head_cpus: int, worker_cpus: int):
     import ray
     from ray.cluster_utils import Cluster
 
-    head = {"num_cpus": 1, "object_store_memory": OBJECT_STORE_BYTES, "_system_config": FAST_HEALTH}
+    head = {"num_cpus": head_cpus, "object_store_memory": OBJECT_STORE_BYTES, "_system_config": FAST_HEALTH}
     cluster = Cluster(initialize_head=True, head_node_args=head)
-    worker = cluster.add_node(num_cpus=1, object_store_memory=OBJECT_STORE_BYTES)
+    worker = cluster.add_node(num_cpus=worker_cpus, object_store_memory=OBJECT_STORE_BYTES)
     cluster.wait_for_nodes()
     try:
         yield cluster, worker
@@ -101,6 +110,43 @@ def test_jobs_spread_over_two_nodes_and_a_dead_node_s_job_resumes_on_the_other(t
     with connect() as c:
         assert run_jobs(jobs, c, again.append, heartbeat_s=1e9) == {}
     assert again[0].startswith("2 jobs: 2 finished already, 0 to run")
+
+
+def test_without_gpus_a_job_takes_the_largest_node_whole_and_is_refused_once_it_is_gone(tmp_path):
+    """A job without GPUs uses every core its process sees: on a cluster of a 1-CPU head and a 2-CPU
+    worker it asks for 2 CPUs, so it runs on the worker only, one job at a time (asking for the
+    smallest node's CPUs, two ran on the worker at once); with the worker dead it is refused at once,
+    not left to wait for a node that cannot come."""
+    import ray
+
+    with _two_nodes(head_cpus=1, worker_cpus=2) as (cluster, worker):
+        ray.init(address=cluster.address, log_to_driver=False)
+        jobs = [_counting_job(tmp_path, n, 5) for n in "abc"]
+        lines: list[str] = []
+        with connect() as c:
+            assert (c.nodes, c.node_cpus, c.most_cpus) == (2, 1, 2)
+            assert c.describe().endswith("2 node(s), no GPU, 2 CPU(s) per job")
+            out = run_jobs(jobs, c, lines.append, heartbeat_s=1e9)
+            assert all(r["exit"] == 0 for r in out.values()), lines
+            assert {r["node"] for r in out.values()} == {worker.node_id[:8]}, lines
+            # each process's start (its first record) and end (its finish file), by the one clock of this machine
+            spans = sorted(
+                (os.path.getmtime(tmp_path / f"{j.name}.starts"), os.path.getmtime(j.finished)) for j in jobs
+            )
+            assert all(later[0] >= earlier[1] for earlier, later in zip(spans, spans[1:])), spans  # in turn
+            cluster.remove_node(worker, allow_graceful=False)
+            deadline = time.time() + 60
+            while time.time() < deadline and sum(n["Alive"] for n in ray.nodes()) > 1:
+                time.sleep(0.2)
+            late = _counting_job(tmp_path, "late", 1)
+            t0 = time.perf_counter()
+            with pytest.raises(
+                ConfigError,
+                match=r"job late asks for 2 CPU\(s\), 0 GPU\(s\), more than any live node .*"
+                r"\(1 alive, the largest has 1 CPU\(s\), 0 GPU\(s\);",
+            ):
+                run_jobs([late], c, lines.append, heartbeat_s=1e9)
+            assert time.perf_counter() - t0 < 10.0
 
 
 # two smoke points train side by side on two busy cores, one of them twice (killed, then resumed)

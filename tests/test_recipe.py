@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from regrasp_mjx import recipe as recipe_cli
+from regrasp_mjx.core import host_loop
 from regrasp_mjx.core.cluster import OBJECT_STORE_BYTES, REFERENCE_MIB, connect
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.jobs import Job, JobsStopped, run_jobs
@@ -392,6 +393,86 @@ def test_ctrl_c_stops_the_running_jobs_processes_and_says_which(tmp_path):
         time.sleep(0.2)
     assert not _alive(int(pid_file.read_text())), "the stopped job's process runs on"
     assert records[-1]["slow"]["exit"] == "stopped" and not after.done()
+
+
+def test_a_sigterm_that_python_would_drop_in_a_gc_callback_still_stops_the_jobs(tmp_path):
+    """A SIGTERM (SLURM's time limit, scancel) that lands inside a garbage-collector callback (as
+    XLA's ``_xla_gc_callback`` runs), where Python drops the KeyboardInterrupt it raises, still stops
+    the jobs: it is raised again a moment later, as Ctrl-C is."""
+    import gc
+
+    pid_file = tmp_path / "pid"
+    script = f"import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); time.sleep(60)"
+    slow = Job("slow", "stage", lambda: ["-c", script], tmp_path / "slow.done", tmp_path / "slow.txt", 0.1)
+    armed = []
+
+    def callback(phase, info):
+        if phase == "start" and armed:
+            armed.clear()
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):  # the handler runs between these bytecodes, inside this callback
+                pass
+
+    def terminate(line: str) -> None:
+        if line.startswith("started slow"):
+            deadline = time.time() + 60
+            while not pid_file.is_file() and time.time() < deadline:
+                time.sleep(0.1)
+            armed.append(True)
+            gc.collect()
+
+    gc.callbacks.append(callback)
+    # Ctrl-C's handler as run_command sets it (an interrupt raised again can land in a gc callback again)
+    previous = signal.signal(signal.SIGINT, host_loop._on_sigint)
+    try:
+        with _ray(gpus=1) as cluster:
+            t0 = time.perf_counter()
+            with pytest.raises(JobsStopped, match=r"stopped 1 running job\(s\) \(slow\)"):
+                run_jobs([slow], cluster, terminate, heartbeat_s=1e9)
+            assert time.perf_counter() - t0 < 30.0  # not the job's minute: stopped, not run to its end
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        gc.callbacks.remove(callback)
+    assert not slow.done()
+
+
+def test_jobs_that_cannot_be_placed_now_are_named_with_what_they_wait_for_and_wait_on(tmp_path):
+    """Pending jobs with none running (here the only GPU held by another task) print a line each
+    heartbeat naming them, their ask and what the cluster has free, and wait on until it frees."""
+    import ray
+
+    whole = _job(tmp_path, "w", 1.0)
+    after = _job(tmp_path, "after", 0.1, needs=("w",))
+    lines = []
+
+    class Holder:  # defined here, so Ray sends it to its worker by value (this module is not imported there)
+        def ready(self) -> bool:
+            return True
+
+    def free_later(holder, seconds: float) -> None:
+        time.sleep(seconds)
+        ray.kill(holder)
+
+    with _ray(gpus=1) as cluster:
+        holder = ray.remote(num_gpus=1, num_cpus=0)(Holder).remote()
+        ray.get(holder.ready.remote())
+        # a safety net: without the lines the GPU is freed after a minute and the test fails, not hangs
+        stop = ray.remote(num_cpus=0)(free_later).remote(holder, 60.0)
+
+        def log(line: str) -> None:
+            lines.append(line)
+            if sum(x.startswith("no job running") for x in lines) == 2:  # said twice: freed, the job runs
+                ray.kill(holder)
+
+        out = run_jobs([whole, after], cluster, log, heartbeat_s=0.5)
+        ray.cancel(stop, force=True)
+    waits = [x for x in lines if x.startswith("no job running")]
+    assert len(waits) >= 2, lines  # and on, while w's worker starts
+    assert "waiting for Ray to place w (0 CPU(s), 1 GPU(s)) (1 more wait for the jobs they need)" in waits[0]
+    assert waits[0].endswith(
+        "the cluster now: 1 live node(s), at most 4 CPU(s), 1 GPU(s) a node; free 4 of 4 CPU(s), 0 of 1 GPU(s)"
+    )
+    assert out["w"]["exit"] == 0 and out["after"]["exit"] == 0
 
 
 def test_a_job_whose_folder_is_still_locked_waits_for_the_lock_then_runs(tmp_path):

@@ -9,8 +9,9 @@ called ``ray.init`` (a notebook, a test) keeps its Ray.
 
 What the jobs are placed by is measured once when the command connects: the number of GPUs, the
 smallest GPU's memory (each node asked by a task pinned to it, through ``nvidia-smi``; the shares
-are of an 80 GB GPU, :data:`REFERENCE_MIB`, and are scaled to that smallest GPU) and the fewest CPUs
-of a node (without GPUs a job takes that many, so one job per node, as XLA on the CPU uses every core).
+are of an 80 GB GPU, :data:`REFERENCE_MIB`, and are scaled to that smallest GPU), the fewest CPUs of a
+node (what a GPU job's CPU ask is capped at) and the most (without GPUs a job takes that many, so one
+job at a time runs on a node, as XLA on the CPU uses every core: :func:`regrasp_mjx.core.jobs.resources`).
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ OBJECT_STORE_BYTES = 100 * 2**20
 @dataclasses.dataclass(frozen=True)
 class Cluster:
     """What the jobs are placed on. ``gpu_mib``: the smallest GPU's memory (None: not measured, the
-    shares are taken as fractions as they are); ``node_cpus``: the fewest CPUs of a node."""
+    shares are taken as fractions as they are); ``node_cpus``: the fewest CPUs of a node; ``most_cpus``:
+    the most (what a job takes without GPUs)."""
 
     address: str
     started_here: bool
@@ -46,6 +48,7 @@ class Cluster:
     gpu_mib: float | None
     node_cpus: int
     dashboard: str | None
+    most_cpus: int = 1
 
     @property
     def scale(self) -> float:
@@ -54,7 +57,7 @@ class Cluster:
 
     def describe(self) -> str:
         where = "Ray started on this machine" if self.started_here else f"Ray at {self.address}"
-        what = f"{self.gpus:g} GPU(s)" if self.gpus else f"no GPU, {self.node_cpus} CPU(s) per job"
+        what = f"{self.gpus:g} GPU(s)" if self.gpus else f"no GPU, {self.most_cpus} CPU(s) per job"
         board = f"; dashboard {self.dashboard}" if self.dashboard else ""
         return f"{where}: {self.nodes} node(s), {what}{board}"
 
@@ -181,7 +184,7 @@ def _environ(values: dict[str, str]) -> Iterator[None]:
 
 
 def _measure(address: str, started_here: bool, dashboard: str | None, memory_mib: float | None) -> Cluster:
-    """The cluster's GPUs, smallest GPU memory and fewest node CPUs (module docstring)."""
+    """The cluster's GPUs, smallest GPU memory, fewest and most node CPUs (module docstring)."""
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     gpus = sum(n["Resources"].get("GPU", 0.0) for n in nodes)
     cpus = [int(n["Resources"].get("CPU", 0)) for n in nodes if n["Resources"].get("CPU", 0) >= 1]
@@ -195,7 +198,8 @@ def _measure(address: str, started_here: bool, dashboard: str | None, memory_mib
         ]
         sizes = [m for per_node in ray.get(asks) for m in per_node]
         mib = min(sizes) if sizes else None
-    return Cluster(address, started_here, len(nodes), gpus, mib, min(cpus) if cpus else 1, dashboard)
+    fewest, most = (min(cpus), max(cpus)) if cpus else (1, 1)
+    return Cluster(address, started_here, len(nodes), gpus, mib, fewest, dashboard, most)
 
 
 def _node_gpu_memory() -> list[float]:

@@ -7,8 +7,14 @@ fits, several side by side on one GPU where their shares allow, and never starts
 failed (the needs are the task's arguments). A job's task asks for ``num_gpus`` = its share scaled
 to the cluster's smallest GPU (a share of 1 or more is a whole GPU) plus a CUDA context; the process
 is given that fraction of the GPU's memory (``XLA_PYTHON_CLIENT_MEM_FRACTION``), as Ray's fractions are only
-counted, not enforced. Without GPUs a job takes a node's CPUs (one at a time per node) and its process
-is told to use the CPU (``JAX_PLATFORMS=cpu``). A job's task runs ``Job.cpus`` CPU cores beside it.
+counted, not enforced. Without GPUs a job takes the CPUs of the cluster's largest node (one job at a time
+on a node of that size; a smaller node runs none: :func:`resources`) and its process is told to use the
+CPU (``JAX_PLATFORMS=cpu``). A job's task runs ``Job.cpus`` CPU cores beside it.
+
+A job that asks for more than any live node has is refused before anything runs (Ray would keep it
+waiting, silently: its warning is not passed on). While jobs wait and none runs (Ray cannot place
+them now: a busy cluster, or the node that could died), a line every ``heartbeat_s`` says which wait,
+for what, and what the cluster has free; they wait on, as a busy cluster frees its resources in time.
 
 Resume rules: a job whose finish file exists is skipped, and so is one whose dependents have all
 finished, so a killed schedule started again runs only what is left; each job resumes its own work
@@ -45,10 +51,12 @@ from pathlib import Path
 import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from regrasp_mjx.core import host_loop
 from regrasp_mjx.core.cluster import Cluster
+from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.job_task import Board, JobFailed, TaskSpec, run_task
 
-HEARTBEAT_S = 60.0  # how often the running jobs' last log lines are shown
+HEARTBEAT_S = 60.0  # how often the running jobs' last log lines (or, none running, what the rest wait for) are shown
 # of a GPU's memory each process takes outside its share (its CUDA context and libraries, about 0.5 GB
 # on an 80 GB H100): fifteen processes whose shares summed to 0.9 ran out of memory starting
 CONTEXT_SHARE = 0.01
@@ -98,9 +106,19 @@ def last_line(path: Path, size: int = 4096) -> str:
 
 
 def resources(job: Job, cluster: Cluster) -> dict[str, float]:
-    """The Ray resources a job's task asks for (module docstring)."""
+    """The Ray resources a job's task asks for (module docstring).
+
+    Without GPUs a job asks for every CPU of the cluster's largest node, as XLA on the CPU (and a
+    planner's workers) use every core the process sees: two jobs on one node would each believe
+    they had it all and slow each other down (a job asking for the smallest node's CPUs let a
+    large node run several at once beside a small head node). Ray cannot ask for "a whole node,
+    whichever": a custom resource per node needs every node started by us, node affinity ties a
+    job to one node (not run again elsewhere when it dies), and XLA:CPU sizes its threads by the
+    cores the process may run on, not by a number we could pass. So a node smaller than the
+    largest runs no job: a CPU cluster is best of nodes of one size (or with its head at
+    ``--num-cpus 0``)."""
     if not cluster.gpus:
-        return {"num_cpus": max(cluster.node_cpus, 1), "num_gpus": 0}
+        return {"num_cpus": max(cluster.most_cpus, 1), "num_gpus": 0}
     if job.share >= 1.0:
         gpu = 1.0
     else:  # Ray counts fractions in steps of 1e-4: rounded up, so shares that fit do not overfill
@@ -143,13 +161,18 @@ def run_jobs(
     )
     if not todo:
         return {}
+    asks = {j.name: resources(j, cluster) for j in todo}
+    _check_fits(todo, asks)
     opened = {j.programs for j in jobs if j.programs and j.done()}  # compiled by a finished job: in the cache
     # on this process's node: the board must outlive any other node (a dead node's jobs run again elsewhere)
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
     board = Board.options(scheduling_strategy=here).remote(sorted(opened))
-    refs = _submit(todo, cluster, board)
-    schedule = _Schedule(todo, refs, board, log, heartbeat_s, on_end)
-    previous = signal.signal(signal.SIGTERM, _sigterm) if _main_thread() else None
+    refs = _submit(todo, cluster, board, asks)
+    schedule = _Schedule(todo, refs, board, log, heartbeat_s, on_end, asks)
+    # SIGTERM takes Ctrl-C's way out (the jobs are cancelled, then the command ends) through Ctrl-C's own
+    # handler: one that lands in a garbage-collector callback or a __del__, where Python would drop the
+    # KeyboardInterrupt and the command go on, is raised again a moment later (as a SIGINT)
+    previous = signal.signal(signal.SIGTERM, host_loop._on_sigint) if _main_thread() else None
     try:
         return schedule.follow()
     except KeyboardInterrupt as err:
@@ -167,8 +190,34 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _sigterm(signum, frame):
-    raise KeyboardInterrupt  # the same way out as Ctrl-C: the jobs are cancelled, then the command ends
+def _live_nodes() -> list[dict[str, float]]:
+    """Each live node's CPUs and GPUs, as Ray counts them."""
+    return [
+        {"CPU": n["Resources"].get("CPU", 0.0), "GPU": n["Resources"].get("GPU", 0.0)}
+        for n in ray.nodes()
+        if n.get("Alive")
+    ]
+
+
+def _amount(cpus: float, gpus: float) -> str:
+    return f"{cpus:g} CPU(s), {gpus:g} GPU(s)"
+
+
+def _check_fits(todo: list[Job], asks: dict[str, dict[str, float]]) -> None:
+    """Refuses a job that no live node could ever run (Ray would keep it waiting, without a word)."""
+    nodes = _live_nodes()
+    for job in todo:
+        ask = asks[job.name]
+        if any(n["CPU"] >= ask["num_cpus"] and n["GPU"] >= ask["num_gpus"] for n in nodes):
+            continue
+        order = (lambda n: (n["GPU"], n["CPU"])) if ask["num_gpus"] else (lambda n: (n["CPU"], n["GPU"]))
+        big = max(nodes, key=order) if nodes else None
+        largest = f"the largest has {_amount(big['CPU'], big['GPU'])}" if big else "none"
+        raise ConfigError(
+            f"job {job.name} asks for {_amount(ask['num_cpus'], ask['num_gpus'])}, more than any live node of the "
+            f"cluster has ({len(nodes)} alive, {largest}; the cluster changed since it was measured, or a node "
+            "that could run it died): start a node that can, or run the command again to measure the cluster anew"
+        )
 
 
 def _opener(todo: list[Job], key: str) -> Job | None:
@@ -177,7 +226,7 @@ def _opener(todo: list[Job], key: str) -> Job | None:
     return next((j for j in todo if j.programs == key), None)
 
 
-def _submit(todo: list[Job], cluster: Cluster, board) -> dict[str, ray.ObjectRef]:
+def _submit(todo: list[Job], cluster: Cluster, board, asks: dict[str, dict[str, float]]) -> dict[str, ray.ObjectRef]:
     """Each job's task, its needs' tasks (and for a job that waits, the board's gates) as its arguments."""
     refs: dict[str, ray.ObjectRef] = {}
     for job in todo:
@@ -188,7 +237,7 @@ def _submit(todo: list[Job], cluster: Cluster, board) -> dict[str, ray.ObjectRef
             peers = [p.name for p in todo if not p.helps and set(p.needs) <= set(job.needs)]
             waits.append(board.started.remote(peers))
         spec = TaskSpec(job, memory_fraction(job, cluster), not cluster.gpus, os.environ.get("OMP_NUM_THREADS"))
-        refs[job.name] = run_task.options(**resources(job, cluster)).remote(spec, board, *waits)
+        refs[job.name] = run_task.options(**asks[job.name]).remote(spec, board, *waits)
     return refs
 
 
@@ -212,8 +261,9 @@ class _Schedule:
     """The driver's view of one call: which jobs started (from the board), ended (from their
     tasks), and the progress lines."""
 
-    def __init__(self, todo, refs, board, log, heartbeat_s, on_end):
+    def __init__(self, todo, refs, board, log, heartbeat_s, on_end, asks):
         self.refs, self.board, self.log, self.heartbeat_s, self.on_end = refs, board, log, heartbeat_s, on_end
+        self.asks = asks
         self.jobs = {j.name: j for j in todo}
         self.order = {j.name: i for i, j in enumerate(todo)}  # needs before their dependents
         self.pending = {ref: name for name, ref in refs.items()}
@@ -229,19 +279,41 @@ class _Schedule:
         self.t0 = time.perf_counter()
 
     def follow(self) -> dict[str, dict]:
-        last_beat = time.perf_counter()
+        last_beat = idle_since = time.perf_counter()
         while self.pending:
             ready, _ = ray.wait(list(self.pending), num_returns=len(self.pending), timeout=0.5)
             self._events()
             for ref in sorted(ready, key=lambda r: self.order[self.pending[r]]):
                 self._ended(self.pending.pop(ref), ref)
             now = time.perf_counter()
+            if self.running:
+                idle_since = now
             if self.running and now - last_beat >= self.heartbeat_s:
                 last_beat = now
                 for name, t in self.running.items():
                     self.log(f"  {name} ({(now - t) / 60:.1f} min): {last_line(self.jobs[name].log) or '...'}")
+            elif self.pending and min(now - last_beat, now - idle_since) >= self.heartbeat_s:
+                last_beat = now  # none runs: say what the rest wait for, every heartbeat, as long as they wait
+                self.log(self._waiting(now - idle_since))
         self._events()  # what the board heard after the last task ended
         return self.out
+
+    def _waiting(self, idle_s: float) -> str:
+        """Which jobs wait for Ray to place them, for what, and what the cluster has now."""
+        names = sorted(self.pending.values(), key=self.order.__getitem__)
+        ready = [n for n in names if all(d not in self.refs or d in self.ended for d in self.jobs[n].needs)]
+        asks = [f"{n} ({_amount(self.asks[n]['num_cpus'], self.asks[n]['num_gpus'])})" for n in ready]
+        shown = ", ".join(asks[:6]) + (f" and {len(asks) - 6} more" if len(asks) > 6 else "")
+        after = len(names) - len(ready)
+        nodes, free, total = _live_nodes(), ray.available_resources(), ray.cluster_resources()
+        most = f"at most {_amount(max(n['CPU'] for n in nodes), max(n['GPU'] for n in nodes))} a node" if nodes else ""
+        return (
+            f"no job running for {idle_s / 60:.1f} min: waiting for Ray to place {shown or 'none'}"
+            + (f" ({after} more wait for the jobs they need)" if after else "")
+            + f"; the cluster now: {len(nodes)} live node(s){', ' + most if most else ''}; free "
+            + f"{free.get('CPU', 0.0):g} of {total.get('CPU', 0.0):g} CPU(s), "
+            + f"{free.get('GPU', 0.0):g} of {total.get('GPU', 0.0):g} GPU(s)"
+        )
 
     def _events(self) -> None:
         for kind, name, where in ray.get(self.board.take.remote()):
