@@ -11,19 +11,23 @@ set -euo pipefail
 out=${1:?"usage: pixels_gpu.sh OUT"}
 workers=${WORKERS:-14}
 shards=${SHARDS:-8}
+# smaller, to try the script on a CPU: EPISODES="8 4 4" EPOCHS=1 LOOP_N=4 bash experiments/pixels_gpu.sh /tmp/try
+read -r n_train n_val n_test <<<"${EPISODES:-2000 100 250}"
+epochs=${EPOCHS:-30}
+only=(${LOOP_N:+--n "$LOOP_N"})
 jaws=(--jaw-open 25 60)  # the shipped default opens them to 40; the LND to 80
 e() {
     echo "== $(date +%T) estimator $1"
     python -m regrasp_mjx.estimator "$@"
 }
 mkdir -p "$out"
-for s in "train 2000 0" "val 100 1" "test 250 2"; do
+for s in "train $n_train 0" "val $n_val 1" "test $n_test 2"; do
     read -r name episodes seed <<<"$s"
     [ -f "$out/$name.npz" ] || e render --out "$out/$name.npz" --episodes "$episodes" --frames 8 --seed "$seed" \
         --workers "$workers" "${jaws[@]}"
 done
 [ -f "$out/est/estimator/estimator.json" ] && [ -f "$out/est/done" ] || {
-    e train --data "$out/train.npz" --val "$out/val.npz" --out "$out/est" --epochs 30
+    e train --data "$out/train.npz" --val "$out/val.npz" --out "$out/est" --epochs "$epochs"
     touch "$out/est/done"
 }
 [ -f "$out/eval/estimator_errors.json" ] || e evaluate --estimator "$out/est/estimator" --data "$out/test.npz" --out "$out/eval"
@@ -35,7 +39,7 @@ export XLA_PYTHON_CLIENT_PREALLOCATE=false
 loop() {
     local name=$1
     shift
-    local common=(--estimator "$out/est/estimator" --policy default --seed 3 --camera "$out/camera_rendered.json")
+    local common=(--estimator "$out/est/estimator" --policy default --seed 3 --camera "$out/camera_rendered.json" "${only[@]}")
     [ -f "$out/$name/pixel_loop.json" ] && return 0
     for i in $(seq 0 $((shards - 1))); do
         e loop "${common[@]}" "$@" --out "$out/$name" --shard "$i/$shards" >"$out/$name.shard$i.log" 2>&1 &
