@@ -162,6 +162,25 @@ class MjxFrameRenderer:
         # one program for every call: the context's handle and the camera count are its only static inputs
         self._program = jax.jit(functools.partial(_pictures, self._ctx.pytree(), len(CAMERAS)))
 
+    def pictures(self, qpos: Any, turn: Any, seeds: Any, frame: int = 0) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """The device's part of :meth:`render`, its arrays left on the device (what a training step that
+        reads frames where they are drawn takes): ``qpos`` ``[nworld, nq]`` (the endoscope model's), the
+        jaws' turn ``[nworld]`` (rad, half the opening's change), a seed per world; RGB ``[N, 2, H, W, 3]``
+        (degraded), depth ``[N, 2, H, W]`` and classes ``[N, 2, H, W]``."""
+        d = dr.draws(seeds)
+        return self._program(
+            self._mx,
+            self._d0,
+            self._classes,
+            self._jaws,
+            jnp.asarray(turn, jnp.float32),
+            jnp.asarray(qpos, jnp.float32),
+            d.blur_px,
+            d.noise,
+            d.gain,
+            dr.noise_keys(seeds, frame),
+        )
+
     def render(self, needle: Any, ee: Any, seeds: Any, frame: int = 0, jaw_deg: Any = None) -> LabelledFrames:
         """Labelled frames of exactly ``nworld`` states (``[nworld, 7]`` needle and end-effector poses,
         a seed per state for its image's blur, gain and noise, the jaws' opening per state or one for
@@ -179,18 +198,7 @@ class MjxFrameRenderer:
         turn = np.zeros(self.nworld) if jaws is None else np.radians(jaws - self.endo.base_jaw_deg) / 2.0
         d = dr.draws(seeds)
         qpos = np.stack([self.endo.qpos(n, e) for n, e in zip(needle, ee)])
-        out = self._program(
-            self._mx,
-            self._d0,
-            self._classes,
-            self._jaws,
-            jnp.asarray(turn, jnp.float32),
-            jnp.asarray(qpos, jnp.float32),
-            d.blur_px,
-            d.noise,
-            d.gain,
-            dr.noise_keys(seeds, frame),
-        )
+        out = self.pictures(qpos, turn, seeds, frame)
         rgb, depth, seg = (np.asarray(x) for x in out)
         scene_draws = dr.draws(np.full(self.nworld, self.seed))  # the lights', materials' and cameras' one draw
         extrinsics = np.broadcast_to(self._extrinsics, (self.nworld, 2, 4, 4)).copy()
