@@ -24,6 +24,7 @@ import numpy as np
 
 from regrasp_mjx.workflows.frames import FrameRenderer
 from regrasp_mjx.workflows.frames_mjx import MjxFrameRenderer
+from regrasp_mjx.world import domain_randomisation as dr
 from regrasp_mjx.world.endoscope import Rig
 from regrasp_mjx.world.sampling import PAPER300, episode_poses, load_testset
 
@@ -42,6 +43,12 @@ def main(argv: list[str] | None = None) -> dict:
         help="mjx only: time the pictures left on the device (no copy to the host, no labels): what a training "
         "step that reads frames where they are drawn pays",
     )
+    p.add_argument(
+        "--degrade-only",
+        action="store_true",
+        help="time only the image's blur, gain and noise (domain_randomisation.degrade) on random images of the "
+        "batch's shape, on the default device: the part of --on-device that is not the ray tracer",
+    )
     args = p.parse_args(argv)
     if args.n < 1 or args.repeats < 1:
         p.error("--n and --repeats must be >= 1")
@@ -50,6 +57,8 @@ def main(argv: list[str] | None = None) -> dict:
     rows = np.arange(args.n) % len(needle)
     needle, start = needle[rows], start[rows]
     seeds = args.seed + np.arange(args.n)
+    if args.degrade_only:
+        return _degrade_only(args)
     if args.on_device and args.backend != "mjx":
         p.error("--on-device is mjx's: the OpenGL renderer draws on the host")
     renderer = MjxFrameRenderer(args.n, rig=rig, seed=args.seed) if args.backend == "mjx" else FrameRenderer(rig=rig)
@@ -90,6 +99,28 @@ def main(argv: list[str] | None = None) -> dict:
     print(
         f"first batch {first:.2f} s; {result['pairs_per_s_median']:.1f} stereo pairs/s (best {result['pairs_per_s_best']:.1f})"
     )
+    print(json.dumps(result))
+    return result
+
+
+def _degrade_only(args) -> dict:
+    """The seconds ``degrade`` takes on ``--n`` random stereo pairs (its draws from the seeds' own)."""
+    seeds = args.seed + np.arange(args.n)
+    d, keys = dr.draws(seeds), dr.noise_keys(seeds, 1)
+    images = jax.random.randint(jax.random.key(0), (args.n, 2, args.height, args.width, 3), 0, 256).astype(np.uint8)
+    jax.block_until_ready(dr.degrade(images, d.blur_px, d.noise, d.gain, keys))
+    times = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(dr.degrade(images, d.blur_px, d.noise, d.gain, keys))
+        times.append(time.perf_counter() - t0)
+    ms = 1e3 * float(np.median(times))
+    result = {"degrade_only": True, "n": args.n, "width": args.width, "height": args.height, "ms_median": round(ms, 2)}
+    result |= {
+        "pairs_per_s": round(1e3 * args.n / ms, 1),
+        "device": str(jax.devices()[0]),
+        "date": time.strftime("%Y-%m-%d"),
+    }
     print(json.dumps(result))
     return result
 
