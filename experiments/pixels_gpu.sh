@@ -10,14 +10,14 @@
 set -euo pipefail
 out=${1:?"usage: pixels_gpu.sh OUT"}
 workers=${WORKERS:-14}
-shards=${SHARDS:-8}
+shards=${SHARDS:-10}  # 300 problems in batches of 32: one batch a shard
 # smaller, to try the script on a CPU: EPISODES="8 4 4" EPOCHS=1 LOOP_N=4 bash experiments/pixels_gpu.sh /tmp/try
 read -r n_train n_val n_test <<<"${EPISODES:-2000 100 250}"
 epochs=${EPOCHS:-30}
 only=(${LOOP_N:+--n "$LOOP_N"})
 jaws=(--jaw-open 25 60)  # the shipped default opens them to 40; the LND to 80
 e() {
-    echo "== $(date +%T) estimator $1"
+    echo "== $(date +%T) estimator $1" >&2 # stderr: a command's stdout may be a result file
     python -m regrasp_mjx.estimator "$@"
 }
 mkdir -p "$out"
@@ -32,8 +32,8 @@ done
 }
 [ -f "$out/eval/estimator_errors.json" ] || e evaluate --estimator "$out/est/estimator" --data "$out/test.npz" --out "$out/eval"
 [ -f "$out/camera_rendered.json" ] || e fit --errors "$out/eval" --out "$out/camera_rendered.json"
-e bench --estimator "$out/est/estimator" --repeats 200 >"$out/bench_one_pair.json"
-e bench --estimator "$out/est/estimator" --repeats 50 --batch 64 >"$out/bench_batch64.json"
+[ -s "$out/bench_one_pair.json" ] || e bench --estimator "$out/est/estimator" --repeats 200 >"$out/bench_one_pair.json"
+[ -s "$out/bench_batch64.json" ] || e bench --estimator "$out/est/estimator" --repeats 50 --batch 64 >"$out/bench_batch64.json"
 # the loops: XLA takes GPU memory as it needs it (SHARDS processes share one GPU)
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
 loop() {
@@ -41,10 +41,14 @@ loop() {
     shift
     local common=(--estimator "$out/est/estimator" --policy default --seed 3 --camera "$out/camera_rendered.json" "${only[@]}")
     [ -f "$out/$name/pixel_loop.json" ] && return 0
+    local pids=() i
     for i in $(seq 0 $((shards - 1))); do
-        e loop "${common[@]}" "$@" --out "$out/$name" --shard "$i/$shards" >"$out/$name.shard$i.log" 2>&1 &
+        e loop "${common[@]}" "$@" --out "$out/$name" --shard "$i/$shards" >>"$out/$name.shard$i.log" 2>&1 &
+        pids+=($!)
     done
-    wait || true  # a shard that failed leaves its batches to the report's run, which runs what is missing
+    for i in "${!pids[@]}"; do  # a failed shard is said; the report's run runs the batches it left
+        wait "${pids[$i]}" || echo "== shard $i of $shards failed (exit $?): $out/$name.shard$i.log" >&2
+    done
     e loop "${common[@]}" "$@" --out "$out/$name"
 }
 loop paper300 --testset paper300

@@ -147,6 +147,16 @@ def test_a_second_run_into_a_held_folder_is_refused_and_a_killed_run_leaves_no_l
     proc.wait()
     with folder_lock(out):  # free again
         pass
+    # shared holders (shards) hold it together; one that needs it alone is refused while any lives, and
+    # they while it does
+    with folder_lock(out, shared=True), folder_lock(out, shared=True):
+        with pytest.raises(FolderInUse):
+            with folder_lock(out):
+                pass
+    with folder_lock(out):
+        with pytest.raises(FolderInUse):
+            with folder_lock(out, shared=True):
+                pass
 
 
 def test_ctrl_c_is_one_line_and_exit_130(capsys):

@@ -197,6 +197,20 @@ def test_errors_split_into_the_episode_s_part_and_the_frame_s():
 # ---- the estimator file -----------------------------------------------------------------------------
 
 
+def test_the_regrasping_tool_split_by_its_jaws_opening():
+    """Four frames, two at the layout's 20 degrees and two opened to 40: each group's regrasping tool
+    errors, worked by hand (0.1 and 0.3 mm; 0.2 mm and a gross 9 mm, left out and counted)."""
+    truth = np.tile([0.0, 0.0, 0.05, 1.0, 0.0, 0.0, 0.0], (4, 3, 1))
+    estimate = truth.copy()
+    estimate[:, 2, 0] += np.array([0.1, 0.3, 0.2, 9.0]) * 1e-3
+    out = estimator_report._by_jaws(estimate, truth, np.array([20.0, 20.0, 40.0, 40.0]), 20.0)
+    assert out["at_layout"]["frames"] == 2 and out["at_layout"]["left_out"] == 0
+    assert out["at_layout"]["position_mm"]["median"] == pytest.approx(0.2)
+    assert out["opened"]["frames"] == 2 and out["opened"]["left_out"] == 1
+    assert out["opened"]["position_mm"]["median"] == pytest.approx(0.2)
+    assert out["opened"]["orientation_deg"]["median"] == pytest.approx(0.0, abs=1e-6)
+
+
 def test_the_estimator_file_round_trip_and_its_refusals(kp, tmp_path):
     net = NetConfig(len(kp.names), W, H, widths=(8, 8, 8, 8))
     rig = endoscope.Rig(width=W, height=H)

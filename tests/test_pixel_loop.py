@@ -413,9 +413,11 @@ def test_the_command_writes_its_report_and_resumes_a_killed_run(tmp_path, policy
             "done": True,
         }, err
         assert not (sharded / "pixel_loop.json").exists()
-    with folder_lock(sharded / "pixel_loop.parts" / "shard_1_of_2"):
+    with folder_lock(sharded, shared=True):  # a shard still running (or only starting)
         code, _, err = _cli(base + ["--out", str(sharded)])
         assert code == 2 and "in use" in err, err
+        code, _, err = _cli(base + ["--out", str(sharded), "--shard", "0/3"])  # shards of another N
+        assert code == 2 and "holds shards of --shard I/2" in err, err
     code, out, err = _cli(base + ["--out", str(sharded)])
     assert code == 0, err
     with np.load(tmp_path / "whole" / "pixel_loop_rows.npz") as a, np.load(sharded / "pixel_loop_rows.npz") as b:

@@ -198,22 +198,25 @@ def folder_in_use(out: Path) -> str | None:
 
 
 @contextlib.contextmanager
-def folder_lock(out: Path):
+def folder_lock(out: Path, shared: bool = False):
     """Holds ``out/.lock`` (an advisory ``flock``) while a run writes into ``out``: a second run
     into the same folder is refused while the first lives; the kernel drops the lock when its
-    process ends, however it ends, so a killed run leaves no stale lock."""
+    process ends, however it ends, so a killed run leaves no stale lock. ``shared``: runs that each
+    write parts of their own (shards) hold it together, and a run that needs the folder alone is
+    refused while any of them lives (and they while it does)."""
     out.mkdir(parents=True, exist_ok=True)
     f = open(out / ".lock", "a+")
     try:
         try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(f, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
             raise FolderInUse(_in_use(out, f.read().strip() or "another process")) from None
-        f.seek(0)
-        f.truncate()
-        f.write(f"pid {os.getpid()}")
-        f.flush()
+        if not shared:  # shared holders leave the file as it is: they would write over each other
+            f.seek(0)
+            f.truncate()
+            f.write(f"pid {os.getpid()}")
+            f.flush()
         yield
     finally:
         f.close()

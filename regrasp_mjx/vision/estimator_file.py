@@ -21,7 +21,7 @@ import numpy as np
 from flax import traverse_util
 
 from regrasp_mjx.core.atomic import atomic_write, write_json
-from regrasp_mjx.core.config import JAW_MAX_DEG, SceneConfig
+from regrasp_mjx.core.config import JAW_MAX_DEG
 from regrasp_mjx.vision import layout as kp_layout
 from regrasp_mjx.vision.network import STRIDE, NetConfig, decode, init_params, make_network
 from regrasp_mjx.vision.stereo import CAUCHY_PX, ITERATIONS, PoseFit
@@ -37,8 +37,8 @@ OUTPUTS = (
     "error; pixels [B, 2, K, 2] (u, v) and confidence [B, 2, K] of the keypoints, camera 0 the left"
 )
 # Files written before the jaws could open (no "jaws" in the contract) were made and trained at the scene's
-# opening: the default scene's, the only one they were rendered with.
-OLD_JAWS = {"layout_deg": SceneConfig().jaw_angle_deg, "trained_deg": [SceneConfig().jaw_angle_deg] * 2}
+# opening of that time, the only one they were rendered with.
+OLD_JAWS = {"layout_deg": kp_layout.JAW_DEG_BEFORE_OPENING, "trained_deg": [kp_layout.JAW_DEG_BEFORE_OPENING] * 2}
 
 
 class EstimatorError(ValueError):

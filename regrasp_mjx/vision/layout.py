@@ -18,6 +18,10 @@ from regrasp_mjx.world.endoscope import OBJECTS, REGRASP_JAW_PREFIX, Keypoints
 from regrasp_mjx.world.scene import Scene
 
 TOOLS = (("grasp", 1, "grasp_capsules"), ("regrasp", 2, "regrasp_capsules"))
+# the regrasping jaws' opening of every estimator file and frame dataset written before the jaws could open
+# (they name none): the scene's of that time, a number of its own so that a later default scene does not
+# reinterpret them
+JAW_DEG_BEFORE_OPENING = 20.0
 
 
 def layout(scene: Scene, n_arc: int = endoscope.N_ARC) -> Keypoints:

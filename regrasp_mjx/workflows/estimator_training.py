@@ -19,7 +19,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.atomic import dumps, write_text
-from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.core.host_loop import eta, folder_lock
 from regrasp_mjx.vision import layout as kp_layout
 from regrasp_mjx.vision import pose_errors
@@ -126,7 +125,7 @@ def _chunks(*arrays: np.ndarray, size: int = 256):
 
 def base_jaw_deg(data: FrameDataset) -> float:
     """The regrasping jaws' opening the frames' keypoint model has [deg]."""
-    return float(data.meta.get("jaws", {}).get("base_deg", SceneConfig().jaw_angle_deg))
+    return float(data.meta.get("jaws", {}).get("base_deg", kp_layout.JAW_DEG_BEFORE_OPENING))
 
 
 def jaw_turns(data: FrameDataset) -> np.ndarray:

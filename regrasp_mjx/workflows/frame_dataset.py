@@ -61,7 +61,9 @@ ARRAYS = {  # name: (dtype, shape after N), K keypoints, H x W images
 }
 # arrays a file written before them lacks, with what they were then: the jaws at the scene's opening
 OPTIONAL = {
-    "jaw_deg": lambda meta, n: np.full(n, meta.get("jaws", {}).get("base_deg", SceneConfig().jaw_angle_deg), np.float32)
+    "jaw_deg": lambda meta, n: np.full(
+        n, meta.get("jaws", {}).get("base_deg", kp_layout.JAW_DEG_BEFORE_OPENING), np.float32
+    )
 }
 
 

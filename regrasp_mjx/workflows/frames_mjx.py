@@ -167,6 +167,12 @@ class MjxFrameRenderer:
         reads frames where they are drawn takes): ``qpos`` ``[nworld, nq]`` (the endoscope model's), the
         jaws' turn ``[nworld]`` (rad, half the opening's change), a seed per world; RGB ``[N, 2, H, W, 3]``
         (degraded), depth ``[N, 2, H, W]`` and classes ``[N, 2, H, W]``."""
+        # np.shape reads a device array's shape without copying it to the host
+        if np.shape(qpos) != (self.nworld, self.endo.model.nq) or np.shape(turn) != (self.nworld,):
+            raise ValueError(
+                f"qpos {np.shape(qpos)} and turn {np.shape(turn)} are not accepted: [{self.nworld}, {self.endo.model.nq}] "
+                f"and [{self.nworld}] (one per world)"
+            )
         d = dr.draws(seeds)
         return self._program(
             self._mx,

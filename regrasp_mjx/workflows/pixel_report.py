@@ -218,19 +218,23 @@ def run(
     seeds = episode_seeds(len(needle), args.seed)
     parts = out / f"{REPORT}.parts"
     manifest = _manifest(args)
-    # a shard holds its own lock (its batches are its own); the report's run holds the folder's and each
-    # shard's, so it neither runs beside a shard nor a shard beside it
-    locks = [folder_lock(parts / f"shard_{i}_of_{n}")] if n > 1 else [folder_lock(out)]
-    if n == 1 and parts.is_dir():
-        locks += [folder_lock(d) for d in sorted(parts.glob("shard_*_of_*")) if d.is_dir()]
+    # shards hold the folder together (a shared lock) and each its own shard's alone; the report's run holds
+    # the folder alone, so it never runs beside a shard, starting or late, nor a shard beside it
     with contextlib.ExitStack() as held:
-        for lock in locks:
-            held.enter_context(lock)
+        held.enter_context(folder_lock(out, shared=n > 1))
         if (parts / "manifest.json").is_file() and json.loads((parts / "manifest.json").read_text()) != manifest:
             raise PixelLoopError(
                 f"{parts} holds the batches of another run ({(parts / 'manifest.json').read_text().strip()}); "
                 "accepted: the same arguments to resume it, or remove that folder"
             )
+        if n > 1:  # shards of another N would run one another's batches
+            others = {int(d.name.rsplit("_", 1)[1]) for d in parts.glob("shard_*_of_*") if d.is_dir()} - {n}
+            if others:
+                raise PixelLoopError(
+                    f"{parts} holds shards of --shard I/{min(others)}; accepted: the same N, or the report's "
+                    "run (without --shard), which runs what is left"
+                )
+            held.enter_context(folder_lock(parts / f"shard_{i}_of_{n}"))
         write_json(parts / "manifest.json", manifest)
         chunks = [(a, min(a + args.batch, len(needle))) for a in range(0, len(needle), args.batch)]
         mine = [c for k, c in enumerate(chunks) if k % n == i]
