@@ -27,7 +27,8 @@ import time
 import numpy as np
 
 from regrasp_mjx.core.atomic import write_results
-from regrasp_mjx.envs.camera_errors import FPS, PRESETS
+from regrasp_mjx.envs.camera_errors import FPS
+from regrasp_mjx.envs.camera_presets import PRESETS
 from regrasp_mjx.envs.estimates import NeedleNoise
 from regrasp_mjx.envs.host import HostChecker
 from regrasp_mjx.inference.policy import load_policy

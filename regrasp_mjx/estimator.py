@@ -23,8 +23,8 @@ import sys
 from regrasp_mjx.core.atomic import dumps, output_file_problem, output_folder_problem, write_json
 from regrasp_mjx.core.config import TASKS, ConfigError
 from regrasp_mjx.core.host_loop import FolderInUse, run_command
-from regrasp_mjx.envs import camera_errors
-from regrasp_mjx.envs.camera_errors import PRESETS
+from regrasp_mjx.envs import camera_presets
+from regrasp_mjx.envs.camera_presets import PRESETS
 from regrasp_mjx.inference.policy import PolicyError, load_policy
 from regrasp_mjx.vision import error_fit
 from regrasp_mjx.vision.error_fit import FitError
@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             args.camera = NO_CAMERA if oracle else DEFAULT_CAMERA
         if args.camera != NO_CAMERA:  # a fitted preset's file read now: a missing one says how to make it
             try:
-                camera_errors.named(args.camera)
+                camera_presets.named(args.camera)
             except ConfigError as err:
                 p.error(f"--camera {args.camera}: {err}")
     elif args.command in ("train", "evaluate") and args.out is not None:

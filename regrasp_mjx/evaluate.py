@@ -30,8 +30,8 @@ import jax
 from regrasp_mjx.core.atomic import dumps
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import run_command
-from regrasp_mjx.envs import camera_errors
-from regrasp_mjx.envs.camera_errors import PRESETS
+from regrasp_mjx.envs import camera_presets
+from regrasp_mjx.envs.camera_presets import PRESETS
 from regrasp_mjx.inference import robustness, robustness_report, testset_report
 from regrasp_mjx.inference.closed_loop import MAX_LOOK
 from regrasp_mjx.inference.policy import DEFAULT_POLICY, PolicyError, load_policy, shipped_policies
@@ -82,7 +82,7 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         p.error(f"--camera {args.camera} is not accepted with --noise-mm, --bias-mm or --tool-noise-mm: it sets them")
     if args.camera is not None:  # a fitted preset's file read now: a missing one says how to make it
         try:
-            args.camera_errors = camera_errors.preset(args.camera)
+            args.camera_errors = camera_presets.preset(args.camera)
         except ConfigError as err:
             p.error(f"--camera {args.camera}: {err}")
     if args.look_frames is not None and (

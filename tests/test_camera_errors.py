@@ -15,8 +15,9 @@ import pytest
 from regrasp_mjx import load_policy
 from regrasp_mjx.core import geometry
 from regrasp_mjx.core.config import ConfigError
-from regrasp_mjx.envs import camera_errors
-from regrasp_mjx.envs.camera_errors import PRESETS, CameraErrors, Tracking
+from regrasp_mjx.envs import camera_errors, camera_presets
+from regrasp_mjx.envs.camera_errors import CameraErrors, Tracking
+from regrasp_mjx.envs.camera_presets import PRESETS
 from regrasp_mjx.envs.estimates import NeedleNoise
 from regrasp_mjx.robot.robot_errors import RobotErrors
 from regrasp_mjx.world.sampling import episode_poses
@@ -109,10 +110,10 @@ def test_the_presets_have_their_sources_sizes_and_bad_values_are_refused():
         (lambda: CameraErrors(depth_factor=0.5), r"depth_factor=0.5 is not accepted: a number in \[1, 20\]"),
         (lambda: CameraErrors(needle=0.5), "needle=0.5 is not accepted: a Tracking"),
         (
-            lambda: camera_errors.preset("lab-best"),
+            lambda: camera_presets.preset("lab-best"),
             "'lab-best' are not accepted: one of \\('lab-good', 'lab-typical', 'rendered'\\)",
         ),
-        (lambda: camera_errors.split(1.0, 0.8, 0.3, 15.0, 2.0, 2.0), "shares of the variance summing to <= 1"),
+        (lambda: camera_presets.split(1.0, 0.8, 0.3, 15.0, 2.0, 2.0), "shares of the variance summing to <= 1"),
     ):
         with pytest.raises(ConfigError, match=match):
             bad()

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs import camera_errors, camera_presets
 from regrasp_mjx.envs.camera_errors import CameraErrors, Tracking
 from regrasp_mjx.inference import camera_loop, jaw_opening
 from regrasp_mjx.inference.camera_loop import _fused_variance, _inverse, _vector, _view_sd_mm
@@ -68,7 +68,7 @@ def test_the_known_error_sizes_are_the_simulated_loop_s():
     """The float64 twins of ``fused_variance`` and ``view_sd_mm`` the loop decides by, against the jitted
     float32 ones, on a preset and on a model with every part."""
     reach = jaw.jaw_reach(load_scene())
-    for cam in (camera_errors.preset("lab-good"), CAMERA, CameraErrors.of(0.25, 0.25, 0.5)):
+    for cam in (camera_presets.preset("lab-good"), CAMERA, CameraErrors.of(0.25, 0.25, 0.5)):
         p = np.asarray(cam.numbers(), np.float64)
         pn, pt, k = p[:5], p[5:10], p[10]
         for n in (1, 10, 37, 300):

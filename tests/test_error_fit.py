@@ -16,8 +16,9 @@ import pytest
 from regrasp_mjx import compare, evaluate
 from regrasp_mjx import estimator as estimator_cli
 from regrasp_mjx.core.config import ConfigError
-from regrasp_mjx.envs import camera_errors
-from regrasp_mjx.envs.camera_errors import PRESETS, CameraErrors, Tracking
+from regrasp_mjx.envs import camera_presets
+from regrasp_mjx.envs.camera_errors import CameraErrors, Tracking
+from regrasp_mjx.envs.camera_presets import PRESETS
 from regrasp_mjx.inference import robustness, robustness_report
 from regrasp_mjx.vision import error_fit, variogram
 from regrasp_mjx.vision.error_fit import FitError, FrameErrors
@@ -156,17 +157,17 @@ def test_the_command_writes_a_file_the_rendered_preset_reads(errors, tmp_path, m
     assert code == 0, err
     assert "| needle (preset) |" in printed and "90 % intervals over 3 resamples" in printed
     saved = json.loads(out.read_text(), parse_constant=pytest.fail)  # strict JSON: no NaN
-    assert saved["format"] == camera_errors.FIT_FORMAT and saved["measured"]["estimator"] == "synthetic"
+    assert saved["format"] == camera_presets.FIT_FORMAT and saved["measured"]["estimator"] == "synthetic"
     lo, hi = saved["interval"]["needle.bias_mm"]
     assert lo <= hi and saved["interval"]["fitted"] == 3
-    camera = camera_errors.fitted(out)
+    camera = camera_presets.fitted(out)
     assert camera.needle == Tracking(**saved["preset"]["needle"]) and camera.depth_factor == pytest.approx(
         2.0, rel=0.05
     )
     # the preset by name, wherever lab-good is taken
-    monkeypatch.setitem(camera_errors.FITTED, "rendered", out)
+    monkeypatch.setitem(camera_presets.FITTED, "rendered", out)
     assert "rendered" in PRESETS and tuple(PRESETS)[-1] == "rendered"
-    assert camera_errors.preset("rendered") == camera == PRESETS["rendered"]
+    assert camera_presets.preset("rendered") == camera == PRESETS["rendered"]
     (condition,) = [c for c in robustness.NAMED_CONDITIONS if c.name == "camera: rendered"]
     assert condition not in robustness.ALL_CONDITIONS and condition.resolved_camera() == camera
     assert robustness.program_groups(("fused",), ("camera: rendered",)) == [("fused", ["camera: rendered"])]
@@ -178,12 +179,12 @@ def test_the_command_writes_a_file_the_rendered_preset_reads(errors, tmp_path, m
 
 def test_a_missing_or_broken_fit_file_is_refused(tmp_path, monkeypatch):
     missing = tmp_path / "none.json"
-    monkeypatch.setitem(camera_errors.FITTED, "rendered", missing)
+    monkeypatch.setitem(camera_presets.FITTED, "rendered", missing)
     with pytest.raises(ConfigError, match=r"no fitted file yet .*estimator fit --errors EVAL --out"):
-        camera_errors.preset("rendered")
+        camera_presets.preset("rendered")
     with pytest.raises(ConfigError, match="no fitted file yet"):
         PRESETS["rendered"]
-    assert PRESETS["lab-good"] == camera_errors.LITERATURE["lab-good"]  # the others unaffected
+    assert PRESETS["lab-good"] == camera_presets.LITERATURE["lab-good"]  # the others unaffected
     with pytest.raises(ConfigError, match="camera='lab-best' is not accepted: a CameraErrors or one of"):
         robustness.Condition("x", camera="lab-best")
     # the command lines refuse at once, with how to make the file
@@ -192,8 +193,8 @@ def test_a_missing_or_broken_fit_file_is_refused(tmp_path, monkeypatch):
     code, _, err = run_main(evaluate.main, ["--closed-loop", "--camera", "rendered"])
     assert code == 2 and "--camera rendered: camera errors 'rendered': no fitted file yet" in err
     good = {
-        "format": camera_errors.FIT_FORMAT,
-        "version": camera_errors.FIT_VERSION,
+        "format": camera_presets.FIT_FORMAT,
+        "version": camera_presets.FIT_VERSION,
         "preset": {
             "needle": dataclasses.asdict(Tracking(0.3, 0.1, 5.0, 0.1, 2.0)),
             "tools": dataclasses.asdict(Tracking(0.2)),
@@ -202,7 +203,7 @@ def test_a_missing_or_broken_fit_file_is_refused(tmp_path, monkeypatch):
     }
     path = tmp_path / "fit.json"
     path.write_text(json.dumps(good))
-    assert camera_errors.fitted(path) == CameraErrors(Tracking(0.3, 0.1, 5.0, 0.1, 2.0), Tracking(0.2), 2.0)
+    assert camera_presets.fitted(path) == CameraErrors(Tracking(0.3, 0.1, 5.0, 0.1, 2.0), Tracking(0.2), 2.0)
     needle = good["preset"]["needle"]
     for text, match in (
         ("{", "not strict JSON"),
@@ -219,7 +220,7 @@ def test_a_missing_or_broken_fit_file_is_refused(tmp_path, monkeypatch):
     ):
         path.write_text(text)
         with pytest.raises(ConfigError, match=f"is not a camera-error fit .*{match}"):
-            camera_errors.fitted(path)
+            camera_presets.fitted(path)
 
 
 def test_bad_per_frame_errors_are_refused(errors, tmp_path):

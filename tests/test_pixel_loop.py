@@ -22,7 +22,7 @@ import regrasp_mjx
 from regrasp_mjx import estimator as cli
 from regrasp_mjx.core.config import ConfigError
 from regrasp_mjx.core.host_loop import folder_lock
-from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs import camera_presets
 from regrasp_mjx.vision import stereo
 from regrasp_mjx.vision.estimator_file import load_estimator, save_estimator
 from regrasp_mjx.vision.network import NetConfig, init_params
@@ -445,7 +445,7 @@ def test_the_command_looks_by_the_camera_named(tmp_path, policy):
     rep = json.loads((tmp_path / "rendered" / "pixel_loop.json").read_text())
     settings = rep["settings"]
     assert settings["camera"] == "rendered" and settings["look_frames"] == policy.closed_loop_defaults["look_frames"]
-    assert settings["camera_sizes"] == dataclasses.asdict(camera_errors.preset("rendered"))
+    assert settings["camera_sizes"] == dataclasses.asdict(camera_presets.preset("rendered"))
     assert settings["jaws_drawn"] == "not drawn" and settings["jaw_open_deg"] == 40.0  # --no-render: no images
     table = (tmp_path / "rendered" / "pixel_loop.md").read_text()
     assert "looking up to 60 frames by the camera errors rendered" in table and "40 deg (no images drawn)" in table
@@ -471,7 +471,7 @@ def test_the_command_s_camera_default_and_bad_names(tmp_path, monkeypatch):
 
     out = ["--out", str(tmp_path / "o")]
     mine = tmp_path / "mine.json"  # a fit of one's own estimator's errors
-    mine.write_text(camera_errors.FITTED["rendered"].read_text())
+    mine.write_text(camera_presets.FITTED["rendered"].read_text())
     with monkeypatch.context() as m:
         m.setattr(pixel_report, "run", run)
         for argv in (
@@ -486,14 +486,14 @@ def test_the_command_s_camera_default_and_bad_names(tmp_path, monkeypatch):
             assert code == 2 and "stopped here" in err, err
     assert taken == ["rendered", None, "lab-good", "rendered", None, str(mine)]
     # a fit file of one's own: its sizes, as the preset fitted to the same file
-    args = pixel_report.LoopArgs("default", "oracle", camera=str(camera_errors.FITTED["rendered"]))
-    assert pixel_report.camera_of(args) == camera_errors.preset("rendered")
+    args = pixel_report.LoopArgs("default", "oracle", camera=str(camera_presets.FITTED["rendered"]))
+    assert pixel_report.camera_of(args) == camera_presets.preset("rendered")
     with pytest.raises(ConfigError, match="no fitted file yet"):
         pixel_report.camera_of(dataclasses.replace(args, camera=str(tmp_path / "none.json")))
     code, _, err = _cli(["loop", "--estimator", "oracle", "--camera", "lab-bad", *out])
     assert code == 2 and "argument --camera: 'lab-bad' is not accepted" in err
-    assert all(f"'{name}'" in err for name in (*camera_errors.PRESETS, "none")), err
-    monkeypatch.setitem(camera_errors.FITTED, "rendered", tmp_path / "no_fit.json")
+    assert all(f"'{name}'" in err for name in (*camera_presets.PRESETS, "none")), err
+    monkeypatch.setitem(camera_presets.FITTED, "rendered", tmp_path / "no_fit.json")
     code, _, err = _cli(["loop", "--estimator", str(tmp_path / "est"), *out])  # the default, without its file
     assert code == 2 and "--camera rendered: camera errors 'rendered': no fitted file yet" in err, err
     assert "python -m regrasp_mjx.estimator fit" in err

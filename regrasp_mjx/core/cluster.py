@@ -204,3 +204,46 @@ def _measure(address: str, started_here: bool, dashboard: str | None, memory_mib
 
 def _node_gpu_memory() -> list[float]:
     return [mib for _, mib in _smi_memory() if mib > 0]
+
+
+# ---- what the cluster holds now (its nodes may have changed since connect measured them) ----------------
+
+
+def live_nodes() -> list[dict[str, float]]:
+    """Each live node's CPUs and GPUs, as Ray counts them."""
+    return [
+        {"CPU": n["Resources"].get("CPU", 0.0), "GPU": n["Resources"].get("GPU", 0.0)}
+        for n in ray.nodes()
+        if n.get("Alive")
+    ]
+
+
+def amount(cpus: float, gpus: float) -> str:
+    return f"{cpus:g} CPU(s), {gpus:g} GPU(s)"
+
+
+def check_fits(asks: dict[str, dict[str, float]]) -> None:
+    """Refuses a job (its name: its task's ``num_cpus``/``num_gpus``) that no live node could ever run
+    (Ray would keep it waiting, without a word)."""
+    nodes = live_nodes()
+    for name, ask in asks.items():
+        if any(n["CPU"] >= ask["num_cpus"] and n["GPU"] >= ask["num_gpus"] for n in nodes):
+            continue
+        order = (lambda n: (n["GPU"], n["CPU"])) if ask["num_gpus"] else (lambda n: (n["CPU"], n["GPU"]))
+        big = max(nodes, key=order) if nodes else None
+        largest = f"the largest has {amount(big['CPU'], big['GPU'])}" if big else "none"
+        raise ConfigError(
+            f"job {name} asks for {amount(ask['num_cpus'], ask['num_gpus'])}, more than any live node of the "
+            f"cluster has ({len(nodes)} alive, {largest}; the cluster changed since it was measured, or a node "
+            "that could run it died): start a node that can, or run the command again to measure the cluster anew"
+        )
+
+
+def resources_now() -> str:
+    """One line: the live nodes, the most a node has, and the free and total CPUs and GPUs."""
+    nodes, free, total = live_nodes(), ray.available_resources(), ray.cluster_resources()
+    most = f", at most {amount(max(n['CPU'] for n in nodes), max(n['GPU'] for n in nodes))} a node" if nodes else ""
+    return (
+        f"{len(nodes)} live node(s){most}; free {free.get('CPU', 0.0):g} of {total.get('CPU', 0.0):g} CPU(s), "
+        f"{free.get('GPU', 0.0):g} of {total.get('GPU', 0.0):g} GPU(s)"
+    )

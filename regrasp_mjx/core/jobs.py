@@ -52,8 +52,7 @@ import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from regrasp_mjx.core import host_loop
-from regrasp_mjx.core.cluster import Cluster
-from regrasp_mjx.core.config import ConfigError
+from regrasp_mjx.core.cluster import Cluster, amount, check_fits, resources_now
 from regrasp_mjx.core.job_task import Board, JobFailed, TaskSpec, run_task
 
 HEARTBEAT_S = 60.0  # how often the running jobs' last log lines (or, none running, what the rest wait for) are shown
@@ -162,7 +161,7 @@ def run_jobs(
     if not todo:
         return {}
     asks = {j.name: resources(j, cluster) for j in todo}
-    _check_fits(todo, asks)
+    check_fits(asks)
     opened = {j.programs for j in jobs if j.programs and j.done()}  # compiled by a finished job: in the cache
     # on this process's node: the board must outlive any other node (a dead node's jobs run again elsewhere)
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
@@ -188,36 +187,6 @@ def run_jobs(
 
 def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
-
-
-def _live_nodes() -> list[dict[str, float]]:
-    """Each live node's CPUs and GPUs, as Ray counts them."""
-    return [
-        {"CPU": n["Resources"].get("CPU", 0.0), "GPU": n["Resources"].get("GPU", 0.0)}
-        for n in ray.nodes()
-        if n.get("Alive")
-    ]
-
-
-def _amount(cpus: float, gpus: float) -> str:
-    return f"{cpus:g} CPU(s), {gpus:g} GPU(s)"
-
-
-def _check_fits(todo: list[Job], asks: dict[str, dict[str, float]]) -> None:
-    """Refuses a job that no live node could ever run (Ray would keep it waiting, without a word)."""
-    nodes = _live_nodes()
-    for job in todo:
-        ask = asks[job.name]
-        if any(n["CPU"] >= ask["num_cpus"] and n["GPU"] >= ask["num_gpus"] for n in nodes):
-            continue
-        order = (lambda n: (n["GPU"], n["CPU"])) if ask["num_gpus"] else (lambda n: (n["CPU"], n["GPU"]))
-        big = max(nodes, key=order) if nodes else None
-        largest = f"the largest has {_amount(big['CPU'], big['GPU'])}" if big else "none"
-        raise ConfigError(
-            f"job {job.name} asks for {_amount(ask['num_cpus'], ask['num_gpus'])}, more than any live node of the "
-            f"cluster has ({len(nodes)} alive, {largest}; the cluster changed since it was measured, or a node "
-            "that could run it died): start a node that can, or run the command again to measure the cluster anew"
-        )
 
 
 def _opener(todo: list[Job], key: str) -> Job | None:
@@ -302,17 +271,13 @@ class _Schedule:
         """Which jobs wait for Ray to place them, for what, and what the cluster has now."""
         names = sorted(self.pending.values(), key=self.order.__getitem__)
         ready = [n for n in names if all(d not in self.refs or d in self.ended for d in self.jobs[n].needs)]
-        asks = [f"{n} ({_amount(self.asks[n]['num_cpus'], self.asks[n]['num_gpus'])})" for n in ready]
+        asks = [f"{n} ({amount(self.asks[n]['num_cpus'], self.asks[n]['num_gpus'])})" for n in ready]
         shown = ", ".join(asks[:6]) + (f" and {len(asks) - 6} more" if len(asks) > 6 else "")
         after = len(names) - len(ready)
-        nodes, free, total = _live_nodes(), ray.available_resources(), ray.cluster_resources()
-        most = f"at most {_amount(max(n['CPU'] for n in nodes), max(n['GPU'] for n in nodes))} a node" if nodes else ""
         return (
             f"no job running for {idle_s / 60:.1f} min: waiting for Ray to place {shown or 'none'}"
             + (f" ({after} more wait for the jobs they need)" if after else "")
-            + f"; the cluster now: {len(nodes)} live node(s){', ' + most if most else ''}; free "
-            + f"{free.get('CPU', 0.0):g} of {total.get('CPU', 0.0):g} CPU(s), "
-            + f"{free.get('GPU', 0.0):g} of {total.get('GPU', 0.0):g} GPU(s)"
+            + f"; the cluster now: {resources_now()}"
         )
 
     def _events(self) -> None:

@@ -46,7 +46,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs import camera_presets
 from regrasp_mjx.envs.camera_errors import CameraErrors
 from regrasp_mjx.inference import jaw_opening
 from regrasp_mjx.inference.closed_loop import MAX_LOOK, NEAR, tolerances
@@ -194,13 +194,13 @@ class CameraLoop:
             raise ValueError(
                 f"look_frames={look_frames!r} is not accepted without camera=: the loop looks while its fused "
                 "estimate is too uncertain by the camera's known error sizes; pass camera= (a CameraErrors or "
-                f"one of {tuple(camera_errors.PRESETS)})"
+                f"one of {tuple(camera_presets.PRESETS)})"
             )
         if isinstance(camera, str):
-            camera = camera_errors.preset(camera)
+            camera = camera_presets.preset(camera)
         if not isinstance(camera, (CameraErrors, type(None))):
             raise ValueError(
-                f"camera={camera!r} is not accepted: a CameraErrors, one of {tuple(camera_errors.PRESETS)} or None"
+                f"camera={camera!r} is not accepted: a CameraErrors, one of {tuple(camera_presets.PRESETS)} or None"
             )
         self.camera = CameraErrors() if camera is None else camera  # None: no error known
         ladder, self.jaw_sigmas = jaw_opening.check(policy, None, jaw_sigmas)

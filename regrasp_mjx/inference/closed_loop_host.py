@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from regrasp_mjx.core.config import ConfigError, is_number
-from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs import camera_presets
 from regrasp_mjx.envs.camera_errors import CameraErrors
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import NeedleNoise
@@ -223,10 +223,10 @@ def execute(
     if camera is None:
         camera = CameraErrors.of(noise.sigma_mm, noise.bias_mm, robot.tool_noise_mm)
     else:
-        camera = camera_errors.preset(camera) if isinstance(camera, str) else camera
+        camera = camera_presets.preset(camera) if isinstance(camera, str) else camera
         if not isinstance(camera, CameraErrors):
             raise ConfigError(
-                f"camera={camera!r} is not accepted: a CameraErrors or one of {tuple(camera_errors.PRESETS)}"
+                f"camera={camera!r} is not accepted: a CameraErrors or one of {tuple(camera_presets.PRESETS)}"
             )
         if noise != NeedleNoise() or robot.tool_noise_mm:
             raise ConfigError(

@@ -35,8 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from regrasp_mjx.core.config import ConfigError, is_number, require
-from regrasp_mjx.envs import camera_errors
-from regrasp_mjx.envs.camera_errors import FPS, LITERATURE, PRESETS, CameraErrors
+from regrasp_mjx.envs import camera_presets
+from regrasp_mjx.envs.camera_errors import FPS, CameraErrors
+from regrasp_mjx.envs.camera_presets import LITERATURE, PRESETS
 from regrasp_mjx.envs.env import RegraspEnv
 from regrasp_mjx.envs.estimates import NeedleNoise
 from regrasp_mjx.inference.policy_file import resolve
@@ -85,7 +86,7 @@ class Condition:
 
     def resolved_camera(self) -> CameraErrors | None:
         """The camera's errors, a preset's read now (:class:`ConfigError` if its fit file is missing)."""
-        return camera_errors.preset(self.camera) if isinstance(self.camera, str) else self.camera
+        return camera_presets.preset(self.camera) if isinstance(self.camera, str) else self.camera
 
 
 def check_condition(sigma_mm: float, bias_mm: float, clearance_mm: float) -> None:
@@ -149,7 +150,7 @@ ALL_CONDITIONS = CONDITIONS + ROBOT_CONDITIONS + CAMERA_CONDITIONS
 # frames), read from their files when measured: rows only asked for by name (``compare --robustness
 # --conditions "camera: rendered"``), not in the default table, so that a table runs before a fit exists
 FITTED_CONDITIONS = tuple(
-    Condition(f"camera: {name}", robot=CAMERA_ROBOT, modes=("fused",), camera=name) for name in camera_errors.FITTED
+    Condition(f"camera: {name}", robot=CAMERA_ROBOT, modes=("fused",), camera=name) for name in camera_presets.FITTED
 )
 NAMED_CONDITIONS = ALL_CONDITIONS + FITTED_CONDITIONS  # every row a table may be asked for by name
 

@@ -1,7 +1,7 @@
 """The camera-error model (:mod:`regrasp_mjx.envs.camera_errors`) fitted to an estimator's measured errors:
 each frame's position and orientation error of the needle and each tool on held-out rendered frames
 (``estimator evaluate`` writes them, :func:`save_frame_errors`), turned into the model's sizes, a fit file
-that the ``rendered`` preset reads (:func:`regrasp_mjx.envs.camera_errors.fitted`).
+that the ``rendered`` preset reads (:func:`regrasp_mjx.envs.camera_presets.fitted`).
 
 The model's error of one object is, per axis, a bias fixed for the episode, an AR(1) drift and white noise;
 :mod:`~regrasp_mjx.vision.variogram` fits their variances ``B, D, W`` and the drift's correlation time to
@@ -37,15 +37,8 @@ from typing import Any
 import numpy as np
 
 from regrasp_mjx.core.atomic import atomic_write, dumps, machine
-from regrasp_mjx.envs.camera_errors import (
-    FIT_FORMAT,
-    FIT_VERSION,
-    MAX_DEPTH_FACTOR,
-    MAX_DRIFT_FRAMES,
-    MAX_MM,
-    CameraErrors,
-    Tracking,
-)
+from regrasp_mjx.envs.camera_errors import MAX_DEPTH_FACTOR, MAX_DRIFT_FRAMES, MAX_MM, CameraErrors, Tracking
+from regrasp_mjx.envs.camera_presets import FIT_FORMAT, FIT_VERSION
 from regrasp_mjx.vision import variogram
 from regrasp_mjx.vision.pose_errors import GROSS_MM
 from regrasp_mjx.world.endoscope import OBJECTS
@@ -292,7 +285,7 @@ def fit(
     seed: int = 0,
 ) -> dict[str, Any]:
     """The fit file's content (strict JSON once written): ``preset`` (the model's sizes:
-    :func:`~regrasp_mjx.envs.camera_errors.fitted` reads them), each object's :func:`fit_object` and the
+    :func:`~regrasp_mjx.envs.camera_presets.fitted` reads them), each object's :func:`fit_object` and the
     tools' together, with ``bootstrap`` resamples of the episodes the preset's sizes' 90 % intervals
     (``interval``), the notes on what was clamped and what the model leaves out, and what was measured.
 

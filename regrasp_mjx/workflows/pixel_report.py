@@ -20,7 +20,7 @@ import numpy as np
 
 from regrasp_mjx.core.atomic import atomic_write, machine, write_json, write_results
 from regrasp_mjx.core.host_loop import eta, folder_lock
-from regrasp_mjx.envs import camera_errors
+from regrasp_mjx.envs import camera_presets
 from regrasp_mjx.envs.camera_errors import CameraErrors
 from regrasp_mjx.inference.robustness import policy_hash
 from regrasp_mjx.vision.estimator_file import Estimator, load_estimator
@@ -81,10 +81,10 @@ def problems(policy: Any, args: LoopArgs) -> tuple[str, np.ndarray, np.ndarray, 
 
 
 def camera_of(args: LoopArgs) -> CameraErrors | None:
-    """The camera's known error sizes ``args`` names: a preset of :data:`camera_errors.PRESETS`, or a fit
+    """The camera's known error sizes ``args`` names: a preset of :data:`camera_presets.PRESETS`, or a fit
     file (``.json``, what ``estimator fit`` wrote: an estimator of one's own); None: none. Raises
     :class:`ConfigError` on an unknown name or a missing or broken fit file (it says how to make one)."""
-    return None if args.camera is None else camera_errors.named(args.camera)
+    return None if args.camera is None else camera_presets.named(args.camera)
 
 
 def estimator_of(args: LoopArgs) -> Estimator | OracleEstimator:
