@@ -141,17 +141,10 @@ class Estimator:
     def jaw_turns(self, jaw_deg: Any, n: int) -> np.ndarray:
         """``[n]`` turns (rad) of the jaw tips' model points for openings ``jaw_deg`` (None: the layout's;
         one number or ``[n]``, degrees in (0, JAW_MAX_DEG]); an :class:`EstimatorError` for others."""
-        if jaw_deg is None:
-            return np.zeros(n, np.float32)
         try:
-            deg = np.broadcast_to(np.asarray(jaw_deg, np.float64), (n,))
-        except (TypeError, ValueError):
-            raise EstimatorError(
-                f"jaw_deg of shape {np.shape(jaw_deg)} is not accepted: one opening or one per stereo pair ({n})"
-            ) from None
-        if not np.all((deg > 0.0) & (deg <= JAW_MAX_DEG)):
-            raise EstimatorError(f"jaw_deg is not accepted: openings in (0, {JAW_MAX_DEG:g}] degrees")
-        return (np.radians(deg - self.layout_jaw_deg) / 2.0).astype(np.float32)
+            return kp_layout.jaw_turns(jaw_deg, n, self.layout_jaw_deg).astype(np.float32)
+        except ValueError as err:
+            raise EstimatorError(str(err)) from None
 
     def poses(self, rgb: Any, batch: int = 64, jaw_deg: Any = None) -> dict[str, np.ndarray]:
         """The poses of stereo pairs ``rgb`` ``[B, 2, H, W, 3]`` (uint8, left then right; one pair

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from regrasp_mjx.core.config import JAW_MAX_DEG
 from regrasp_mjx.vision.stereo import CAUCHY_PX, ITERATIONS, PoseFit, rectified
 from regrasp_mjx.world import endoscope
 from regrasp_mjx.world.endoscope import OBJECTS, REGRASP_JAW_PREFIX, Keypoints
@@ -46,6 +47,23 @@ def object_rows(kp: Keypoints) -> tuple[tuple[int, ...], ...]:
 def jaw_tips(kp: Keypoints) -> tuple[int, ...]:
     """The indices of the keypoints fixed on the regrasping jaws (they turn as the jaws open)."""
     return tuple(i for i, n in enumerate(kp.names) if n.startswith(REGRASP_JAW_PREFIX))
+
+
+def jaw_turns(jaw_deg, n: int, layout_deg: float) -> np.ndarray:
+    """``[n]`` turns (rad) of the jaw tips beyond a layout made at ``layout_deg`` for openings ``jaw_deg``
+    (None: the layout's; one number or ``[n]``, degrees in (0, JAW_MAX_DEG]): half the opening's change,
+    as the environment turns each jaw. ``ValueError`` says what is wrong with others."""
+    if jaw_deg is None:
+        return np.zeros(n)
+    try:
+        deg = np.broadcast_to(np.asarray(jaw_deg, np.float64), (n,))
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"jaw_deg of shape {np.shape(jaw_deg)} is not accepted: one opening or one per row ({n})"
+        ) from None
+    if not np.all((deg > 0.0) & (deg <= JAW_MAX_DEG)):
+        raise ValueError(f"jaw_deg is not accepted: openings in (0, {JAW_MAX_DEG:g}] degrees")
+    return np.radians(deg - layout_deg) / 2.0
 
 
 def pose_fit(

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from regrasp_mjx.core.config import JAW_MAX_DEG, SceneConfig
+from regrasp_mjx.core.config import SceneConfig
 from regrasp_mjx.vision import layout as kp_layout
 from regrasp_mjx.vision.stereo import PoseFit
 from regrasp_mjx.world import endoscope
@@ -111,15 +111,10 @@ class OracleEstimator:
     def jaw_turns(self, jaw_deg: Any, n: int) -> np.ndarray:
         """``[n]`` turns (rad) of the jaw tips beyond the layout's for openings ``jaw_deg`` (None: the
         layout's; one number or ``[n]`` degrees in (0, JAW_MAX_DEG])."""
-        if jaw_deg is None:
-            return np.zeros(n)
         try:
-            deg = np.broadcast_to(np.asarray(jaw_deg, np.float64), (n,))
-        except (TypeError, ValueError):
-            raise OracleError(f"jaw_deg of shape {np.shape(jaw_deg)} is not accepted: one opening or {n}") from None
-        if not np.all((deg > 0.0) & (deg <= JAW_MAX_DEG)):
-            raise OracleError(f"jaw_deg is not accepted: openings in (0, {JAW_MAX_DEG:g}] degrees")
-        return np.radians(deg - self.layout_jaw_deg) / 2.0
+            return kp_layout.jaw_turns(jaw_deg, n, self.layout_jaw_deg)
+        except ValueError as err:
+            raise OracleError(str(err)) from None
 
     def pixels(self, poses: Any, extrinsics: Any, jaw_deg: Any = None) -> np.ndarray:
         """The keypoints' true pixels ``[B, 2, K, 2]`` of objects at ``poses`` ``[B, 3, 7]`` (the needle,

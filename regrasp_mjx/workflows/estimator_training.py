@@ -130,7 +130,7 @@ def base_jaw_deg(data: FrameDataset) -> float:
 
 def jaw_turns(data: FrameDataset) -> np.ndarray:
     """Each row's jaw-tip turn for the pose fit ``[N]`` (rad): half its opening beyond the model's."""
-    return (np.radians(data.jaw_deg.astype(np.float64) - base_jaw_deg(data)) / 2.0).astype(np.float32)
+    return kp_layout.jaw_turns(data.jaw_deg, len(data.jaw_deg), base_jaw_deg(data)).astype(np.float32)
 
 
 def progress_line(row: dict[str, Any], epochs: int, eta_text: str) -> str:
